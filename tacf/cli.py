@@ -1,0 +1,46 @@
+"""The `tacf` command line: one console script, subcommands registered by their own modules.
+
+Each module in COMMAND_MODULES defines `register(subparsers)`, adding its subcommands with
+`set_defaults(func=...)`; `func(args)` returns the exit code. Those modules import only argparse-level
+things at import time, so `tacf publish` never loads the tracker and `tacf eval` never loads Zenoh.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+COMMAND_MODULES = (
+    "tacf.eval.cli",         # eval, track, bench tracker
+    "tacf_service.cli",      # serve
+    "tacf_clients.cli",      # publish, start, stop, reinit, list, status, watch, demo, dashboard
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tacf", description="TACF UAV tracker and Zenoh tracking service")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for module in COMMAND_MODULES:
+        try:
+            importlib.import_module(module).register(sub)
+        except ModuleNotFoundError as exc:
+            if exc.name is None or not module.startswith(exc.name):
+                raise
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
