@@ -1,0 +1,64 @@
+"""msgpack codec for the wire models: encode(model) -> bytes, decode(bytes, Model) -> model.
+
+decode never lets a msgpack or pydantic exception escape: every failure is a DecodeError with a `code`
+("too_large", "malformed", "invalid") and a one-line message fit for an Error reply or a log line.
+"""
+from __future__ import annotations
+
+from typing import TypeVar
+
+import msgpack
+import pydantic
+
+from .limits import MAX_FRAME_BYTES, MAX_PAYLOAD_BYTES
+from .models import WireModel
+
+M = TypeVar("M", bound=WireModel)
+
+#: Zenoh encoding string for payloads made here: zenoh.Encoding(MSGPACK_ENCODING).
+MSGPACK_ENCODING = "application/msgpack"
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid message of the expected model."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+def encode(model: WireModel) -> bytes:
+    """msgpack bytes of a model (bytes fields as msgpack bin, boxes as arrays)."""
+    return msgpack.packb(model.model_dump(mode="python"), use_bin_type=True)
+
+
+def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
+    """Parse and validate msgpack bytes as `model`; raise DecodeError on anything wrong."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise DecodeError("too_large", f"{model.__name__}: payload of {len(payload)} bytes exceeds "
+                                       f"{MAX_PAYLOAD_BYTES}")
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True,
+                              max_bin_len=MAX_FRAME_BYTES, max_str_len=1 << 20,
+                              max_array_len=1 << 16, max_map_len=1 << 10, max_ext_len=0)
+    except Exception as exc:  # msgpack raises several unrelated types (ValueError, ExtraData, TypeError...)
+        raise DecodeError("malformed", f"{model.__name__}: not msgpack ({type(exc).__name__}: "
+                                       f"{str(exc)[:200]})") from None
+    if not isinstance(obj, dict):
+        raise DecodeError("invalid", f"{model.__name__}: expected a map, got {type(obj).__name__}")
+    try:
+        return model.model_validate(obj)
+    except pydantic.ValidationError as exc:
+        raise DecodeError("invalid", f"{model.__name__}: {_summarise(exc)}") from None
+    except (TypeError, ValueError, RecursionError) as exc:  # e.g. unhashable keys deep inside
+        raise DecodeError("invalid", f"{model.__name__}: {type(exc).__name__}: {str(exc)[:200]}") from None
+
+
+def _summarise(exc: pydantic.ValidationError, limit: int = 3) -> str:
+    parts = []
+    for err in exc.errors(include_url=False, include_input=False)[:limit]:
+        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
+        parts.append(f"{loc}: {err['msg']}")
+    more = exc.error_count() - limit
+    return "; ".join(parts) + (f" (+{more} more)" if more > 0 else "")

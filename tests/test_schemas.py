@@ -1,0 +1,249 @@
+"""Wire schemas: models, msgpack codec, key layout, frame decoding, JSON Schema drift."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Frame, Health, InvalidIdError,
+                          InvalidKeyError, ListRequest, SessionInfo, SessionList, StartRequest, StopRequest,
+                          box_key, control_key, decode, encode, health_key, parse_liveliness_key,
+                          parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
+                          validate_id, validate_image_key)
+from tacf_schemas.export import drift
+from tacf_schemas.images import FrameError, decode_frame, encode_frame, jpeg_size, png_size
+from tacf_schemas.limits import MAX_FRAME_PIXELS
+
+
+def test_json_schemas_match_models():
+    assert drift() == [], "run `python -m tacf_schemas.export` to regenerate schemas/json"
+
+
+def test_models_import_light():
+    code = "import sys, tacf_schemas; print(sorted(m for m in ('numpy', 'cv2', 'zenoh') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def _sample_models():
+    health = Health(node="n1", sid="s1", state="tracking", stamp_ns=5, fps=9.5, processing_ms_mean=4.0,
+                    processing_ms_p95=6.0, frame_age_ms=12.0, frames_received=10, frames_processed=9,
+                    frames_dropped=1, pme=12.5, last_seq=9)
+    info = SessionInfo(node="n1", sid="s1", image_key="uav1/cam", profile="authors", state="tracking",
+                       box=(1.0, 2.0, 3.0, 4.0), created_ns=1, health=health)
+    return [
+        Frame(seq=1, stamp_ns=2, encoding="mono8", width=2, height=1, data=b"\x00\xff"),
+        StartRequest(image_key="uav1/cam", box=(1, 2, 3, 4), seq=7, overrides={"learning_rate": 0.02}),
+        StopRequest(sid="s1"), ListRequest(), health, info,
+        SessionList(node="n1", max_sessions=4, sessions=[info]),
+        BoxResult(node="n1", sid="s1", seq=3, stamp_ns=4, box=(1.5, 2.5, 3.5, 4.5), ok=True, pme=20.0,
+                  score=0.5, scale=1.0, processing_ms=3.2, published_ns=9),
+        Error(code="unknown_session", message="no session 'x'"),
+    ]
+
+
+@pytest.mark.parametrize("model", _sample_models(), ids=lambda m: type(m).__name__)
+def test_roundtrip(model):
+    payload = encode(model)
+    assert isinstance(payload, bytes)
+    assert decode(payload, type(model)) == model
+    assert msgpack.unpackb(payload)["v"] == 1
+
+
+def test_every_model_has_version_and_schema():
+    for name, model in MODELS.items():
+        assert "v" in model.model_fields, name
+        assert model.model_json_schema()["properties"]["v"]["const"] == 1
+
+
+def test_box_is_a_list_on_the_wire():
+    raw = msgpack.unpackb(encode(StartRequest(image_key="a", box=(1, 2, 3, 4))))
+    assert raw["box"] == [1.0, 2.0, 3.0, 4.0]
+
+
+@pytest.mark.parametrize("payload", [
+    b"", b"\xc1", b"\x93\x01\x02\x03", msgpack.packb("text"), msgpack.packb({"sid": 5}),
+    msgpack.packb({"sid": "a/b"}), msgpack.packb({"sid": "ok", "extra": 1}), msgpack.packb({"v": 2, "sid": "a"}),
+    msgpack.packb({1: 2}), b"\xdd\xff\xff\xff\xff",
+])
+def test_decode_errors_are_typed(payload):
+    with pytest.raises(DecodeError) as info:
+        decode(payload, StopRequest)
+    assert info.value.code in ("malformed", "invalid", "too_large")
+
+
+@pytest.mark.parametrize("box", [(0, 0, 0, 5), (0, 0, 5, -1), (math.nan, 0, 1, 1), (0, math.inf, 1, 1), (1, 2, 3)])
+def test_start_rejects_bad_boxes(box):
+    payload = msgpack.packb({"image_key": "cam", "box": list(box)})
+    with pytest.raises(DecodeError):
+        decode(payload, StartRequest)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.binary(max_size=256))
+def test_decode_fuzz_never_raises_anything_else(payload):
+    for model in (StartRequest, Frame, StopRequest, BoxResult):
+        try:
+            decode(payload, model)
+        except DecodeError:
+            pass
+
+
+json_like = st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.floats() | st.text(max_size=8)
+                         | st.binary(max_size=8), lambda c: st.lists(c, max_size=4)
+                         | st.dictionaries(st.text(max_size=8), c, max_size=4), max_leaves=12)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.dictionaries(st.sampled_from(["v", "image_key", "box", "seq", "sid", "profile", "overrides", "data",
+                                        "width", "height", "encoding", "stamp_ns"]), json_like, max_size=8))
+def test_decode_fuzz_structured(obj):
+    payload = msgpack.packb(obj, use_bin_type=True)
+    for model in (StartRequest, Frame):
+        try:
+            decode(payload, model)
+        except DecodeError:
+            pass
+
+
+# ---------------------------------------------------------------- keys
+
+def test_keys():
+    assert control_key("edge", "start") == "tacf/edge/control/start"
+    assert control_key("*", "list") == "tacf/*/control/list"
+    assert box_key("edge", "s-1") == "tacf/edge/sessions/s-1/box"
+    assert health_key("edge", "s_1") == "tacf/edge/sessions/s_1/health"
+    assert service_liveliness_key("edge") == "@tacf/edge"
+    assert session_liveliness_key("edge", "s1") == "@tacf/edge/s1"
+    assert parse_session_key("tacf/edge/sessions/s1/box") == ("edge", "s1", "box")
+    assert parse_liveliness_key("@tacf/edge/s1") == ("edge", "s1")
+    assert parse_liveliness_key("@tacf/edge") == ("edge", None)
+    with pytest.raises(ValueError):
+        control_key("edge", "explode")
+    with pytest.raises(InvalidIdError):
+        box_key("a/b", "s")
+
+
+@pytest.mark.parametrize("bad", ["", "a" * 65, "a/b", "a*", "*", "é", "a b", "a.b", None, 5])
+def test_invalid_ids(bad):
+    with pytest.raises(InvalidIdError):
+        validate_id(bad)
+
+
+def test_sanitise_id():
+    assert sanitise_id("my.host.local") == "my-host-local"
+    assert sanitise_id("...") == "edge"
+    validate_id(sanitise_id("x" * 300))
+
+
+@pytest.mark.parametrize("good", ["uav1/camera/front", "cam", "a-b_c.d/e:1"])
+def test_valid_image_keys(good):
+    assert validate_image_key(good) == good
+
+
+@pytest.mark.parametrize("bad", ["", "/cam", "cam/", "a//b", "cam/*", "cam/**", "ca$*m", "cam#1", "cam?x",
+                                 "cam 1", "@admin/x", "tacf/edge/x", "é", "a" * 300, "/".join("a" * 20), None])
+def test_invalid_image_keys(bad):
+    with pytest.raises(InvalidKeyError):
+        validate_image_key(bad)
+
+
+def test_valid_image_keys_are_valid_zenoh_keys():
+    zenoh = pytest.importorskip("zenoh")
+    for key in ["uav1/camera/front", "a-b_c.d/e:1", "x~y+z=w,v"]:
+        zenoh.KeyExpr(validate_image_key(key))
+
+
+# ---------------------------------------------------------------- frames
+
+@pytest.fixture(scope="module")
+def image():
+    rng = np.random.default_rng(0)
+    return rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+
+
+@pytest.mark.parametrize("encoding", ["jpeg", "png", "bgr8"])
+def test_frame_roundtrip(image, encoding):
+    frame = decode(encode(encode_frame(image, seq=3, encoding=encoding)), Frame)
+    out = decode_frame(frame)
+    assert out.shape == image.shape and out.dtype == np.uint8
+    if encoding != "jpeg":
+        assert np.array_equal(out, image)
+
+
+def test_mono8(image):
+    gray = np.ascontiguousarray(image[:, :, 0])
+    assert np.array_equal(decode_frame(encode_frame(gray, 1, "mono8")), gray)
+
+
+def test_header_sizes(image):
+    assert jpeg_size(encode_frame(image, 1, "jpeg").data) == (64, 48)
+    assert png_size(encode_frame(image, 1, "png").data) == (64, 48)
+
+
+def _frame(**fields):
+    base = dict(seq=1, stamp_ns=1, encoding="bgr8", width=4, height=2, data=bytes(24))
+    base.update(fields)
+    return Frame.model_construct(**base)   # bypass validation to test the decoder's own checks
+
+
+@pytest.mark.parametrize("fields,code", [
+    (dict(encoding="rgb16"), "unsupported_encoding"),
+    (dict(data=bytes(23)), "size_mismatch"),
+    (dict(encoding="mono8"), "size_mismatch"),
+    (dict(width=0, height=0, data=b""), "size_mismatch"),
+    (dict(width=8192, height=8192, data=b""), "too_large"),
+    (dict(encoding="jpeg", data=b"\xff\xd8\xff\xe0garbage"), "corrupt"),
+    (dict(encoding="jpeg", data=b"not a jpeg at all"), "corrupt"),
+    (dict(encoding="png", data=b"\x89PNG\r\n\x1a\nbroken"), "corrupt"),
+])
+def test_frame_errors(fields, code):
+    with pytest.raises(FrameError) as info:
+        decode_frame(_frame(**fields))
+    assert info.value.code == code
+
+
+def test_jpeg_size_mismatch_rejected_before_decoding(image):
+    frame = encode_frame(image, 1, "jpeg")
+    wrong = frame.model_copy(update={"width": 65})
+    with pytest.raises(FrameError) as info:
+        decode_frame(wrong)
+    assert info.value.code == "size_mismatch"
+
+
+def test_truncated_jpeg_body_is_corrupt_or_decodes(image):
+    data = encode_frame(image, 1, "jpeg").data
+    for cut in (20, 200, len(data) // 2):
+        try:
+            out = decode_frame(_frame(encoding="jpeg", width=64, height=48, data=data[:cut]))
+            assert out.shape == (48, 64, 3)
+        except FrameError:
+            pass
+
+
+def test_frame_model_caps_dimensions():
+    for w, h in [(0, 0), (100000, 10), (10, 100000)]:
+        with pytest.raises(DecodeError):
+            decode(msgpack.packb({"seq": 1, "stamp_ns": 1, "encoding": "bgr8", "width": w, "height": h,
+                                  "data": b""}), Frame)
+    assert 4096 * 4096 <= MAX_FRAME_PIXELS
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.sampled_from(["jpeg", "png"]), st.binary(max_size=512))
+def test_image_decoder_fuzz(encoding, data):
+    frame = _frame(encoding=encoding, width=16, height=16, data=data)
+    try:
+        decode_frame(frame)
+    except FrameError:
+        pass
+
+
+def test_control_ops():
+    assert set(CONTROL_OPS) == {"start", "stop", "reinit", "list", "status"}
