@@ -1,0 +1,172 @@
+"""`tacf eval`, `tacf track` and `tacf bench tracker`.
+
+Only argparse-level code runs at import time; numpy, OpenCV and the tracker load inside the commands.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TRACKERS = "tacf,kcc,opencv-csrt,opencv-kcf,opencv-mosse,opencv-mil"
+DEFAULT_OUT = Path("results/eval")
+DEFAULT_DATA = Path("../shared/data/sequences")
+
+
+def _names(values: list[str] | None, default: str) -> list[str]:
+    """Tracker names from `--trackers a,b c`: comma- or space-separated, duplicates dropped, each checked."""
+    from .trackers import check_name
+
+    raw = ",".join(values) if values else default
+    names = list(dict.fromkeys(n.strip() for n in raw.split(",") if n.strip()))
+    return [check_name(n) for n in names]
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "eval", help="one-pass evaluation of trackers on a dataset (success AUC, precision@20, FPS)",
+        description="Run trackers side by side over every sequence of ROOT (layout detected: generic, OTB, "
+                    "UAV123, UAVDT), write result files, summary.json, summary.md and plots.")
+    p.add_argument("root", metavar="ROOT", type=Path, help="dataset root folder")
+    p.add_argument("--trackers", nargs="+", metavar="NAME",
+                   help=f"tracker names, comma or space separated (default {DEFAULT_TRACKERS})")
+    p.add_argument("--sequences", metavar="GLOB", help="only sequences whose name matches (comma-separated globs)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help="output folder (default %(default)s)")
+    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes (default %(default)s)")
+    p.add_argument("--force", action="store_true", help="rerun pairs that already have a result file")
+    p.add_argument("--ablation", action="store_true",
+                   help="the paper's ablation: kcc, kcc+sa, kcc+da, kcc+ca, tacf (ignores --trackers)")
+    p.add_argument("--ranges", type=Path, metavar="FILE",
+                   help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_eval)
+
+    p = subparsers.add_parser("track", help="track one target through a video file or an image folder",
+                              description="Write one box line per frame and, with --video, an annotated mp4.")
+    p.add_argument("source", metavar="SOURCE", type=Path, help="video file or image folder")
+    p.add_argument("--box", required=True, metavar="X,Y,W,H", help="initial box, 0-based pixels, top-left x,y")
+    p.add_argument("--out", type=Path, metavar="FILE", help="box file (default: standard output)")
+    p.add_argument("--video", type=Path, metavar="FILE", help="annotated video to write (mp4v)")
+    p.add_argument("--profile", metavar="P", help="TACF profile: paper, authors, kcc (default: the default profile)")
+    p.add_argument("--tracker", metavar="NAME", help="any evaluation tracker name instead (e.g. opencv-csrt)")
+    p.set_defaults(func=cmd_track)
+
+    p = subparsers.add_parser("bench", help="speed benchmarks", description="Speed benchmarks.")
+    p.add_argument("what", choices=["tracker"], help="tracker: per-stream tracker speed on decoded frames")
+    p.add_argument("root", metavar="ROOT", type=Path, nargs="?",
+                   help=f"dataset root (default {DEFAULT_DATA} when present)")
+    p.add_argument("--json", type=Path, metavar="OUT", help="write the report here (default: standard output)")
+    p.add_argument("--sequences", metavar="GLOB",
+                   help="sequence globs (default: the UAV sequences, UAV123*/UAVDT*/DTB70*)")
+    p.add_argument("--trackers", nargs="+", metavar="NAME",
+                   help="trackers to time; the first is the subject (default tacf); opencv-csrt always runs")
+    p.add_argument("--max-frames", type=int, metavar="N", help="at most N frames per sequence")
+    p.set_defaults(func=cmd_bench)
+
+
+def _load(root: Path, pattern: str | None, ranges: Path | None = None):
+    from .datasets import detect_layout, load_sequences
+
+    layout = detect_layout(root)
+    kwargs = {"ranges": ranges} if ranges is not None and layout == "uav123" else {}
+    seqs = load_sequences(root, pattern, layout=layout, **kwargs)
+    log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
+    return seqs
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from . import report
+    from .runner import pending_jobs, run_jobs
+    from .trackers import ABLATION
+
+    try:
+        trackers = list(ABLATION) if args.ablation else _names(args.trackers, DEFAULT_TRACKERS)
+        seqs = _load(args.root, args.sequences, args.ranges)
+    except (ValueError, FileNotFoundError) as exc:
+        log.error("%s", exc)
+        return 2
+    if not seqs:
+        log.error("no sequences in %s%s", args.root, f" matching {args.sequences!r}" if args.sequences else "")
+        return 2
+    jobs = pending_jobs(trackers, seqs, args.out, force=args.force)
+    skipped = len(trackers) * len(seqs) - len(jobs)
+    if skipped:
+        log.info("%d (tracker, sequence) results already recorded in %s; skipped (use --force to rerun)",
+                 skipped, args.out)
+    outcomes = run_jobs(jobs, workers=args.workers, progress=not args.no_progress)
+    failed = [o for o in outcomes if o.error]
+    for o in failed:
+        log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
+    summary, reports = report.summarize(args.out, trackers, seqs)
+    paths = report.write_reports(args.out, summary, reports)
+    table = report.markdown_table(summary)
+    if args.ablation:
+        table = report.ablation_table(summary)
+        (Path(args.out) / "ablation.md").write_text(table)
+    sys.stdout.write(table)
+    log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
+    return 1 if failed else 0
+
+
+def cmd_track(args: argparse.Namespace) -> int:
+    from .trackers import check_name, make_tracker
+    from .video import parse_box, track_source
+
+    try:
+        box = parse_box(args.box)
+        if args.tracker and args.profile:
+            raise ValueError("give --profile or --tracker, not both")
+        name = check_name(args.tracker or (f"tacf-{args.profile}" if args.profile else "tacf"))
+        tracker = make_tracker(name)
+    except ValueError as exc:
+        log.error("%s", exc)
+        return 2
+    try:
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            with open(args.out, "w") as f:
+                n = track_source(tracker, args.source, box, f, args.video)
+        else:
+            n = track_source(tracker, args.source, box, sys.stdout, args.video)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        log.error("%s", exc)
+        return 2
+    log.info("%s: %d frames%s%s", name, n, f", boxes in {args.out}" if args.out else "",
+             f", video in {args.video}" if args.video else "")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import bench, is_uav
+
+    root = args.root
+    if root is None:
+        if not DEFAULT_DATA.is_dir():
+            log.error("no ROOT given and %s does not exist", DEFAULT_DATA)
+            return 2
+        root = DEFAULT_DATA
+    try:
+        trackers = _names(args.trackers, "tacf")
+        seqs = _load(root, args.sequences)
+    except (ValueError, FileNotFoundError) as exc:
+        log.error("%s", exc)
+        return 2
+    if not args.sequences:
+        seqs = [s for s in seqs if is_uav(s.name)]
+    if not seqs:
+        log.error("no sequences to benchmark in %s", root)
+        return 2
+    result = bench(trackers, seqs, max_frames=args.max_frames)
+    text = json.dumps(result, indent=2) + "\n"
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text)
+        log.info("%s: %.1f fps (%s %.1f fps); wrote %s", result["tracker"], result["fps"], "opencv-csrt",
+                 result["peers"].get("opencv-csrt", result)["fps"], args.json)
+    else:
+        sys.stdout.write(text)
+    return 0

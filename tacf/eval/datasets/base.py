@@ -1,0 +1,95 @@
+"""The Sequence record and the helpers every loader shares (box files, frame listing)."""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
+_SEPARATORS = re.compile(r"[,\s;]+")
+_DIGITS = re.compile(r"(\d+)")
+
+
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """One annotated sequence: `name` relative to the dataset root (posix, e.g. 'UAV123_10fps/wakeboard7'),
+    `frames` the image paths in order, `gt` an N x 4 float array of 0-based x,y,w,h (NaN rows = target absent)."""
+
+    name: str
+    frames: tuple[Path, ...]
+    gt: np.ndarray = field(repr=False)
+
+    def __post_init__(self) -> None:
+        gt = np.asarray(self.gt, dtype=np.float64)
+        if gt.ndim != 2 or gt.shape[1] != 4:
+            raise ValueError(f"{self.name}: ground truth must be N x 4, got shape {gt.shape}")
+        if len(self.frames) != len(gt):
+            raise ValueError(f"{self.name}: {len(self.frames)} frames but {len(gt)} ground-truth rows")
+        object.__setattr__(self, "frames", tuple(Path(p) for p in self.frames))
+        object.__setattr__(self, "gt", gt)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+
+def read_boxes(path: Path, one_based: bool = True) -> np.ndarray:
+    """N x 4 float boxes from a text file; comma, tab, space or semicolon separated; 'NaN' rows kept.
+
+    With `one_based` (the benchmarks' MATLAB convention) 1 is subtracted from x and y.
+    """
+    rows = []
+    for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = [p for p in _SEPARATORS.split(line) if p]
+        if len(parts) < 4:
+            raise ValueError(f"{path}:{lineno}: expected 4 numbers x,y,w,h, got {line!r}")
+        try:
+            rows.append([float(p) for p in parts[:4]])
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: not a number in {line!r}") from None
+    boxes = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
+    if one_based:
+        boxes[:, :2] -= 1.0
+    return boxes
+
+
+def write_boxes(path: Path, boxes: np.ndarray, one_based: bool = True) -> None:
+    """Write N x 4 0-based boxes as `%.3f` comma-separated lines (1-based when `one_based`), atomically."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4).copy()
+    if one_based:
+        boxes[:, :2] += 1.0
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    np.savetxt(tmp, boxes, fmt="%.3f", delimiter=",")
+    tmp.replace(path)
+
+
+def natural_key(path: Path) -> list:
+    """Sort key that orders img2.jpg before img10.jpg."""
+    return [int(t) if t.isdigit() else t.lower() for t in _DIGITS.split(Path(path).name)]
+
+
+def list_frames(folder: Path, prefix: str = "") -> list[Path]:
+    """The image files of a folder in natural order (optionally only those whose name starts with `prefix`)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    files = [p for p in folder.iterdir()
+             if p.suffix.lower() in IMAGE_SUFFIXES and p.name.startswith(prefix) and p.is_file()]
+    return sorted(files, key=natural_key)
+
+
+def make_sequence(name: str, frames: list[Path], gt: np.ndarray) -> Sequence:
+    """A Sequence, cutting frames or ground truth to the shorter of the two (with a warning)."""
+    n = min(len(frames), len(gt))
+    if len(frames) != len(gt):
+        log.warning("%s: %d frames but %d ground-truth rows; using the first %d", name, len(frames), len(gt), n)
+    return Sequence(name, tuple(frames[:n]), gt[:n])

@@ -1,0 +1,72 @@
+"""Sequence-per-folder layouts: the generic layout of ../shared/data/sequences and OTB.
+
+generic: <ROOT>/[<dataset>/...]<seq>/img/*.jpg + groundtruth.txt (comma-separated, 1-based);
+         VOT folders also hold groundtruth_poly.txt, which is ignored.
+OTB:     <ROOT>/<seq>/img/*.jpg + groundtruth_rect.txt (comma, tab or space separated, 1-based); the
+         two-target sequences ship groundtruth_rect.1.txt / .2.txt and become <seq>-1 / <seq>-2.
+Folders may be nested to any depth; a sequence's name is its folder path relative to ROOT.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import re
+from pathlib import Path
+
+from .base import Sequence, list_frames, make_sequence, read_boxes
+
+log = logging.getLogger(__name__)
+
+GENERIC_GT = "groundtruth.txt"
+OTB_GT = re.compile(r"^groundtruth_rect(?:\.(\d+))?\.txt$")
+# OTB sequences whose annotation starts later than image 1 (OTB-100 configSeqs: David starts at frame 300).
+OTB_FIRST_FRAME = {"david": 300}
+
+
+def _gt_files(folder: Path) -> list[tuple[str, Path]]:
+    """(suffix, path) of the ground-truth files of one folder: '' for a single target, '-N' for target N."""
+    names = set(os.listdir(folder))
+    if GENERIC_GT in names:
+        return [("", folder / GENERIC_GT)]
+    found = []
+    for name in sorted(names):
+        m = OTB_GT.match(name)
+        if m:
+            found.append((f"-{m.group(1)}" if m.group(1) else "", folder / name))
+    return found
+
+
+def _frames_of(folder: Path) -> list[Path]:
+    return list_frames(folder / "img") or list_frames(folder)
+
+
+def sequence_folders(root: Path) -> list[Path]:
+    """Every folder under `root` (including root) that holds a ground-truth file and frames, sorted."""
+    root = Path(root)
+    out = []
+    for dirpath, dirnames, _ in os.walk(root):
+        folder = Path(dirpath)
+        dirnames[:] = sorted(d for d in dirnames if d != "img" and not d.startswith("."))
+        if _gt_files(folder) and _frames_of(folder):
+            out.append(folder)
+    return sorted(out)
+
+
+def is_otb(root: Path) -> bool:
+    """True when the folders found use OTB's groundtruth_rect*.txt names."""
+    return any(not (f / GENERIC_GT).is_file() for f in sequence_folders(root))
+
+
+def load(root: Path) -> list[Sequence]:
+    """All sequences of a generic or OTB root."""
+    root = Path(root)
+    seqs = []
+    for folder in sequence_folders(root):
+        rel = folder.relative_to(root).as_posix()
+        base = folder.name if rel == "." else rel
+        frames = _frames_of(folder)
+        for suffix, gt_path in _gt_files(folder):
+            gt = read_boxes(gt_path)
+            first = OTB_FIRST_FRAME.get(folder.name.lower(), 1) if len(frames) > len(gt) else 1
+            seqs.append(make_sequence(base + suffix, frames[first - 1:], gt))
+    return seqs

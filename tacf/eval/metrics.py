@@ -1,0 +1,98 @@
+"""OTB one-pass-evaluation metrics: pure, vectorised numpy over N x 4 arrays of x,y,w,h boxes.
+
+Conventions (docs ECOSYSTEM.md 3.4, as got10k and pysot compute them):
+  - overlap: boxes cover [x, x + w) x [y, y + h); IoU = intersection / union;
+  - success at threshold t = fraction of frames with IoU > t, t in linspace(0, 1, 21); AUC = mean of the curve;
+  - centre = xy + (wh - 1) / 2; precision at t px = fraction of frames with centre distance <= t, t = 0..50;
+    the precision score is the value at 20 px;
+  - frames whose ground truth is NaN or empty (w or h <= 0) are skipped; a NaN prediction counts as a miss.
+Shifting both boxes by the same offset (0- vs 1-based) changes none of these numbers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+IOU_THRESHOLDS = np.linspace(0.0, 1.0, 21)
+DIST_THRESHOLDS = np.arange(0, 51, dtype=np.float64)
+PRECISION_AT = 20
+
+
+def _as_boxes(boxes) -> np.ndarray:
+    boxes = np.asarray(boxes, dtype=np.float64)
+    if boxes.ndim != 2 or boxes.shape[1] != 4:
+        raise ValueError(f"boxes must be N x 4 x,y,w,h, got shape {boxes.shape}")
+    return boxes
+
+
+def valid_mask(gt) -> np.ndarray:
+    """True for ground-truth rows that are finite with w > 0 and h > 0."""
+    gt = _as_boxes(gt)
+    return np.isfinite(gt).all(axis=1) & (gt[:, 2] > 0) & (gt[:, 3] > 0)
+
+
+def iou(pred, gt) -> np.ndarray:
+    """Per-frame intersection over union of two N x 4 xywh arrays (0 where either box is empty or NaN)."""
+    a, b = _as_boxes(pred), _as_boxes(gt)
+    if a.shape != b.shape:
+        raise ValueError(f"shape mismatch: {a.shape} vs {b.shape}")
+    left = np.maximum(a[:, 0], b[:, 0])
+    top = np.maximum(a[:, 1], b[:, 1])
+    right = np.minimum(a[:, 0] + a[:, 2], b[:, 0] + b[:, 2])
+    bottom = np.minimum(a[:, 1] + a[:, 3], b[:, 1] + b[:, 3])
+    inter = np.clip(right - left, 0, None) * np.clip(bottom - top, 0, None)
+    union = np.clip(a[:, 2], 0, None) * np.clip(a[:, 3], 0, None) + np.clip(b[:, 2], 0, None) * np.clip(b[:, 3], 0, None) - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(union > 0, inter / union, 0.0)
+    return np.nan_to_num(np.clip(out, 0.0, 1.0), nan=0.0)
+
+
+def center_error(pred, gt) -> np.ndarray:
+    """Per-frame Euclidean distance between box centres xy + (wh - 1) / 2 (inf where a box is NaN)."""
+    a, b = _as_boxes(pred), _as_boxes(gt)
+    ca = a[:, :2] + (a[:, 2:] - 1) / 2
+    cb = b[:, :2] + (b[:, 2:] - 1) / 2
+    d = np.hypot(*(ca - cb).T)
+    return np.where(np.isfinite(d), d, np.inf)
+
+
+def success_curve(pred, gt, thresholds=IOU_THRESHOLDS) -> np.ndarray:
+    """Fraction of valid-gt frames with IoU > t, for each threshold t (NaN curve when no frame is valid)."""
+    keep = valid_mask(gt)
+    if not keep.any():
+        return np.full(len(thresholds), np.nan)
+    ious = iou(_as_boxes(pred)[keep], _as_boxes(gt)[keep])
+    return (ious[:, None] > np.asarray(thresholds)[None, :]).mean(axis=0)
+
+
+def precision_curve(pred, gt, thresholds=DIST_THRESHOLDS) -> np.ndarray:
+    """Fraction of valid-gt frames with centre distance <= t px, for each threshold t."""
+    keep = valid_mask(gt)
+    if not keep.any():
+        return np.full(len(thresholds), np.nan)
+    dist = center_error(_as_boxes(pred)[keep], _as_boxes(gt)[keep])
+    return (dist[:, None] <= np.asarray(thresholds)[None, :]).mean(axis=0)
+
+
+def auc(curve) -> float:
+    """Area under the success curve: the mean of its points."""
+    return float(np.mean(curve))
+
+
+@dataclass(frozen=True)
+class Scores:
+    """Scores of one sequence: AUC, precision at 20 px, both curves and the number of frames scored."""
+
+    auc: float
+    precision20: float
+    success: np.ndarray
+    precision: np.ndarray
+    frames_scored: int
+
+
+def score(pred, gt) -> Scores:
+    """All OPE scores of one predicted track against its ground truth."""
+    succ = success_curve(pred, gt)
+    prec = precision_curve(pred, gt)
+    return Scores(auc(succ), float(prec[PRECISION_AT]), succ, prec, int(valid_mask(gt).sum()))

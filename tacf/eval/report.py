@@ -1,0 +1,174 @@
+"""Reports over a result tree: summary.json, a markdown table, success and precision plots.
+
+summary.json shape (read by other tools; docs DESIGN.md 6):
+  {"trackers": {NAME: {"auc": f, "precision20": f, "fps": f, "frames": n,
+                       "sequences": {SEQ: {"auc": f, "precision20": f, "fps": f, "frames": n}}}}}
+A tracker's auc and precision20 are the means over its sequences (as benchmark tables report them);
+fps = total frames / total tracker seconds; frames = total frames tracked.
+"""
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import metrics
+from .datasets import Sequence
+from .runner import read_run, result_path
+
+log = logging.getLogger(__name__)
+
+ABLATION_LABELS = {"kcc": "KCC (baseline)", "kcc+sa": "KCC + SA", "kcc+da": "KCC + DA", "kcc+ca": "KCC + CA",
+                   "tacf": "TACF (SA + DA + CA)"}
+
+
+@dataclass
+class TrackerReport:
+    """Scores of one tracker: per-sequence entries plus the mean curves for the plots."""
+
+    name: str
+    sequences: dict = field(default_factory=dict)
+    success: list = field(default_factory=list)
+    precision: list = field(default_factory=list)
+    frames: int = 0
+    seconds: float = 0.0
+
+    def entry(self) -> dict:
+        aucs = [s["auc"] for s in self.sequences.values() if np.isfinite(s["auc"])]
+        precs = [s["precision20"] for s in self.sequences.values() if np.isfinite(s["precision20"])]
+        return {"auc": float(np.mean(aucs)) if aucs else float("nan"),
+                "precision20": float(np.mean(precs)) if precs else float("nan"),
+                "fps": self.frames / self.seconds if self.seconds > 0 else float("nan"),
+                "frames": int(self.frames),
+                "sequences": self.sequences}
+
+    def mean_curves(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.nanmean(self.success, axis=0), np.nanmean(self.precision, axis=0)
+
+
+def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> TrackerReport:
+    """Score every recorded result of `tracker` against the sequences' ground truth."""
+    rep = TrackerReport(tracker)
+    for seq in sequences:
+        if not result_path(out_dir, tracker, seq.name).is_file():
+            log.warning("%s: no result for %s; left out of the summary", tracker, seq.name)
+            continue
+        boxes, times = read_run(out_dir, tracker, seq.name)
+        if len(boxes) != len(seq):
+            log.warning("%s/%s: %d result rows for %d frames; left out (rerun with --force)",
+                        tracker, seq.name, len(boxes), len(seq))
+            continue
+        s = metrics.score(boxes, seq.gt)
+        seconds = float(np.nansum(times))
+        rep.sequences[seq.name] = {"auc": s.auc, "precision20": s.precision20,
+                                   "fps": len(boxes) / seconds if seconds > 0 else float("nan"),
+                                   "frames": len(boxes)}
+        rep.success.append(s.success), rep.precision.append(s.precision)
+        rep.frames += len(boxes)
+        rep.seconds += seconds
+    return rep
+
+
+def summarize(out_dir: Path, trackers: list[str], sequences: list[Sequence]) -> tuple[dict, list[TrackerReport]]:
+    """(summary dict in the summary.json shape, the per-tracker reports)."""
+    reports = [score_tracker(out_dir, t, sequences) for t in trackers]
+    return {"trackers": {r.name: r.entry() for r in reports}}, reports
+
+
+def _ranked(summary: dict) -> list[tuple[str, dict]]:
+    return sorted(summary["trackers"].items(), key=lambda kv: -np.nan_to_num(kv[1]["auc"], nan=-1.0))
+
+
+def _f(v: float, digits: int = 3) -> str:
+    return "n/a" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def markdown_table(summary: dict) -> str:
+    """Trackers sorted by AUC, then the AUC of every sequence."""
+    lines = ["| tracker | AUC | precision@20 | FPS | frames | sequences |", "|---|---|---|---|---|---|"]
+    ranked = _ranked(summary)
+    for name, t in ranked:
+        lines.append(f"| {name} | {_f(t['auc'])} | {_f(t['precision20'])} | {_f(t['fps'], 1)} | {t['frames']} "
+                     f"| {len(t['sequences'])} |")
+    seq_names = sorted({s for _, t in ranked for s in t["sequences"]})
+    if seq_names:
+        lines += ["", "Success AUC per sequence:", "",
+                  "| sequence | " + " | ".join(n for n, _ in ranked) + " |",
+                  "|---|" + "---|" * len(ranked)]
+        for s in seq_names:
+            cells = [_f(t["sequences"][s]["auc"]) if s in t["sequences"] else "-" for _, t in ranked]
+            lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def ablation_table(summary: dict) -> str:
+    """The paper's ablation rows (KCC, +SA, +DA, +CA, all three) with the AUC gain over KCC."""
+    trackers = summary["trackers"]
+    base = trackers.get("kcc", {}).get("auc", float("nan"))
+    lines = ["| variant | tracker | AUC | gain over KCC | precision@20 | FPS |", "|---|---|---|---|---|---|"]
+    for name, label in ABLATION_LABELS.items():
+        if name not in trackers:
+            continue
+        t = trackers[name]
+        gain = t["auc"] - base
+        lines.append(f"| {label} | {name} | {_f(t['auc'])} | {'+' if gain >= 0 else ''}{_f(gain)} "
+                     f"| {_f(t['precision20'])} | {_f(t['fps'], 1)} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
+    """success_plot.png and precision_plot.png: one mean curve per tracker, best first in the legend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    reports = [r for r in reports if r.success]
+    paths = []
+    specs = [("success_plot.png", "Success plot of OPE", "Overlap threshold", "Success rate",
+              metrics.IOU_THRESHOLDS, 0, lambda s, p: float(np.mean(s)), "AUC"),
+             ("precision_plot.png", "Precision plot of OPE", "Location error threshold (px)", "Precision",
+              metrics.DIST_THRESHOLDS, 1, lambda s, p: float(p[metrics.PRECISION_AT]), "P@20")]
+    for fname, title, xlabel, ylabel, xs, which, key, label in specs:
+        curves = []
+        for r in reports:
+            succ, prec = r.mean_curves()
+            curves.append((key(succ, prec), r.name, (succ, prec)[which]))
+        curves.sort(key=lambda c: -c[0])
+        fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
+        for value, name, ys in curves:
+            ax.plot(xs, ys, label=f"{name} [{label} {value:.3f}]", linewidth=1.8)
+        ax.set(title=title, xlabel=xlabel, ylabel=ylabel, xlim=(xs[0], xs[-1]), ylim=(0, 1.01))
+        ax.grid(alpha=0.3)
+        if curves:
+            ax.legend(loc="lower left" if which == 0 else "lower right", fontsize=8)
+        fig.tight_layout()
+        path = Path(out_dir) / fname
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def _finite(obj):
+    """NaN/inf floats become null so that strict JSON readers accept the file."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) -> dict[str, Path]:
+    """summary.json, summary.md and the two plots in `out_dir`."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    js = out_dir / "summary.json"
+    js.write_text(json.dumps(_finite(summary), indent=2, allow_nan=False) + "\n")
+    md = out_dir / "summary.md"
+    md.write_text(markdown_table(summary))
+    success, precision = plot_curves(reports, out_dir)
+    return {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}

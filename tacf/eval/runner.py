@@ -1,0 +1,167 @@
+"""The frame loop, written once: run trackers over sequences, time them, write resumable result files.
+
+Result tree (got10k layout, docs ECOSYSTEM.md 3.5):
+    <out>/<tracker>/<seq>.txt                  x,y,w,h per frame, 1-based, %.3f, line 1 = the init box
+    <out>/<tracker>/times/<seq>_time.txt       seconds of tracker time per frame (init on line 1)
+<seq> is the sequence name relative to the dataset root, so it may contain folders (UAV123_10fps/wakeboard7).
+Timing covers the init/update calls only (time.perf_counter), never the image decoding.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .datasets import Sequence, read_boxes, write_boxes
+from .trackers import BoxTracker, make_tracker
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrackRun:
+    """One tracker over one frame stream: N x 4 0-based boxes (row 0 = init box), seconds, ok and pme per frame."""
+
+    boxes: np.ndarray
+    times: np.ndarray
+    ok: np.ndarray
+    pme: np.ndarray
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """A BGR uint8 image; FileNotFoundError instead of OpenCV's silent None."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return img
+
+
+def iter_frames(paths: Iterable[Path]) -> Iterator[np.ndarray]:
+    for p in paths:
+        yield read_frame(p)
+
+
+def track_frames(tracker: BoxTracker, frames: Iterable[np.ndarray], init_box) -> TrackRun:
+    """Init on the first frame with `init_box`, update on the rest; only the tracker calls are timed."""
+    boxes, times, oks, pmes = [], [], [], []
+    it = iter(frames)
+    first = next(it, None)
+    if first is None:
+        raise ValueError("no frames to track")
+    box = tuple(float(v) for v in init_box)
+    t0 = time.perf_counter()
+    tracker.init(first, box)
+    times.append(time.perf_counter() - t0)
+    boxes.append(box), oks.append(True), pmes.append(np.nan)
+    for frame in it:
+        t0 = time.perf_counter()
+        box = tracker.update(frame)
+        times.append(time.perf_counter() - t0)
+        boxes.append(tuple(float(v) for v in box)), oks.append(bool(tracker.ok)), pmes.append(float(tracker.pme))
+    return TrackRun(np.asarray(boxes, dtype=np.float64), np.asarray(times), np.asarray(oks), np.asarray(pmes))
+
+
+def track_sequence(tracker: BoxTracker, seq: Sequence) -> TrackRun:
+    """One-pass evaluation: init from the first ground-truth box, decode frames lazily outside the timer."""
+    if not np.isfinite(seq.gt[0]).all() or seq.gt[0, 2] <= 0 or seq.gt[0, 3] <= 0:
+        raise ValueError(f"{seq.name}: the first ground-truth box {seq.gt[0].tolist()} cannot start a track")
+    return track_frames(tracker, iter_frames(seq.frames), seq.gt[0])
+
+
+def result_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
+    return Path(out_dir) / tracker / f"{seq_name}.txt"
+
+
+def times_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
+    return Path(out_dir) / tracker / "times" / f"{seq_name}_time.txt"
+
+
+def write_run(out_dir: Path, tracker: str, seq_name: str, run: TrackRun) -> None:
+    """Times first, boxes last: the box file's presence marks a complete, resumable result."""
+    tp = times_path(out_dir, tracker, seq_name)
+    tp.parent.mkdir(parents=True, exist_ok=True)
+    tmp = tp.with_name(tp.name + ".part")
+    np.savetxt(tmp, run.times, fmt="%.6f")
+    tmp.replace(tp)
+    write_boxes(result_path(out_dir, tracker, seq_name), run.boxes, one_based=True)
+
+
+def read_run(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(0-based N x 4 boxes, seconds per frame) of a recorded result; times are NaN if their file is missing."""
+    boxes = read_boxes(result_path(out_dir, tracker, seq_name), one_based=True)
+    tp = times_path(out_dir, tracker, seq_name)
+    times = np.atleast_1d(np.loadtxt(tp, ndmin=1)) if tp.is_file() else np.full(len(boxes), np.nan)
+    return boxes, times
+
+
+@dataclass(frozen=True)
+class Job:
+    tracker: str
+    seq: Sequence
+    out_dir: Path
+
+
+@dataclass(frozen=True)
+class JobOutcome:
+    tracker: str
+    seq_name: str
+    frames: int
+    seconds: float
+    error: str | None = None
+
+
+def run_job(job: Job) -> JobOutcome:
+    """Run one (tracker, sequence) pair and record it; errors are returned, not raised."""
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)  # one core per job: fair per-stream numbers and no oversubscription
+        run = track_sequence(make_tracker(job.tracker), job.seq)
+        write_run(job.out_dir, job.tracker, job.seq.name, run)
+        return JobOutcome(job.tracker, job.seq.name, len(run.boxes), float(run.times.sum()))
+    except Exception as exc:  # noqa: BLE001 - one failed pair must not stop the others
+        log.exception("%s on %s failed", job.tracker, job.seq.name)
+        return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}")
+
+
+def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, force: bool = False) -> list[Job]:
+    """The (tracker, sequence) pairs without a recorded result (all of them with `force`)."""
+    jobs = []
+    for name in trackers:
+        for seq in sequences:
+            if force or not result_path(out_dir, name, seq.name).is_file():
+                jobs.append(Job(name, seq, Path(out_dir)))
+            else:
+                log.debug("%s/%s already recorded; skipped", name, seq.name)
+    return jobs
+
+
+def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[JobOutcome]:
+    """Run jobs in this process (workers <= 1) or in a spawn-context pool, with a tqdm progress bar."""
+    from tqdm import tqdm
+
+    outcomes = []
+    bar = tqdm(total=len(jobs), desc="eval", unit="seq", disable=not progress or not jobs)
+    try:
+        if workers <= 1 or len(jobs) <= 1:
+            for job in jobs:
+                bar.set_postfix_str(f"{job.tracker} {job.seq.name}")
+                outcomes.append(run_job(job))
+                bar.update()
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ctx.Pool(min(workers, len(jobs))) as pool:
+                for outcome in pool.imap_unordered(run_job, jobs):
+                    bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
+                    outcomes.append(outcome)
+                    bar.update()
+    finally:
+        bar.close()
+    return outcomes

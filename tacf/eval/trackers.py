@@ -1,0 +1,145 @@
+"""One tracker interface for everything evaluated, adapters, and the registry of tracker names.
+
+Interface (got10k's shape): `init(frame_bgr, box)` with box = 0-based x,y,w,h floats, then
+`update(frame_bgr) -> box` per frame. After `update`, `ok` (bool) and `pme` (float, NaN when the tracker
+has no such measure) describe the last frame. A lost target keeps the last box; it never raises.
+
+Names:
+  tacf                  TACF with the default profile (TrackerConfig.profile())
+  tacf-<profile>        TACF with a named profile: tacf-paper, tacf-authors, tacf-kcc
+  kcc                   the ablation baseline (all three attentions off)
+  kcc+sa, kcc+da+ca...  kcc with the named attentions on: sa = spatiotemporal, da = dimensional, ca = context
+  opencv-csrt, opencv-kcf, opencv-mosse, opencv-mil   OpenCV's trackers (opencv-contrib)
+  identity              returns the first box every frame (smoke tests)
+"""
+from __future__ import annotations
+
+import math
+from typing import Protocol, runtime_checkable
+
+Box = tuple[float, float, float, float]
+
+ATTENTIONS = {"sa": "spatiotemporal_attention", "da": "dimensional_attention", "ca": "context_attention"}
+OPENCV_TRACKERS = ("opencv-csrt", "opencv-kcf", "opencv-mosse", "opencv-mil")
+ABLATION = ("kcc", "kcc+sa", "kcc+da", "kcc+ca", "tacf")
+
+
+@runtime_checkable
+class BoxTracker(Protocol):
+    name: str
+    ok: bool
+    pme: float
+
+    def init(self, frame, box: Box) -> None: ...
+
+    def update(self, frame) -> Box: ...
+
+
+class IdentityTracker:
+    """Reports the initial box on every frame."""
+
+    def __init__(self, name: str = "identity") -> None:
+        self.name, self.ok, self.pme = name, True, math.nan
+        self._box: Box | None = None
+
+    def init(self, frame, box: Box) -> None:
+        self._box = tuple(float(v) for v in box)
+
+    def update(self, frame) -> Box:
+        return self._box
+
+
+class TACFAdapter:
+    """tacf.Tracker behind the evaluation interface."""
+
+    def __init__(self, name: str, config) -> None:
+        from tacf import Tracker
+
+        self.name, self.config, self.ok, self.pme = name, config, True, math.nan
+        self._tracker = Tracker(config)
+
+    def init(self, frame, box: Box) -> None:
+        self._tracker.init(frame, tuple(float(v) for v in box))
+        self.ok, self.pme = True, math.nan
+
+    def update(self, frame) -> Box:
+        r = self._tracker.update(frame)
+        self.ok, self.pme = bool(r.ok), float(r.pme)
+        return tuple(float(v) for v in r.box)
+
+
+def _opencv_factory(kind: str):
+    import cv2
+
+    if kind == "csrt":
+        return cv2.TrackerCSRT.create
+    if kind == "kcf":
+        return cv2.TrackerKCF.create
+    if kind == "mil":
+        return cv2.TrackerMIL.create
+    if kind == "mosse":
+        return cv2.legacy.TrackerMOSSE_create
+    raise ValueError(f"unknown OpenCV tracker {kind!r}")
+
+
+class OpenCVAdapter:
+    """An OpenCV tracker; recreated on every init (OpenCV ignores a second init), last box kept when lost."""
+
+    def __init__(self, name: str, kind: str) -> None:
+        self.name, self.ok, self.pme = name, True, math.nan
+        self._create = _opencv_factory(kind)
+        self._legacy = kind == "mosse"
+        self._tracker = None
+        self._box: Box | None = None
+
+    def init(self, frame, box: Box) -> None:
+        x, y, w, h = (float(v) for v in box)
+        self._tracker = self._create()
+        rect = (x, y, w, h) if self._legacy else (round(x), round(y), max(1, round(w)), max(1, round(h)))
+        self._tracker.init(frame, rect)
+        self._box, self.ok = (x, y, w, h), True
+
+    def update(self, frame) -> Box:
+        ok, rect = self._tracker.update(frame)
+        self.ok = bool(ok)
+        if ok:
+            self._box = tuple(float(v) for v in rect)
+        return self._box
+
+
+def tacf_config(name: str):
+    """The TrackerConfig a TACF-family name stands for; ValueError for other names."""
+    from tacf.config import TrackerConfig
+
+    if name == "tacf":
+        return TrackerConfig.profile()
+    if name.startswith("tacf-"):
+        return TrackerConfig.profile(name[len("tacf-"):])
+    parts = name.split("+")
+    if parts[0] != "kcc":
+        raise ValueError(f"not a TACF tracker name: {name!r}")
+    unknown = [p for p in parts[1:] if p not in ATTENTIONS]
+    if unknown or len(set(parts[1:])) != len(parts[1:]):
+        raise ValueError(f"bad module list in {name!r}: use kcc followed by +sa, +da, +ca (each once)")
+    return TrackerConfig.profile("kcc", **{ATTENTIONS[p]: True for p in parts[1:]})
+
+
+def check_name(name: str) -> str:
+    """`name` if it is a known tracker name (without building the tracker), else ValueError."""
+    if name == "identity" or name in OPENCV_TRACKERS:
+        return name
+    try:
+        tacf_config(name)
+    except ValueError as exc:
+        raise ValueError(f"unknown tracker {name!r} ({exc}); known: tacf, tacf-<profile>, kcc[+sa][+da][+ca], "
+                         f"{', '.join(OPENCV_TRACKERS)}, identity") from None
+    return name
+
+
+def make_tracker(name: str) -> BoxTracker:
+    """A fresh tracker for a registry name."""
+    if name == "identity":
+        return IdentityTracker()
+    if name in OPENCV_TRACKERS:
+        return OpenCVAdapter(name, name.split("-", 1)[1])
+    return TACFAdapter(name, tacf_config(check_name(name)))
