@@ -1,0 +1,176 @@
+"""DSST 1-D scale filter (ALGORITHM.md section 11; patches per section 3.4; pipeline steps 12 and 14f of section 7).
+
+The filter is a single-channel correlation filter along the scale axis: one feature vector per candidate scale,
+stacked into a matrix, Fourier-transformed over the scale axis only. Detection picks the scale whose response is
+the first maximum and multiplies the current scale factor by it; training keeps a running numerator and
+denominator (EMA with `scale_learning_rate`, set at the first call).
+
+Layout: MATLAB keeps Xs as (D, num_scales); here it is stored transposed, (num_scales, D), so each scale's
+feature vector is contiguous, and the FFT runs over axis 0. Each vector is flattened in MATLAB's column-major
+order (row fastest, then column, then channel) for parity; the filter itself does not depend on that order.
+The feature vectors are real, so a real FFT (`rfft`/`irfft` with n = num_scales) gives the same response as the
+full complex FFT at half the cost.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import scipy.fft
+from scipy.signal.windows import hann
+
+from tacf.config import TrackerConfig
+from tacf.features import fhog
+from tacf.geometry import crop_replicate, resize_auto
+
+FeatureFn = Callable[[np.ndarray, int], np.ndarray]
+"""features(patch float32 HxW or HxWxC with raw 0-255 values, cell_size) -> (C, H // cell, W // cell)."""
+
+SCALE_FEATURE_CHANNELS = 31  # fHOG channels kept (section 11, step 2)
+
+
+def scale_label(num_scales: int, sigma_factor: float) -> np.ndarray:
+    """Centred (not wrapped) Gaussian over the scale index, sigma = sqrt(num_scales) * sigma_factor (section 11)."""
+    offsets = np.arange(num_scales) - (num_scales - 1) / 2
+    sigma = np.sqrt(num_scales) * sigma_factor
+    return np.exp(-0.5 * offsets**2 / sigma**2)
+
+
+def scale_window(num_scales: int) -> np.ndarray:
+    """MATLAB's symmetric hann(num_scales): end points are 0 (section 11, section 2 "Windows")."""
+    return hann(num_scales, sym=True)
+
+
+def scale_factors(num_scales: int, scale_step: float) -> np.ndarray:
+    """scale_step ** (centre - i): index 0 is the largest scale, the centre index is 1 (section 11)."""
+    centre = (num_scales - 1) // 2
+    return scale_step ** (centre - np.arange(num_scales, dtype=np.float64))
+
+
+def scale_model_size(norm_target_sz, max_area: float, cell_size: int) -> np.ndarray:
+    """floor(norm_target_sz * scale_model_factor), the factor shrinking the area to at most max_area (section 11).
+
+    The result is kept at least one cell per side: a thinner model would give an empty feature vector, a case the
+    MATLAB code leaves undefined; it never triggers for areas produced by section 2.
+    """
+    norm_target_sz = np.asarray(norm_target_sz, dtype=np.float64)
+    area = float(np.prod(norm_target_sz))
+    model_factor = 1.0 if area <= max_area else np.sqrt(max_area / area)
+    return np.maximum(np.floor(norm_target_sz * model_factor), cell_size)
+
+
+def scale_limits(scale_step: float, image_hw, base_target_sz, bg_area) -> tuple[float, float]:
+    """(min_scale, max_scale): whole powers of scale_step; the background area keeps 5 px, the target fits (section 11)."""
+    log_step = np.log(scale_step)
+    smallest = np.log(np.max(5.0 / np.asarray(bg_area, dtype=np.float64))) / log_step
+    largest = np.log(np.min(np.asarray(image_hw, dtype=np.float64) / np.asarray(base_target_sz))) / log_step
+    return float(scale_step ** np.ceil(smallest)), float(scale_step ** np.floor(largest))
+
+
+def scale_patch_rects(pos, base_target_sz, scale_factor: float, factors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Top-left corners and sizes, both (num_scales, 2) int, of the scale patches (section 3.4, 0-based).
+
+    size = max(floor(base_target_sz * scale_factor * factor), 2); MATLAB's 1-based rows are
+    floor(pos) + (1..h) - floor(h / 2), so the 0-based first row is floor(pos) + 1 - floor(h / 2).
+    """
+    sizes = np.maximum(np.floor(np.outer(factors * scale_factor, base_target_sz)), 2)
+    top_left = np.floor(np.asarray(pos, dtype=np.float64)) + 1 - np.floor(sizes / 2)
+    return top_left.astype(np.int64), sizes.astype(np.int64)
+
+
+def filter_terms(label_hat: np.ndarray, sample_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One sample's numerator Ys conj(Xs), per feature, and denominator sum_d |Xs|^2 (section 11, training)."""
+    num = label_hat[:, None] * np.conj(sample_hat)
+    den = np.sum(sample_hat.real**2 + sample_hat.imag**2, axis=1)
+    return num, den
+
+
+def scale_response(num: np.ndarray, den: np.ndarray, sample_hat: np.ndarray, reg: float,
+                   num_scales: int) -> np.ndarray:
+    """real(ifft(sum_d(num Xs) / (den + lambda))) over the scale axis, from half spectra (section 11, detection)."""
+    return scipy.fft.irfft(np.sum(num * sample_hat, axis=1) / (den + reg), n=num_scales)
+
+
+class ScaleFilter:
+    """The DSST scale filter of one sequence (section 11).
+
+    `features` is the per-patch feature function; it defaults to the project's fHOG and exists so tests can
+    inject a cheap stand-in with the same signature (see FeatureFn).
+    """
+
+    def __init__(self, cfg: TrackerConfig, image_hw, base_target_sz, norm_target_sz, bg_area,
+                 features: FeatureFn | None = None) -> None:
+        self._cell_size = cfg.cell_size
+        self._learning_rate = cfg.scale_learning_rate
+        self._lambda = cfg.scale_lambda
+        self._num_scales = cfg.num_scales
+        self._base_target_sz = np.asarray(base_target_sz, dtype=np.float64)
+        self._features = features if features is not None else fhog
+
+        self._factors = scale_factors(cfg.num_scales, cfg.scale_step)
+        self._window = scale_window(cfg.num_scales)
+        self._sampled = np.flatnonzero(self._window)  # zero-weight scales contribute zero features: skip them
+        self._label_hat = scipy.fft.rfft(scale_label(cfg.num_scales, cfg.scale_sigma_factor))
+        self._model_sz = scale_model_size(norm_target_sz, cfg.scale_model_max_area, cfg.cell_size)
+        self._min_scale, self._max_scale = scale_limits(cfg.scale_step, image_hw, base_target_sz, bg_area)
+        self._num: np.ndarray | None = None  # (num_scales // 2 + 1, D) complex
+        self._den: np.ndarray | None = None  # (num_scales // 2 + 1,) real
+
+    @property
+    def min_scale(self) -> float:
+        return self._min_scale
+
+    @property
+    def max_scale(self) -> float:
+        return self._max_scale
+
+    @property
+    def model_size(self) -> np.ndarray:
+        """scale_model_sz (height, width): every scale patch is resized to this."""
+        return self._model_sz.copy()
+
+    @property
+    def factors(self) -> np.ndarray:
+        """The relative scales tried around the current scale factor, largest first."""
+        return self._factors.copy()
+
+    def update_model(self, image: np.ndarray, pos, scale_factor: float) -> None:
+        """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11)."""
+        num, den = filter_terms(self._label_hat, self._sample_hat(image, pos, scale_factor))
+        if self._num is None:
+            self._num, self._den = num, den
+            return
+        rate = self._learning_rate
+        self._num = (1 - rate) * self._num + rate * num
+        self._den = (1 - rate) * self._den + rate * den
+
+    def estimate(self, image: np.ndarray, pos, scale_factor: float) -> float:
+        """The new scale factor: scale_factor times the best relative scale, clamped (section 11, detection)."""
+        if self._num is None:
+            raise RuntimeError("ScaleFilter.estimate() called before update_model()")
+        sample_hat = self._sample_hat(image, pos, scale_factor)
+        response = scale_response(self._num, self._den, sample_hat, self._lambda, self._num_scales)
+        best = int(np.argmax(response))  # first maximum, like MATLAB's find(... == max)
+        new_factor = scale_factor * self._factors[best]
+        return float(np.clip(new_factor, self._min_scale, self._max_scale))
+
+    def _sample_hat(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
+        """FFT over the scale axis of the windowed scale sample, (num_scales // 2 + 1, D)."""
+        return scipy.fft.rfft(self._sample(image, pos, scale_factor), axis=0)
+
+    def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
+        """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
+        top_left, sizes = scale_patch_rects(pos, self._base_target_sz, scale_factor, self._factors)
+        sample = None
+        for i in self._sampled:
+            vector = self._patch_features(crop_replicate(image, top_left[i], sizes[i]))
+            if sample is None:
+                sample = np.zeros((self._num_scales, vector.size), dtype=np.float64)
+            sample[i] = vector * self._window[i]
+        return sample
+
+    def _patch_features(self, patch: np.ndarray) -> np.ndarray:
+        """fHOG of the patch resized to scale_model_sz, raw 0-255 values, flattened column-major (section 11)."""
+        resized = resize_auto(patch, self._model_sz).astype(np.float32)
+        feature_map = self._features(resized, self._cell_size)[:SCALE_FEATURE_CHANNELS]
+        return feature_map.transpose(0, 2, 1).ravel()  # (C, W, H) C-order == (H, W, C) column-major
