@@ -1,0 +1,178 @@
+"""Dataset loaders: the real generic layout and UAV123 annotations from ../shared/data, generated OTB/UAVDT trees."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tacf.eval.datasets import detect_layout, load_sequences, read_boxes, write_boxes
+from tacf.eval.datasets.uav123 import read_ranges
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SEQUENCES = DATA / "sequences"
+ANNOTATIONS = DATA / "annotations"
+needs_data = pytest.mark.skipif(not SEQUENCES.is_dir() or not ANNOTATIONS.is_dir(),
+                                reason="../shared/data is absent")
+
+JPG = cv2.imencode(".jpg", np.zeros((4, 6, 3), np.uint8))[1].tobytes()
+
+
+def write_frames(folder: Path, count: int, fmt: str = "{:06d}.jpg") -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for i in range(1, count + 1):
+        (folder / fmt.format(i)).write_bytes(JPG)
+
+
+# --- box files -----------------------------------------------------------------------------------------------
+def test_read_boxes_separators_nan_and_one_based(tmp_path):
+    f = tmp_path / "gt.txt"
+    f.write_text("11,21,5,6\n12\t22\t5\t6\n13 22 5 6\nNaN,NaN,NaN,NaN\n\n14, 23, 5.5, 6\n")
+    boxes = read_boxes(f)
+    assert boxes.shape == (5, 4)
+    np.testing.assert_array_equal(boxes[0], [10, 20, 5, 6])
+    np.testing.assert_array_equal(boxes[2], [12, 21, 5, 6])
+    assert np.isnan(boxes[3]).all()
+    np.testing.assert_array_equal(read_boxes(f, one_based=False)[0], [11, 21, 5, 6])
+
+
+def test_read_boxes_rejects_garbage(tmp_path):
+    f = tmp_path / "gt.txt"
+    f.write_text("1,2,3\n")
+    with pytest.raises(ValueError, match="gt.txt:1"):
+        read_boxes(f)
+
+
+def test_write_boxes_round_trip_is_one_based(tmp_path):
+    boxes = np.array([[0.0, 1.5, 10, 20], [np.nan] * 4])
+    write_boxes(tmp_path / "r" / "s.txt", boxes)
+    lines = (tmp_path / "r" / "s.txt").read_text().splitlines()
+    assert lines[0] == "1.000,2.500,10.000,20.000"
+    np.testing.assert_array_equal(read_boxes(tmp_path / "r" / "s.txt")[0], boxes[0])
+
+
+# --- generic layout (real data) --------------------------------------------------------------------------------
+@needs_data
+def test_generic_layout_real_sequences():
+    assert detect_layout(SEQUENCES) == "generic"
+    seqs = load_sequences(SEQUENCES)
+    names = [s.name for s in seqs]
+    assert len(seqs) == 15
+    assert "UAV123_10fps/wakeboard7" in names and "VOT/bag" in names and "OTB100/Jogging-1" in names
+    wb = seqs[names.index("UAV123_10fps/wakeboard7")]
+    assert len(wb) == 67 and wb.frames[0].name == "000001.jpg" and wb.frames[-1].name == "000067.jpg"
+    np.testing.assert_array_equal(wb.gt[0], [622, 298, 11, 38])       # file: 623,299,11,38
+    bag = seqs[names.index("VOT/bag")]
+    np.testing.assert_allclose(bag.gt[0], [291.23, 127.36, 145.96, 132.47])   # groundtruth.txt, not the polygon
+    assert [s.name for s in load_sequences(SEQUENCES, "UAV123*/wake*,UAVDT/*")] == [
+        "UAV123_10fps/wakeboard10", "UAV123_10fps/wakeboard7", "UAVDT/S0601"]
+    one = load_sequences(SEQUENCES / "UAVDT" / "S0601")
+    assert [s.name for s in one] == ["S0601"] and len(one[0]) == 82
+
+
+# --- official UAV123 layout: real annotation files and range table, generated frames -------------------------
+UAV_FOLDERS = {"bird1": ["bird1_1", "bird1_2", "bird1_3"], "car1": ["car1_1", "car1_2", "car1_3"],
+               "wakeboard7": ["wakeboard7"]}
+
+
+def make_uav123(root: Path, with_table: bool = True) -> dict:
+    ranges = read_ranges(ANNOTATIONS / "UAV123_10fps_ranges.txt")
+    for folder, names in UAV_FOLDERS.items():
+        write_frames(root / "data_seq" / "UAV123_10fps" / folder, max(ranges[n].last for n in names) + 3)
+        for n in names:
+            (root / "anno" / "UAV123_10fps").mkdir(parents=True, exist_ok=True)
+            shutil.copy(ANNOTATIONS / "UAV123_10fps" / f"{n}.txt", root / "anno" / "UAV123_10fps" / f"{n}.txt")
+    if with_table:
+        shutil.copy(ANNOTATIONS / "UAV123_10fps_ranges.txt", root / "UAV123_10fps_ranges.txt")
+    return ranges
+
+
+@needs_data
+def test_uav123_layout_honours_frame_ranges(tmp_path):
+    ranges = make_uav123(tmp_path)
+    assert detect_layout(tmp_path) == "uav123"
+    seqs = {s.name: s for s in load_sequences(tmp_path)}
+    assert sorted(seqs) == sorted(f"UAV123_10fps/{n}" for names in UAV_FOLDERS.values() for n in names)
+    for name, seq in seqs.items():
+        r = ranges[name.split("/")[1]]
+        gt = read_boxes(ANNOTATIONS / "UAV123_10fps" / f"{r.name}.txt")
+        assert len(seq) == r.last - r.first + 1 == len(gt)
+        assert seq.frames[0] == tmp_path / "data_seq" / "UAV123_10fps" / r.folder / f"{r.first:06d}.jpg"
+        assert seq.frames[-1].name == f"{r.last:06d}.jpg"
+        np.testing.assert_array_equal(seq.gt, gt)
+    assert seqs["UAV123_10fps/bird1_2"].frames[0].name == "000259.jpg"      # a range after a gap
+    assert np.isnan(seqs["UAV123_10fps/bird1_1"].gt).any()                  # NaN rows are kept
+
+
+@needs_data
+def test_uav123_range_table_from_configseqs_and_none(tmp_path):
+    make_uav123(tmp_path, with_table=False)
+    seqs = [s.name for s in load_sequences(tmp_path)]
+    assert seqs == ["UAV123_10fps/wakeboard7"]     # split sequences need a table: skipped with a warning
+    (tmp_path / "configSeqs.m").write_text(
+        "function seqs=configSeqs\nseqUAV123_10fps = {"
+        "struct('name','car1_2','path','D:\\data_seq\\UAV123_10fps\\car1\\','startFrame',251,'endFrame',543,"
+        "'nz',6,'ext','jpg','init_rect',[0,0,0,0]),...\n};\n")
+    seqs = {s.name: s for s in load_sequences(tmp_path)}
+    assert sorted(seqs) == ["UAV123_10fps/car1_2", "UAV123_10fps/wakeboard7"]
+    assert seqs["UAV123_10fps/car1_2"].frames[0].name == "000251.jpg" and len(seqs["UAV123_10fps/car1_2"]) == 293
+    explicit = load_sequences(tmp_path, ranges=ANNOTATIONS / "UAV123_10fps_ranges.txt")
+    assert len(explicit) == 7
+
+
+def test_uav123_real_table_parses():
+    if not ANNOTATIONS.is_dir():
+        pytest.skip("../shared/data is absent")
+    ranges = read_ranges(ANNOTATIONS / "UAV123_10fps_ranges.txt")
+    assert len(ranges) == 123
+    assert ranges["group1_2"].folder == "group1" and (ranges["group1_2"].first, ranges["group1_2"].last) == (445, 839)
+
+
+# --- OTB (generated) -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("sep", [",", "\t", " "])
+def test_otb_layout_each_separator(tmp_path, sep):
+    write_frames(tmp_path / "Boy" / "img", 3, "{:04d}.jpg")
+    (tmp_path / "Boy" / "groundtruth_rect.txt").write_text(
+        "\n".join(sep.join(str(v) for v in row) for row in [[1, 2, 3, 4], [5, 6, 7, 8], [9, 10, 11, 12]]) + "\n")
+    write_frames(tmp_path / "Jogging" / "img", 2, "{:04d}.jpg")
+    (tmp_path / "Jogging" / "groundtruth_rect.1.txt").write_text(f"1{sep}1{sep}5{sep}5\n2{sep}2{sep}5{sep}5\n")
+    (tmp_path / "Jogging" / "groundtruth_rect.2.txt").write_text(f"9{sep}9{sep}5{sep}5\n8{sep}8{sep}5{sep}5\n")
+    assert detect_layout(tmp_path) == "otb"
+    seqs = {s.name: s for s in load_sequences(tmp_path)}
+    assert sorted(seqs) == ["Boy", "Jogging-1", "Jogging-2"]
+    np.testing.assert_array_equal(seqs["Boy"].gt, [[0, 1, 3, 4], [4, 5, 7, 8], [8, 9, 11, 12]])
+    assert [p.name for p in seqs["Boy"].frames] == ["0001.jpg", "0002.jpg", "0003.jpg"]
+    np.testing.assert_array_equal(seqs["Jogging-2"].gt[0], [8, 8, 5, 5])
+
+
+def test_otb_david_starts_at_frame_300(tmp_path):
+    write_frames(tmp_path / "David" / "img", 310, "{:04d}.jpg")
+    (tmp_path / "David" / "groundtruth_rect.txt").write_text("1,1,5,5\n" * 11)
+    (seq,) = load_sequences(tmp_path)
+    assert len(seq) == 11 and seq.frames[0].name == "0300.jpg"
+
+
+# --- UAVDT (generated, official layout) -----------------------------------------------------------------------
+def test_uavdt_layout(tmp_path):
+    for name, n in (("S0101", 4), ("S0102", 3)):
+        write_frames(tmp_path / "UAV-benchmark-S" / name, n, "img{:06d}.jpg")
+    anno = tmp_path / "UAV-benchmark-SOT_v1.0" / "anno"
+    (anno / "att").mkdir(parents=True)
+    (anno / "S0101_gt.txt").write_text("11,21,5,6\n" * 4)
+    (anno / "S0102_gt.txt").write_text("1,1,5,6\n" * 3)
+    (anno / "att" / "S0101_att.txt").write_text("1,0,0,0,0,0,0,0\n")
+    assert detect_layout(tmp_path) == "uavdt"
+    seqs = load_sequences(tmp_path)
+    assert [s.name for s in seqs] == ["UAVDT/S0101", "UAVDT/S0102"]
+    assert len(seqs[0]) == 4 and seqs[0].frames[0].name == "img000001.jpg"
+    np.testing.assert_array_equal(seqs[0].gt[0], [10, 20, 5, 6])
+    assert [s.name for s in load_sequences(tmp_path / "UAV-benchmark-S", "*0102")] == ["UAVDT/S0102"]
+
+
+def test_unknown_layout_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no known dataset layout"):
+        detect_layout(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        detect_layout(tmp_path / "missing")

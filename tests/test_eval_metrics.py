@@ -1,0 +1,127 @@
+"""OPE metrics: hand-computed cases, NaN handling, and agreement with got10k's formulas (written here as an oracle)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from tacf.eval import metrics
+
+
+# --- got10k oracle (independent re-statement of got10k.utils.metrics + ExperimentOTB._calc_curves) ----------
+def got10k_rect_iou(r1, r2):
+    x1 = np.maximum(r1[:, 0], r2[:, 0])
+    y1 = np.maximum(r1[:, 1], r2[:, 1])
+    x2 = np.minimum(r1[:, 0] + r1[:, 2], r2[:, 0] + r2[:, 2])
+    y2 = np.minimum(r1[:, 1] + r1[:, 3], r2[:, 1] + r2[:, 3])
+    w, h = np.maximum(x2 - x1, 0), np.maximum(y2 - y1, 0)
+    inter = w * h
+    union = r1[:, 2] * r1[:, 3] + r2[:, 2] * r2[:, 3] - inter
+    return np.clip(inter / (union + np.finfo(float).eps), 0.0, 1.0)
+
+
+def got10k_center_error(r1, r2):
+    c1 = r1[:, :2] + (r1[:, 2:] - 1) / 2
+    c2 = r2[:, :2] + (r2[:, 2:] - 1) / 2
+    return np.sqrt(np.sum((c1 - c2) ** 2, axis=1))
+
+
+def got10k_scores(boxes, anno):
+    ious, ce = got10k_rect_iou(boxes, anno), got10k_center_error(boxes, anno)
+    succ = np.mean(ious[:, None] > np.linspace(0, 1, 21)[None, :], axis=0)
+    prec = np.mean(ce[:, None] <= np.arange(0, 51)[None, :], axis=0)
+    return np.mean(succ), prec[20], succ, prec
+
+
+# --- hand-computed cases ----------------------------------------------------------------------------------
+def test_iou_hand_cases():
+    gt = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10]], float)
+    pred = np.array([[0, 0, 10, 10],     # identical -> 1
+                     [5, 0, 10, 10],     # half overlap: 50 / 150
+                     [20, 20, 5, 5],     # disjoint -> 0
+                     [0, 0, 5, 5]], float)  # inside: 25 / 100
+    np.testing.assert_allclose(metrics.iou(pred, gt), [1.0, 1 / 3, 0.0, 0.25])
+
+
+def test_iou_touching_edges_is_zero_and_nan_prediction_is_miss():
+    gt = np.array([[0, 0, 10, 10], [0, 0, 10, 10]], float)
+    pred = np.array([[10, 0, 10, 10], [np.nan] * 4])
+    np.testing.assert_array_equal(metrics.iou(pred, gt), [0.0, 0.0])
+    assert np.isinf(metrics.center_error(pred, gt)[1])
+
+
+def test_center_error_uses_matlab_centre():
+    gt = np.array([[0, 0, 11, 11]], float)     # centre 5,5
+    pred = np.array([[3, 4, 1, 1]], float)     # centre 3,4
+    np.testing.assert_allclose(metrics.center_error(pred, gt), [np.hypot(2, 1)])
+
+
+def test_success_curve_strict_threshold_and_auc():
+    gt = np.tile([0, 0, 10, 10], (2, 1)).astype(float)
+    pred = np.array([[0, 0, 10, 10], [5, 0, 10, 10]], float)   # IoU 1 and 1/3
+    curve = metrics.success_curve(pred, gt)
+    thr = np.linspace(0, 1, 21)
+    expected = ((1.0 > thr).astype(float) + (1 / 3 > thr)) / 2
+    np.testing.assert_allclose(curve, expected)
+    assert curve[0] == 1.0 and curve[-1] == 0.0     # IoU 1 is not > 1
+    # frame 1 passes 20 thresholds (0 .. 0.95), frame 2 passes 7 (0 .. 0.30): (20 + 7) / 2 / 21
+    assert metrics.auc(curve) == pytest.approx(27 / 42)
+
+
+def test_precision_curve_inclusive_threshold():
+    gt = np.tile([0, 0, 10, 10], (3, 1)).astype(float)
+    pred = gt + [[0, 0, 0, 0], [20, 0, 0, 0], [30, 40, 0, 0]]    # distances 0, 20, 50
+    curve = metrics.precision_curve(pred, gt)
+    assert curve[0] == pytest.approx(1 / 3)
+    assert curve[19] == pytest.approx(1 / 3)
+    assert curve[20] == pytest.approx(2 / 3)     # 20 <= 20 counts
+    assert curve[50] == pytest.approx(1.0)
+    assert metrics.score(pred, gt).precision20 == pytest.approx(2 / 3)
+
+
+def test_nan_and_empty_ground_truth_frames_are_skipped():
+    gt = np.array([[0, 0, 10, 10], [np.nan] * 4, [0, 0, 0, 10], [0, 0, 10, 10]], float)
+    pred = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10], [50, 50, 10, 10]], float)
+    s = metrics.score(pred, gt)
+    assert s.frames_scored == 2
+    assert s.success[0] == pytest.approx(0.5)
+    assert s.precision20 == pytest.approx(0.5)
+    assert np.isnan(metrics.score(pred[1:3], gt[1:3]).auc)
+
+
+def test_shape_errors():
+    with pytest.raises(ValueError):
+        metrics.iou(np.zeros((3, 4)), np.zeros((2, 4)))
+    with pytest.raises(ValueError):
+        metrics.success_curve(np.zeros((3, 3)), np.zeros((3, 3)))
+
+
+# --- agreement with got10k ------------------------------------------------------------------------------
+box = st.tuples(st.floats(-50, 500), st.floats(-50, 500), st.floats(1, 200), st.floats(1, 200))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(box, box), min_size=1, max_size=40))
+def test_matches_got10k_formulas(pairs):
+    pred = np.array([p for p, _ in pairs], float)
+    gt = np.array([g for _, g in pairs], float)
+    auc, p20, succ, prec = got10k_scores(pred, gt)
+    s = metrics.score(pred, gt)
+    np.testing.assert_allclose(metrics.iou(pred, gt), got10k_rect_iou(pred, gt), atol=1e-9)
+    np.testing.assert_allclose(s.success, succ)
+    np.testing.assert_allclose(s.precision, prec)
+    assert s.auc == pytest.approx(auc) and s.precision20 == pytest.approx(p20)
+
+
+@settings(max_examples=30, deadline=None)
+@given(arrays(np.int64, (10, 4), elements=st.integers(1, 400)), st.integers(-3, 3))
+def test_invariant_to_common_shift(boxes, shift):
+    """0- vs 1-based files give the same scores (exact integer-valued boxes: no rounding at thresholds)."""
+    gt = boxes.astype(np.float64) / 4
+    pred = boxes[::-1].copy()
+    a = metrics.score(pred, gt)
+    b = metrics.score(pred + [shift, shift, 0, 0], gt + [shift, shift, 0, 0])
+    np.testing.assert_allclose(a.success, b.success, atol=1e-12)
+    np.testing.assert_allclose(a.precision, b.precision, atol=1e-12)
