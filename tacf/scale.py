@@ -161,12 +161,10 @@ class ScaleFilter:
     def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
         top_left, sizes = scale_patch_rects(pos, self._base_target_sz, scale_factor, self._factors)
-        sample = None
-        for i in self._sampled:
-            vector = self._patch_features(crop_replicate(image, top_left[i], sizes[i]))
-            if sample is None:
-                sample = np.zeros((self._num_scales, vector.size), dtype=np.float64)
-            sample[i] = vector * self._window[i]
+        vectors = np.stack([self._patch_features(crop_replicate(image, top_left[i], sizes[i]))
+                            for i in self._sampled])
+        sample = np.zeros((self._num_scales, vectors.shape[1]), dtype=np.float64)
+        sample[self._sampled] = vectors * self._window[self._sampled, None]
         return sample
 
     def _patch_features(self, patch: np.ndarray) -> np.ndarray:
