@@ -1,0 +1,271 @@
+"""`tacf publish | start | stop | reinit | list | status | watch | demo`: the client side from the shell.
+
+Only argparse-level things are imported here; each command imports what it needs when it runs, so that
+`tacf --help` stays fast and nothing here ever loads the tracker.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from contextlib import contextmanager
+
+ENCODING_CHOICES = ("jpeg", "png", "bgr8", "mono8")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from tacf_clients.zconfig import add_zenoh_arguments
+
+    p = subparsers.add_parser("publish", help="publish a video file, image folder, camera or URL as Frames",
+                              description="Publish SOURCE as tacf Frames on the Zenoh key K. SOURCE: a video file, "
+                                          "an image folder (or a sequence folder with img/), a camera index, a "
+                                          "stream URL, or 'scene' (the generated demo scene).")
+    p.add_argument("source", metavar="SOURCE")
+    p.add_argument("--key", "-k", required=True, help="Zenoh key to publish on, e.g. uav1/camera/front")
+    p.add_argument("--fps", type=_positive_float, help="rate (default: the source's own, or 30)")
+    p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg", help="frame encoding (default jpeg)")
+    p.add_argument("--quality", type=_quality, default=90, help="JPEG quality 1-100 (default 90)")
+    p.add_argument("--loop", action="store_true", help="start over at the end of a file or folder")
+    p.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
+                   help="wait up to SECONDS for a subscriber before the first frame (default: do not wait)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_publish)
+
+    p = subparsers.add_parser("start", help="start a tracking session")
+    p.add_argument("--key", "-k", required=True, help="image key the frames are published on")
+    p.add_argument("--box", "-b", required=True, type=parse_box, help="initial box x,y,w,h in pixels")
+    p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
+    p.add_argument("--profile", help="tracker profile (service default if absent)")
+    p.add_argument("--sid", help="session id (generated if absent)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
+                   help="tracker config override, repeatable")
+    _common(p, add_zenoh_arguments)
+    p.set_defaults(func=cmd_start)
+
+    p = subparsers.add_parser("stop", help="stop a tracking session")
+    p.add_argument("sid", metavar="SID")
+    _common(p, add_zenoh_arguments)
+    p.set_defaults(func=cmd_stop)
+
+    p = subparsers.add_parser("reinit", help="re-initialise a session on a new box")
+    p.add_argument("sid", metavar="SID")
+    p.add_argument("--box", "-b", required=True, type=parse_box, help="new box x,y,w,h in pixels")
+    p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
+    _common(p, add_zenoh_arguments)
+    p.set_defaults(func=cmd_reinit)
+
+    p = subparsers.add_parser("list", help="list the sessions of every service on the network")
+    _common(p, add_zenoh_arguments)
+    p.set_defaults(func=cmd_list)
+
+    p = subparsers.add_parser("status", help="show one session")
+    p.add_argument("sid", metavar="SID")
+    _common(p, add_zenoh_arguments)
+    p.set_defaults(func=cmd_status)
+
+    p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal")
+    p.add_argument("sid", metavar="SID", nargs="?", default="*", help="session id (default: all sessions)")
+    p.add_argument("--node", help="only this service")
+    p.add_argument("--interval", type=_positive_float, default=0.5, help="refresh period in seconds")
+    p.add_argument("--duration", type=_positive_float, help="exit after this many seconds")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_watch)
+
+    p = subparsers.add_parser("demo", help="the whole loop on this machine: service, publisher, session",
+                              description="Start a local tracking service, publish SOURCE (default: a generated "
+                                          "scene with a moving target), start a session on it, print boxes and "
+                                          "health, then stop everything cleanly.")
+    p.add_argument("source", metavar="SOURCE", nargs="?", default="scene",
+                   help="video file, image folder, camera index, URL or 'scene' (default)")
+    p.add_argument("--box", "-b", type=parse_box,
+                   help="initial box x,y,w,h (default: the scene's target, a sequence's groundtruth.txt, "
+                        "or a centred box)")
+    p.add_argument("--seconds", type=_positive_float, default=10.0, help="how long to track (default 10)")
+    p.add_argument("--fps", type=_positive_float, default=None, help="publishing rate (default: the source's, or 30)")
+    p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg")
+    p.add_argument("--profile", help="tracker profile")
+    p.add_argument("--every", type=int, default=None, metavar="N",
+                   help="print every Nth box (default: about 3 lines a second)")
+    p.set_defaults(func=cmd_demo)
+
+
+def _common(p: argparse.ArgumentParser, add_zenoh_arguments) -> None:
+    p.add_argument("--node", help="service (node id) to address; default: whichever holds the session")
+    p.add_argument("--timeout", type=_positive_float, default=5.0, help="reply timeout in seconds (default 5)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    add_zenoh_arguments(p)
+
+
+# ------------------------------------------------------------------------------------------------ argument types
+
+def parse_box(text: str) -> tuple[float, float, float, float]:
+    """'x,y,w,h' (commas or spaces) -> 4 floats with w, h > 0."""
+    parts = text.replace(",", " ").split()
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"box {text!r}: expected four numbers x,y,w,h") from None
+    if len(values) != 4 or values[2] <= 0 or values[3] <= 0:
+        raise argparse.ArgumentTypeError(f"box {text!r}: expected x,y,w,h with w and h > 0")
+    return values  # type: ignore[return-value]
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number > 0")
+    return value
+
+
+def _quality(text: str) -> int:
+    value = int(text)
+    if not 1 <= value <= 100:
+        raise argparse.ArgumentTypeError("quality must be 1-100")
+    return value
+
+
+def _overrides(items: list[str]) -> dict[str, bool | int | float]:
+    result: dict[str, bool | int | float] = {}
+    for item in items:
+        name, sep, raw = item.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"--set {item!r}: expected NAME=VALUE")
+        lowered = raw.strip().lower()
+        if lowered in ("true", "false"):
+            result[name] = lowered == "true"
+        else:
+            try:
+                result[name] = int(raw)
+            except ValueError:
+                try:
+                    result[name] = float(raw)
+                except ValueError:
+                    raise SystemExit(f"--set {item!r}: VALUE must be a number, true or false") from None
+    return result
+
+
+@contextmanager
+def stop_on_signals():
+    """An Event set by SIGINT / SIGTERM while the block runs (previous handlers restored afterwards)."""
+    stop = threading.Event()
+    handler = lambda *_: stop.set()  # noqa: E731
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+# ------------------------------------------------------------------------------------------------ commands
+
+def cmd_publish(args: argparse.Namespace) -> int:
+    from tacf_clients.publisher import FramePublisher, publish
+    from tacf_clients.sources import open_source
+    from tacf_clients.zconfig import open_session, options_from_args
+
+    try:
+        source = open_source(args.source, loop=args.loop)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"tacf publish: {exc}", file=sys.stderr)
+        return 2
+    with stop_on_signals() as stop, source, open_session(options_from_args(args)) as session:
+        if args.wait_subscriber > 0:
+            with FramePublisher(session, args.key) as probe:
+                if not probe.wait_matched(args.wait_subscriber):
+                    print(f"no subscriber on {args.key} after {args.wait_subscriber:g} s: publishing anyway",
+                          file=sys.stderr)
+        stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
+                        max_frames=args.frames, stop=stop)
+    print(f"published {stats.frames} frames in {stats.seconds:.1f} s ({stats.fps:.1f} fps, "
+          f"{stats.bytes / 1e6:.1f} MB) on {args.key}")
+    return 0
+
+
+@contextmanager
+def _client(args: argparse.Namespace):
+    from tacf_clients.client import TrackingClient
+    from tacf_clients.errors import TacfError
+    from tacf_clients.zconfig import options_from_args
+
+    try:
+        with TrackingClient(options_from_args(args), node=args.node, timeout=args.timeout) as client:
+            yield client
+    except TacfError as exc:
+        print(f"tacf {args.command}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
+
+
+def _print_info(info, as_json: bool, verb: str = "") -> None:
+    from tacf_clients.watch import describe_session
+
+    if as_json:
+        print(info.model_dump_json())
+    else:
+        print((verb + " " if verb else "") + describe_session(info))
+
+
+def cmd_start(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        info = client.start(args.key, args.box, seq=args.seq, profile=args.profile, sid=args.sid,
+                            overrides=_overrides(args.overrides))
+        _print_info(info, args.json, "started")
+    return 0
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        _print_info(client.stop(args.sid), args.json, "stopped")
+    return 0
+
+
+def cmd_reinit(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        _print_info(client.reinit(args.sid, args.box, seq=args.seq), args.json, "re-initialised")
+    return 0
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        _print_info(client.status(args.sid), args.json)
+    return 0
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    from tacf_clients.watch import session_table
+
+    with _client(args) as client:
+        listings = client.services()
+    if args.json:
+        print(json.dumps([json.loads(listing.model_dump_json()) for listing in listings]))
+        return 0
+    if not listings:
+        print("no tracking service answered")
+        return 1
+    sessions = [info for listing in listings for info in listing.sessions]
+    nodes = ", ".join(f"{lst.node} ({len(lst.sessions)}/{lst.max_sessions})" for lst in listings)
+    print(f"services: {nodes}")
+    print(session_table(sessions) if sessions else "no sessions")
+    return 0
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    from tacf_clients.watch import watch
+    from tacf_clients.zconfig import options_from_args
+
+    with stop_on_signals() as stop:
+        return watch(options_from_args(args), sid=args.sid, node=args.node, interval=args.interval,
+                     duration=args.duration, stop=stop)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from tacf_clients.demo import DemoOptions, run_demo
+
+    with stop_on_signals() as stop:
+        report = run_demo(DemoOptions(source=args.source, box=args.box, seconds=args.seconds, fps=args.fps,
+                                      encoding=args.encoding, profile=args.profile, every=args.every),
+                          stop=stop)
+    return 0 if report.ok else 1

@@ -1,0 +1,292 @@
+"""Ground-station API: start, stop, re-initialise, list and watch tracking sessions on any service.
+
+    with TrackingClient() as client:                       # loopback: tcp/127.0.0.1:7447, scouting off
+        info = client.start("uav1/camera/front", (410, 220, 60, 40))
+        with client.subscribe(info.sid, on_box=print, on_health=print):
+            time.sleep(10)
+        client.stop(info.sid)
+
+Every call is one Zenoh query on tacf/<node>/control/<op> (a wildcard node when none is given) with a timeout;
+error replies raise the exception class of their code (tacf_clients.errors), a silent service raises
+RequestTimeout, no service at all raises NoService.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+import pydantic
+import zenoh
+
+from tacf_clients.errors import (AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest, NoService,
+                                 ProtocolError, RequestTimeout, TacfError, UnknownSession, error_from_wire)
+from tacf_clients.stream import ResultStream
+from tacf_clients.zconfig import ZenohOptions, open_session
+from tacf_schemas import keys
+from tacf_schemas.codec import MSGPACK_ENCODING, DecodeError, decode, encode
+from tacf_schemas.models import (BoxResult, Error, Health, ListRequest, ReinitRequest, SessionInfo, SessionList,
+                                 StartRequest, StatusRequest, StopRequest, WireModel)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TIMEOUT = 5.0
+BoxLike = Sequence[float]
+
+
+@dataclass(frozen=True)
+class _Reply:
+    node: str | None
+    model: WireModel | None      # the decoded ok reply
+    error: TacfError | None      # or the error
+
+
+class TrackingClient:
+    """Control and observe tracking sessions.
+
+    session: an open zenoh.Session to use (not closed by the client); otherwise the client opens one from
+    `options` (ZenohOptions; None = loopback defaults) and closes it in `close()`.
+    node: the service to address by default; None = whichever service holds the session (and, for `start`,
+    the only service on the network).
+    timeout: seconds to wait for replies to each call.
+    """
+
+    def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
+                 node: str | None = None, timeout: float = DEFAULT_TIMEOUT):
+        self.node = keys.validate_id(node, "node id") if node is not None else None
+        self.timeout = timeout
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(options)
+        self._nodes_of_sid: dict[str, str] = {}
+        self._lock = threading.Lock()
+
+    # --- lifetime ---------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> "TrackingClient":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- control ops --------------------------------------------------------------------------------------------
+    def start(self, image_key: str, box: BoxLike, seq: int | None = None, profile: str | None = None, *,
+              sid: str | None = None, overrides: dict[str, bool | int | float] | None = None,
+              node: str | None = None) -> SessionInfo:
+        """Start following the target in `box` (x, y, w, h pixels) on the frames of `image_key`.
+
+        seq: the frame the box was drawn on (the service applies it to that frame if it still holds it).
+        sid: a session id of your choice (else the service makes one). node: the service to run it on; needed
+        only when several services are on the network.
+        """
+        request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, sid=sid,
+                         profile=profile, overrides=dict(overrides or {}))
+        target = node or self.node or self._single_node()
+        info = self._call_one(target, "start", request, SessionInfo)
+        self._remember(info)
+        return info
+
+    def stop(self, sid: str, *, node: str | None = None) -> SessionInfo:
+        """Stop session `sid`; returns its final SessionInfo (state "stopped")."""
+        request = _build(StopRequest, sid=_sid(sid))
+        info = self._call_one(node or self._node_of(sid), "stop", request, SessionInfo)
+        with self._lock:
+            self._nodes_of_sid.pop(sid, None)
+        return info
+
+    def reinit(self, sid: str, box: BoxLike, seq: int | None = None, *, node: str | None = None) -> SessionInfo:
+        """Re-initialise session `sid` on a new box (drawn on frame `seq`, if given)."""
+        request = _build(ReinitRequest, sid=sid, box=_box(box), seq=seq)
+        return self._call_one(node or self._node_of(sid), "reinit", request, SessionInfo)
+
+    def status(self, sid: str, *, node: str | None = None) -> SessionInfo:
+        """The session's current SessionInfo (state, last box, latest health)."""
+        request = _build(StatusRequest, sid=sid)
+        return self._call_one(node or self._node_of(sid), "status", request, SessionInfo)
+
+    def list(self, *, node: str | None = None) -> list[SessionInfo]:
+        """Every session on every service that answers (or on `node` only), sorted by node then sid."""
+        return [info for listing in self.services(node=node) for info in listing.sessions]
+
+    def services(self, *, node: str | None = None) -> list[SessionList]:
+        """One SessionList per service that answers (a wildcard query on tacf/*/control/list)."""
+        node = node or self.node
+        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList)
+        listings = [r.model for r in replies if r.model is not None]
+        errors = [r.error for r in replies if r.error is not None]
+        if not listings and errors:
+            raise errors[0]
+        if not listings and node:
+            raise NoService(f"service {node!r} did not answer")
+        for listing in listings:
+            for info in listing.sessions:
+                self._remember(info)
+        return sorted(listings, key=lambda lst: lst.node)
+
+    def nodes(self) -> list[str]:
+        """Ids of the services that answer a list query."""
+        return [listing.node for listing in self.services()]
+
+    # --- results ------------------------------------------------------------------------------------------------
+    def subscribe(self, sid: str = keys.WILDCARD, on_box: Callable[[BoxResult], None] | None = None,
+                  on_health: Callable[[Health], None] | None = None, *, node: str | None = None,
+                  latest_only: bool = False) -> ResultStream[BoxResult | Health]:
+        """Boxes and health of session `sid` ("*" = every session) handed to the callbacks on a worker thread.
+
+        Returns the stream: close it to stop (or use `with`). Without callbacks, iterate the stream instead
+        (see `results`).
+        """
+        def dispatch(item: BoxResult | Health) -> None:
+            if isinstance(item, BoxResult):
+                if on_box is not None:
+                    on_box(item)
+            elif on_health is not None:
+                on_health(item)
+
+        callback = dispatch if (on_box or on_health) else None
+        return self._stream(sid, node, latest_only, callback)
+
+    def results(self, sid: str = keys.WILDCARD, *, node: str | None = None,
+                latest_only: bool = False) -> ResultStream[BoxResult | Health]:
+        """Iterator form of `subscribe`: `for item in client.results(sid): ...` yields BoxResult and Health."""
+        return self._stream(sid, node, latest_only, None)
+
+    def iter_boxes(self, sid: str, *, node: str | None = None, timeout: float | None = None) -> Iterator[BoxResult]:
+        """Yield the session's BoxResults until `timeout` seconds pass without one (None: forever)."""
+        with self._stream(sid, node, False, None, leaf="box") as stream:
+            while (item := stream.get(timeout)) is not None:
+                yield item
+
+    def _stream(self, sid: str, node: str | None, latest_only: bool, callback, leaf: str = "*"):
+        if sid != keys.WILDCARD:
+            _sid(sid)
+        node = node or self.node or (self._nodes_of_sid.get(sid) if sid != keys.WILDCARD else None)
+        key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
+        return ResultStream(self.session, key_expr, _decode_result, latest_only=latest_only,
+                            slot_of=lambda item: (item.node, item.sid, type(item).__name__),
+                            callback=callback, name=f"tacf-subscribe-{sid}")
+
+    # --- plumbing -------------------------------------------------------------------------------------------------
+    def _remember(self, info: SessionInfo) -> None:
+        with self._lock:
+            self._nodes_of_sid[info.sid] = info.node
+
+    def _single_node(self) -> str:
+        nodes = self.nodes()
+        if not nodes:
+            raise NoService("no tracking service answered on tacf/*/control/list")
+        if len(nodes) > 1:
+            raise AmbiguousSession(f"{len(nodes)} services on the network ({', '.join(nodes)}): pass node=...")
+        return nodes[0]
+
+    def _node_of(self, sid: str) -> str:
+        """The node holding session `sid`: the default node, a remembered one, or found by a status query."""
+        _sid(sid)
+        if self.node:
+            return self.node
+        with self._lock:
+            if sid in self._nodes_of_sid:
+                return self._nodes_of_sid[sid]
+        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo)
+        found = sorted({r.model.node for r in replies if r.model is not None})
+        if len(found) > 1:
+            raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: pass node=...")
+        if found:
+            return found[0]
+        errors = [r.error for r in replies if r.error is not None]
+        if not replies:
+            raise NoService("no tracking service answered on tacf/*/control/status")
+        # Prefer an error that says more than "not here" (e.g. a timeout of the one service that has it).
+        errors.sort(key=lambda e: isinstance(e, UnknownSession))
+        raise errors[0] if errors else UnknownSession(f"unknown session {sid!r}")
+
+    def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]):
+        replies = self._query(node, op, request, reply_model)
+        if not replies:
+            raise NoService(f"no tracking service {node!r} answered on {keys.control_key(node, op)}")
+        for reply in replies:
+            if reply.model is not None:
+                return reply.model
+        raise replies[0].error
+
+    def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]) -> list[_Reply]:
+        key = keys.control_key(node, op)
+        log.debug("query %s %s", key, request)
+        replies = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
+                                   target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                                   timeout=self.timeout)
+        return [_parse_reply(reply, reply_model, key, self.timeout) for reply in replies]
+
+
+def _parse_reply(reply: zenoh.Reply, reply_model: type[WireModel], key: str, timeout: float) -> _Reply:
+    if reply.ok is not None:
+        sample = reply.ok
+        node = _node_from_key(str(sample.key_expr))
+        try:
+            return _Reply(node, decode(sample.payload.to_bytes(), reply_model), None)
+        except DecodeError as exc:
+            return _Reply(node, None, ProtocolError(f"bad {reply_model.__name__} reply on {key}: {exc}", node))
+    err = reply.err
+    payload = err.payload.to_bytes()
+    try:
+        error = decode(payload, Error)
+    except DecodeError:
+        text = payload.decode("utf-8", "replace")
+        if text.strip().lower() == "timeout":
+            return _Reply(None, None, RequestTimeout(f"no reply on {key} within {timeout:g} s"))
+        return _Reply(None, None, ProtocolError(f"undecodable error reply on {key}: {text[:200]!r}"))
+    return _Reply(error.node, None, error_from_wire(error.code, error.message, error.node))
+
+
+def _node_from_key(key: str) -> str | None:
+    parts = key.split("/")
+    return parts[1] if len(parts) >= 2 and parts[0] == keys.PREFIX else None
+
+
+def _decode_result(sample: zenoh.Sample) -> BoxResult | Health | None:
+    leaf = str(sample.key_expr).rsplit("/", 1)[-1]
+    model = {"box": BoxResult, "health": Health}.get(leaf)
+    if model is None:
+        return None
+    try:
+        return decode(sample.payload.to_bytes(), model)
+    except DecodeError as exc:
+        log.warning("dropped a malformed %s on %s: %s", leaf, sample.key_expr, exc)
+        return None
+
+
+# --- request validation: the same exception classes as an error reply from the service ---------------------------
+def _build(model: type[WireModel], **fields) -> WireModel:
+    try:
+        return model(**fields)
+    except pydantic.ValidationError as exc:
+        first = exc.errors(include_url=False, include_input=False)[0]
+        where = str(first["loc"][0]) if first["loc"] else ""
+        cls = {"box": InvalidBox, "image_key": InvalidKey, "sid": InvalidId}.get(where, InvalidRequest)
+        raise cls(f"invalid {model.__name__}: {where or '<root>'}: {first['msg']}") from None
+
+
+def _box(box: BoxLike) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in box)
+    except (TypeError, ValueError):
+        raise InvalidBox(f"box must be 4 numbers (x, y, w, h), got {box!r}") from None
+    if len(values) != 4:
+        raise InvalidBox(f"box must be 4 numbers (x, y, w, h), got {len(values)}")
+    return values  # type: ignore[return-value]
+
+
+def _image_key(key: str) -> str:
+    try:
+        return keys.validate_image_key(key)
+    except keys.InvalidKeyError as exc:
+        raise InvalidKey(str(exc)) from None
+
+
+def _sid(sid: object) -> str:
+    if not keys.is_valid_id(sid):
+        raise InvalidId(f"invalid session id {sid!r}: expected 1-64 characters of [A-Za-z0-9_-]")
+    return sid  # type: ignore[return-value]

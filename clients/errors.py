@@ -1,0 +1,111 @@
+"""Typed exceptions for the client API: every wire `Error.code` maps to one class (ERRORS), plus timeouts and
+"nobody answered". Requests that fail validation on the client raise the same classes as the service would.
+An unknown code (from a newer service) becomes a plain ServiceError; a test keeps ERRORS in sync with
+tacf_schemas' ErrorCode.
+"""
+from __future__ import annotations
+
+
+class TacfError(Exception):
+    """Base of every client-side error. `code` is the wire error code (or a client-side one)."""
+
+    code = "error"
+
+    def __init__(self, message: str, node: str | None = None):
+        super().__init__(message)
+        self.message, self.node = message, node
+
+    def __str__(self) -> str:
+        return f"{self.message} (node {self.node})" if self.node else self.message
+
+
+# ------------------------------------------------------------------ errors replied by a service
+
+class ServiceError(TacfError):
+    """A service replied with an Error."""
+
+    code = "internal"
+
+
+class InvalidRequest(ServiceError, ValueError):
+    code = "invalid_request"
+
+
+class InvalidId(InvalidRequest):
+    code = "invalid_id"
+
+
+class InvalidKey(InvalidRequest):
+    code = "invalid_key"
+
+
+class InvalidBox(InvalidRequest):
+    code = "invalid_box"
+
+
+class InvalidConfig(InvalidRequest):
+    code = "invalid_config"
+
+
+class UnknownOp(InvalidRequest):
+    code = "unknown_op"
+
+
+class UnknownSession(ServiceError, LookupError):
+    code = "unknown_session"
+
+
+class DuplicateSession(ServiceError):
+    code = "duplicate_session"
+
+
+class TooManySessions(ServiceError):
+    code = "too_many_sessions"
+
+
+class FrameRejected(ServiceError):
+    code = "frame_rejected"
+
+
+class ServiceUnavailable(ServiceError):
+    code = "unavailable"
+
+
+class InternalServiceError(ServiceError):
+    code = "internal"
+
+
+ERRORS: dict[str, type[ServiceError]] = {cls.code: cls for cls in (
+    InvalidRequest, InvalidId, InvalidKey, InvalidBox, InvalidConfig, UnknownOp, UnknownSession,
+    DuplicateSession, TooManySessions, FrameRejected, ServiceUnavailable, InternalServiceError,
+)}
+
+
+def error_from_wire(code: str, message: str, node: str | None = None) -> ServiceError:
+    return ERRORS.get(code, ServiceError)(message, node)
+
+
+# ------------------------------------------------------------------ errors found by the client
+
+class RequestTimeout(TacfError, TimeoutError):
+    """A service matched the query but did not answer in time."""
+
+    code = "timeout"
+
+
+class NoService(TacfError):
+    """No tracking service answered (none running, or not reachable with these Zenoh options)."""
+
+    code = "no_service"
+
+
+class AmbiguousSession(TacfError):
+    """The session id exists on several services: pass node=... to say which."""
+
+    code = "ambiguous_session"
+
+
+class ProtocolError(TacfError):
+    """A reply that is not a valid message of the expected model."""
+
+    code = "protocol"

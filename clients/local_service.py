@@ -1,0 +1,117 @@
+"""Run `tacf serve` as a child process on a free loopback port: for `tacf demo` and for tests.
+
+    with LocalService(node="demo") as service:          # waits until the service answers a list query
+        options = service.options                        # ZenohOptions that connect to it
+    # SIGTERM, then SIGKILL after a grace period: the child never outlives the block
+
+The child is a fresh interpreter (subprocess, not fork), so it is safe to start even after this process has
+opened Zenoh sessions (ZENOH.md §2.5).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from tacf_clients.zconfig import ZenohOptions
+
+log = logging.getLogger(__name__)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (bind port 0, read it, close)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+class LocalServiceError(RuntimeError):
+    """The child service did not come up, or exited early."""
+
+
+class LocalService:
+    """`tacf serve --listen tcp/127.0.0.1:<port> --node <node> [extra args]` in a child process."""
+
+    def __init__(self, node: str = "local", port: int | None = None, extra_args: tuple[str, ...] = (),
+                 ready_timeout: float = 60.0, log_path: Path | None = None, env: dict[str, str] | None = None):
+        self.node, self.port = node, port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.extra_args, self.ready_timeout = tuple(extra_args), ready_timeout
+        self.log_path = log_path or Path(tempfile.gettempdir()) / f"tacf-serve-{node}-{self.port}.log"
+        self.env = env
+        self.process: subprocess.Popen | None = None
+
+    @property
+    def options(self) -> ZenohOptions:
+        """Zenoh options for a session that connects to this service."""
+        return ZenohOptions.loopback(self.port)
+
+    @property
+    def command(self) -> list[str]:
+        return [sys.executable, "-m", "tacf.cli", "serve", "--listen", self.endpoint, "--node", self.node,
+                *self.extra_args]
+
+    def start(self) -> "LocalService":
+        log.debug("starting %s (log %s)", " ".join(self.command), self.log_path)
+        env = dict(os.environ if self.env is None else self.env)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        with open(self.log_path, "wb") as log_file:
+            self.process = subprocess.Popen(self.command, stdin=subprocess.DEVNULL, stdout=log_file,
+                                            stderr=subprocess.STDOUT, env=env)
+        return self
+
+    def wait_ready(self, client_session) -> None:
+        """Poll the control queryable with `client_session` until this node answers (or raise LocalServiceError)."""
+        from tacf_clients.client import TrackingClient
+        from tacf_clients.errors import TacfError
+
+        deadline = time.monotonic() + self.ready_timeout
+        client = TrackingClient(session=client_session, node=self.node, timeout=1.0)
+        while time.monotonic() < deadline:
+            self.check_alive()
+            try:
+                client.services()
+                return
+            except TacfError:
+                time.sleep(0.1)
+        raise LocalServiceError(f"tacf serve did not answer within {self.ready_timeout:g} s; log: {self.log_path}\n"
+                           f"{self.log_tail()}")
+
+    def check_alive(self) -> None:
+        if self.process is not None and self.process.poll() is not None:
+            raise LocalServiceError(f"tacf serve exited with code {self.process.returncode}; log: {self.log_path}\n"
+                               f"{self.log_tail()}")
+
+    def log_tail(self, lines: int = 20) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+    def stop(self, grace: float = 5.0) -> int | None:
+        """SIGTERM, wait up to `grace` seconds, then SIGKILL. Returns the exit code."""
+        process, self.process = self.process, None
+        if process is None:
+            return None
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(timeout=grace)
+            except subprocess.TimeoutExpired:
+                log.warning("tacf serve did not stop within %g s after SIGTERM: killing it", grace)
+                process.kill()
+                process.wait(timeout=5)
+        log.debug("tacf serve exited with code %s", process.returncode)
+        return process.returncode
+
+    def __enter__(self) -> "LocalService":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

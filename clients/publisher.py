@@ -1,0 +1,140 @@
+"""Frame publisher: encode images as `Frame` messages (jpeg, png, bgr8 or mono8) and put them on an image key.
+
+    with open_session(options) as session, open_source("clip.mp4") as source:
+        stats = publish(session, source, "uav1/camera/front", fps=15, encoding="jpeg", quality=85)
+
+Frames carry a seq that increases by one per published frame (also across loops of the source) and the capture
+time `stamp_ns` (time.time_ns() when the frame was read). Publishing uses CongestionControl.DROP: a camera
+stream never blocks on a slow network (ZENOH.md §3.4).
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import zenoh
+
+from tacf_clients.sources import DEFAULT_FPS, FrameSource, Pacer, SourceFrame, Thinner
+from tacf_schemas.codec import MSGPACK_ENCODING, encode
+from tacf_schemas.images import encode_frame
+from tacf_schemas.keys import validate_image_key
+from tacf_schemas.models import ENCODINGS, Frame
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PublishStats:
+    frames: int             # frames published
+    bytes: int              # payload bytes published
+    seconds: float          # wall time of the run
+    last_seq: int | None    # seq of the last frame published
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+
+def to_channels(image: np.ndarray, encoding: str) -> np.ndarray:
+    """`image` with the channel count `encoding` needs: gray for mono8, BGR for bgr8, as is for jpeg/png."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3) or (
+            image.ndim == 3 and image.shape[2] != 3):
+        raise ValueError(f"expected an HxWx3 (BGR) or HxW uint8 image, got {getattr(image, 'shape', image)!r}")
+    if encoding == "mono8" and image.ndim == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if encoding == "bgr8" and image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return image
+
+
+class FramePublisher:
+    """Puts images on one image key as Frame messages; seq counts from `first_seq`. Close it (or use `with`)."""
+
+    def __init__(self, session: zenoh.Session, key: str, encoding: str = "jpeg", quality: int = 90,
+                 first_seq: int = 0):
+        self.key = validate_image_key(key)
+        if encoding not in ENCODINGS:
+            raise ValueError(f"unknown encoding {encoding!r}; expected one of {', '.join(ENCODINGS)}")
+        self.encoding, self.quality, self.next_seq = encoding, quality, first_seq
+        self._pub = session.declare_publisher(key, encoding=zenoh.Encoding(MSGPACK_ENCODING),
+                                              congestion_control=zenoh.CongestionControl.DROP)
+
+    def make_frame(self, image: np.ndarray, seq: int, stamp_ns: int) -> Frame:
+        return encode_frame(to_channels(image, self.encoding), seq, self.encoding, quality=self.quality,
+                            stamp_ns=stamp_ns)
+
+    def put(self, image: np.ndarray, stamp_ns: int | None = None) -> Frame:
+        """Encode and publish one image with the next seq; returns the Frame sent."""
+        frame = self.make_frame(image, self.next_seq, time.time_ns() if stamp_ns is None else stamp_ns)
+        self._pub.put(encode(frame))
+        self.next_seq += 1
+        return frame
+
+    @property
+    def matched(self) -> bool:
+        """True when at least one subscriber (e.g. a tracking session) listens on the key."""
+        return bool(self._pub.matching_status.matching)
+
+    def wait_matched(self, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not self.matched:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def close(self) -> None:
+        try:
+            self._pub.undeclare()
+        except zenoh.ZError:
+            pass  # the session is already closed
+
+    def __enter__(self) -> "FramePublisher":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float | None = None,
+            encoding: str = "jpeg", quality: int = 90, max_frames: int | None = None,
+            stop: threading.Event | None = None,
+            on_frame: Callable[[Frame, SourceFrame], None] | None = None) -> PublishStats:
+    """Publish `source` on `key` until it ends, `max_frames` were sent or `stop` is set.
+
+    Replayable sources (files, folders, the scene) are paced at `fps`, else at their own rate, else 30 fps;
+    live sources (camera, URL) run at the device's rate, thinned to `fps` when given. `on_frame(frame, src)`
+    is called after each put (keep it quick).
+    """
+    stop = stop or threading.Event()
+    pacer = Pacer(None if source.live else (fps or source.fps or DEFAULT_FPS))
+    thinner = Thinner(fps if source.live else None)
+    frames = nbytes = 0
+    last_seq = None
+    started = time.monotonic()
+    log.info("publishing %s on %r as %s at %s fps", source.name, key, encoding,
+             "device" if source.live and not fps else f"{1 / pacer.period if pacer.period else fps:.3g}")
+    with FramePublisher(session, key, encoding, quality) as publisher:
+        for src in source:
+            if stop.is_set() or (max_frames is not None and frames >= max_frames):
+                break
+            if not thinner.admit():
+                continue
+            pacer.wait(should_stop=stop.is_set)
+            if stop.is_set():
+                break
+            # Live sources: the time the device delivered the frame; replayed ones: now, their "capture" time.
+            frame = publisher.put(src.image, src.stamp_ns if source.live else None)
+            frames, nbytes, last_seq = frames + 1, nbytes + len(frame.data), frame.seq
+            if on_frame is not None:
+                on_frame(frame, src)
+            if frames == 1:
+                log.info("first frame: %dx%d, %d bytes", frame.width, frame.height, len(frame.data))
+    stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq)
+    log.info("published %d frames (%.1f fps, %.1f MB)", stats.frames, stats.fps, stats.bytes / 1e6)
+    return stats

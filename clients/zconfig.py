@@ -1,0 +1,107 @@
+"""Zenoh configuration for the client side: the same options as `tacf serve`, with a loopback default.
+
+Layering (as in zenoh-python's examples/common): `--zenoh-config FILE` first, then the command-line overrides.
+Without a file, the defaults keep everything on this machine: peer mode, multicast scouting off, connect to the
+service's default endpoint tcp/127.0.0.1:7447, and listen on a random loopback port so that other loopback peers
+(for example a service's worker processes) can reach this session through gossip (ZENOH.md §2.3).
+
+Only `zenoh` is imported here (no numpy, no tracker).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
+LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
+# A late listener costs at most ~1 s with this backoff instead of up to 4 s (ZENOH.md §2.4).
+FAST_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """How a client session reaches the Zenoh network.
+
+    connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the default (see module doc), () = none.
+    listen: endpoints to listen on; empty = the default.
+    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
+    mode: "peer" or "client"; None keeps the file's mode (or peer without a file).
+    """
+
+    connect: tuple[str, ...] | None = None
+    listen: tuple[str, ...] = ()
+    config_file: Path | None = None
+    mode: str | None = None
+    extra: tuple[tuple[str, str], ...] = field(default=())
+
+    @classmethod
+    def loopback(cls, port: int) -> "ZenohOptions":
+        """Options for a session that connects to a service listening on ``tcp/127.0.0.1:<port>``."""
+        return cls(connect=(f"tcp/127.0.0.1:{port}",))
+
+    @classmethod
+    def listener(cls, endpoint: str) -> "ZenohOptions":
+        """Options for a session that only listens on `endpoint` (e.g. a test's hub)."""
+        return cls(connect=(), listen=(endpoint,))
+
+    def to_config(self) -> zenoh.Config:
+        return make_config(self)
+
+
+def make_config(options: ZenohOptions | None = None) -> zenoh.Config:
+    """Build a `zenoh.Config` from `options` (None: loopback defaults)."""
+    options = options or ZenohOptions()
+    if options.config_file is not None:
+        conf = zenoh.Config.from_file(str(options.config_file))
+    else:
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/retry", json.dumps(FAST_RETRY))
+        conf.insert_json5("connect/endpoints", json.dumps([DEFAULT_CONNECT]))
+        conf.insert_json5("listen/endpoints", json.dumps([LOOPBACK_LISTEN]))
+    if options.mode is not None or options.config_file is None:
+        conf.insert_json5("mode", json.dumps(options.mode or "peer"))
+    if options.connect is not None:
+        conf.insert_json5("connect/endpoints", json.dumps(list(options.connect)))
+        if options.config_file is None and not options.listen and not all(map(_is_loopback, options.connect)):
+            # Connecting to another machine: advertising a loopback locator to it would be wrong.
+            conf.insert_json5("listen/endpoints", "[]")
+    if options.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(options.listen)))
+    for key, value in options.extra:
+        conf.insert_json5(key, value)
+    return conf
+
+
+def _is_loopback(endpoint: str) -> bool:
+    return "/127.0.0.1:" in endpoint or "/[::1]:" in endpoint or endpoint.startswith("unixsock-stream/")
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add --connect, --listen and --zenoh-config (the same names as `tacf serve`)."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
+                       help=f"endpoint to connect to, repeatable (default {DEFAULT_CONNECT})")
+    group.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
+                       help=f"endpoint to listen on, repeatable (default {LOOPBACK_LISTEN} when connecting on loopback)")
+    group.add_argument("--zenoh-config", type=Path, metavar="FILE",
+                       help="Zenoh JSON5 config file (router, TLS, access control); flags override it")
+    group.add_argument("--mode", choices=("peer", "client"), help="Zenoh session mode (default peer)")
+
+
+def options_from_args(args: argparse.Namespace) -> ZenohOptions:
+    return ZenohOptions(connect=tuple(getattr(args, "connect", None) or ()) or None,
+                        listen=tuple(getattr(args, "listen", None) or ()),
+                        config_file=getattr(args, "zenoh_config", None),
+                        mode=getattr(args, "mode", None))
+
+
+def open_session(options: ZenohOptions | zenoh.Config | None = None) -> zenoh.Session:
+    """Open a Zenoh session; use it as a context manager so it is always closed (ZENOH.md §8)."""
+    conf = options if isinstance(options, zenoh.Config) else make_config(options)
+    return zenoh.open(conf)
+
