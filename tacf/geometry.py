@@ -1,0 +1,116 @@
+"""Search-area geometry and patch sampling (ALGORITHM.md sections 2, 3 and step 13 of section 7).
+
+Positions are (row, col) target centres in 0-based image pixels and sizes are (height, width), both as float
+arrays of shape (2,). The authors' MATLAB code is 1-based; with pos0 = pos1 - 1 every formula below keeps its
+form, so only the indexing changes.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+def round_half_up(x):
+    """MATLAB's round for the non-negative values used here (numpy's round is half-to-even)."""
+    return np.floor(np.asarray(x, dtype=np.float64) + 0.5)
+
+
+def floor_odd(x):
+    """Largest odd integer <= x."""
+    return 2 * np.floor((np.asarray(x) - 1) / 2) + 1
+
+
+def search_padding(target_sz: np.ndarray, fixed_area: float) -> float:
+    """TACF's adaptive padding, fixed for the whole sequence: big targets get less context."""
+    area = float(np.prod(target_sz))
+    if area >= fixed_area:
+        return 1.0
+    if area >= 50.0**2:
+        return 2.5
+    return 3.0
+
+
+@dataclass(frozen=True)
+class TargetAreas:
+    """Background / foreground areas in image pixels and their resize factor to the normalised grid."""
+
+    bg_area: np.ndarray
+    fg_area: np.ndarray
+    resize_factor: float  # normalised pixels per image pixel ("arf")
+
+    @classmethod
+    def around(cls, target_sz: np.ndarray, padding: float, image_hw: tuple[int, int], fixed_area: float,
+               inner_padding: float) -> "TargetAreas":
+        avg = float(np.sum(target_sz)) / 2
+        bg = round_half_up(target_sz + avg * padding)
+        bg = np.minimum(bg, np.asarray(image_hw, dtype=np.float64) - 1)
+        bg -= np.mod(bg - target_sz, 2)  # keep (bg - target) even so the target sits centred
+        fg = round_half_up(target_sz - inner_padding * avg)
+        fg = np.maximum(fg, 1)
+        fg += np.mod(bg - fg, 2)
+        return cls(bg, fg, float(np.sqrt(fixed_area / np.prod(bg))))
+
+
+@dataclass(frozen=True)
+class NormalisedGrid:
+    """The fixed working grid of a sequence, set at initialisation (ALGORITHM.md section 2, steps 6-10)."""
+
+    patch_hw: np.ndarray  # norm_bg_area: the sample is resized to this many pixels
+    filter_hw: tuple[int, int]  # cf_size: feature and filter grid in cells
+    target_hw: np.ndarray  # norm_target_sz (Staple's inversion, inflated for padding > 1 on purpose)
+    response_size: int  # norm_delta: side of the square, upsampled response in normalised pixels
+    crop_cells: int  # side of the cropped square response in cells (odd)
+
+    @classmethod
+    def from_areas(cls, areas: TargetAreas, cell_size: int) -> "NormalisedGrid":
+        patch = round_half_up(areas.bg_area * areas.resize_factor)
+        filt = (int(patch[0] // cell_size), int(patch[1] // cell_size))
+        nb_h, nb_w = patch
+        target = round_half_up([0.75 * nb_h - 0.25 * nb_w, 0.75 * nb_w - 0.25 * nb_h])
+        target = np.maximum(target, cell_size)
+        radius = int(np.min(np.floor((patch - target) / 2)))
+        radius = max(radius, cell_size)
+        response = 2 * radius + 1
+        crop = int(floor_odd(response / cell_size))
+        crop = max(1, min(crop, int(floor_odd(min(filt)))))
+        return cls(patch, filt, target, response, crop)
+
+
+def resize_auto(patch: np.ndarray, out_hw) -> np.ndarray:
+    """mexResize 'auto': bilinear when enlarging, area averaging when shrinking."""
+    rows, cols = int(out_hw[0]), int(out_hw[1])
+    if patch.shape[0] == rows and patch.shape[1] == cols:
+        return patch
+    interp = cv2.INTER_LINEAR if cols > patch.shape[1] else cv2.INTER_AREA
+    return cv2.resize(patch, (cols, rows), interpolation=interp)
+
+
+def _clamped_span(start: int, count: int, limit: int) -> slice | np.ndarray:
+    """Indices start..start+count-1, clamped to [0, limit-1] (border replication); a slice when inside."""
+    if start >= 0 and start + count <= limit:
+        return slice(start, start + count)
+    return np.clip(np.arange(start, start + count), 0, limit - 1)
+
+
+def crop_replicate(image: np.ndarray, top_left, size_hw) -> np.ndarray:
+    """Pixels of the rectangle at integer top_left (row, col) of size_hw, borders replicated."""
+    rows = _clamped_span(int(top_left[0]), int(size_hw[0]), image.shape[0])
+    cols = _clamped_span(int(top_left[1]), int(size_hw[1]), image.shape[1])
+    if isinstance(rows, slice) and isinstance(cols, slice):
+        return image[rows, cols]
+    if isinstance(rows, slice):
+        rows = np.arange(rows.start, rows.stop)
+    if isinstance(cols, slice):
+        cols = np.arange(cols.start, cols.stop)
+    return image[rows[:, None], cols[None, :]]
+
+
+def subwindow(image: np.ndarray, pos: np.ndarray, model_hw, sample_hw) -> np.ndarray:
+    """getSubwindow: a sample_hw window centred on pos, border-replicated, resized to model_hw."""
+    size = np.maximum(np.asarray(sample_hw, dtype=np.float64), 2)
+    count = np.floor(size)
+    top_left = round_half_up(pos + 1 - size / 2)
+    patch = crop_replicate(image, top_left, count)
+    return resize_auto(patch, model_hw)
