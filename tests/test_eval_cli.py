@@ -1,0 +1,255 @@
+"""`tacf eval`, `tacf track`, `tacf bench tracker` end to end, the tracker registry and adapters."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tacf.cli import main
+from tacf.eval import trackers
+from tacf.eval.runner import track_frames
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SEQUENCES = DATA / "sequences"
+needs_data = pytest.mark.skipif(not SEQUENCES.is_dir(), reason="../shared/data is absent")
+HAS_TACF = importlib.util.find_spec("tacf.tracker") is not None
+needs_tacf = pytest.mark.skipif(not HAS_TACF, reason="tacf/tracker.py does not exist yet")
+
+EVAL_SEQS = "UAV123_10fps/wakeboard7,UAVDT/S0601"
+EVAL_TRACKERS = ["opencv-csrt", "opencv-kcf", "opencv-mosse"]
+ENTRY_KEYS = {"auc", "precision20", "fps", "frames"}
+
+
+def synthetic_frames(n: int = 20, size=(160, 120)) -> tuple[list[np.ndarray], tuple]:
+    """A textured square drifting right over a noisy background; returns frames and the first box."""
+    rng = np.random.default_rng(0)
+    w, h = size
+    background = rng.integers(0, 80, (h, w, 3), dtype=np.uint8)
+    patch = rng.integers(60, 255, (24, 24, 3), dtype=np.uint8)
+    background, patch = cv2.GaussianBlur(background, (0, 0), 2), cv2.GaussianBlur(patch, (0, 0), 1.5)
+    frames = []
+    for i in range(n):
+        f = background.copy()
+        x, y = 30 + 2 * i, 40 + i
+        f[y:y + 24, x:x + 24] = patch
+        frames.append(f)
+    return frames, (30.0, 40.0, 24.0, 24.0)
+
+
+# --- registry and adapters -------------------------------------------------------------------------------------
+def test_registry_names():
+    for name in ["tacf", "tacf-paper", "tacf-authors", "kcc", "kcc+sa", "kcc+da+ca", "identity",
+                 *trackers.OPENCV_TRACKERS]:
+        assert trackers.check_name(name) == name
+    for bad in ["kcc+xx", "kcc+sa+sa", "opencv-goturn", "tacf-fast", "sa"]:
+        with pytest.raises(ValueError):
+            trackers.check_name(bad)
+    cfg = trackers.tacf_config("kcc+sa+da")
+    assert cfg.profile == "kcc" and cfg.spatiotemporal_attention and cfg.dimensional_attention
+    assert not cfg.context_attention
+    only_ca = trackers.tacf_config("kcc+ca")
+    assert only_ca.context_attention and not only_ca.dimensional_attention and not only_ca.spatiotemporal_attention
+    assert trackers.tacf_config("tacf-paper").profile == "paper"
+
+
+@pytest.mark.parametrize("name", trackers.OPENCV_TRACKERS + ("identity",))
+def test_adapters_follow_the_interface(name):
+    frames, box = synthetic_frames(8)
+    t = trackers.make_tracker(name)
+    run = track_frames(t, frames, box)
+    assert run.boxes.shape == (8, 4) and run.times.shape == (8,) and (run.times >= 0).all()
+    np.testing.assert_array_equal(run.boxes[0], box)
+    assert np.isfinite(run.boxes).all() and run.ok.dtype == bool
+    if name not in ("identity", "opencv-mosse"):   # OpenCV's MOSSE gives up (PSR < 5.7) on small targets
+        assert run.boxes[-1, 0] > box[0] + 4      # followed the drift to the right
+
+
+# --- tacf eval ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    if not SEQUENCES.is_dir():
+        pytest.skip("../shared/data is absent")
+    out = tmp_path_factory.mktemp("eval")
+    rc = main(["eval", str(SEQUENCES), "--sequences", EVAL_SEQS, "--trackers", ",".join(EVAL_TRACKERS),
+               "--out", str(out), "--no-progress"])
+    assert rc == 0
+    return out
+
+
+def got10k_auc(result_file: Path, gt_file: Path) -> float:
+    """got10k's ExperimentOTB formula on the raw (1-based) files, as got10k reads them."""
+    boxes = np.loadtxt(result_file, delimiter=",")
+    anno = np.loadtxt(gt_file, delimiter=",")
+    x1 = np.maximum(boxes[:, 0], anno[:, 0])
+    y1 = np.maximum(boxes[:, 1], anno[:, 1])
+    x2 = np.minimum(boxes[:, 0] + boxes[:, 2], anno[:, 0] + anno[:, 2])
+    y2 = np.minimum(boxes[:, 1] + boxes[:, 3], anno[:, 1] + anno[:, 3])
+    inter = np.maximum(x2 - x1, 0) * np.maximum(y2 - y1, 0)
+    ious = inter / (boxes[:, 2] * boxes[:, 3] + anno[:, 2] * anno[:, 3] - inter + np.finfo(float).eps)
+    return float(np.mean(np.mean(ious[:, None] > np.linspace(0, 1, 21)[None, :], axis=0)))
+
+
+def test_eval_summary_shape_and_values(evaluated):
+    summary = json.loads((evaluated / "summary.json").read_text())
+    assert set(summary) == {"trackers"} and sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
+    for name, t in summary["trackers"].items():
+        assert set(t) == ENTRY_KEYS | {"sequences"}
+        assert sorted(t["sequences"]) == ["UAV123_10fps/wakeboard7", "UAVDT/S0601"]
+        assert t["frames"] == 67 + 82
+        for seq, s in t["sequences"].items():
+            assert set(s) == ENTRY_KEYS and 0 <= s["auc"] <= 1 and 0 <= s["precision20"] <= 1 and s["fps"] > 0
+            gt_file = SEQUENCES / seq / "groundtruth.txt"
+            assert s["auc"] == pytest.approx(got10k_auc(evaluated / name / f"{seq}.txt", gt_file), abs=1e-9)
+        seqs = t["sequences"].values()
+        assert t["auc"] == pytest.approx(np.mean([s["auc"] for s in seqs]))
+        assert t["precision20"] == pytest.approx(np.mean([s["precision20"] for s in seqs]))
+        times = np.concatenate([np.loadtxt(evaluated / name / "times" / f"{s}_time.txt") for s in t["sequences"]])
+        assert t["fps"] == pytest.approx(len(times) / times.sum(), rel=1e-3)
+    # CSRT follows the car of S0601 for a good part of the sequence; MOSSE stays put on wakeboard7's fast target
+    assert summary["trackers"]["opencv-csrt"]["sequences"]["UAVDT/S0601"]["auc"] > 0.2
+
+
+def test_eval_result_files_are_one_based_got10k_format(evaluated):
+    lines = (evaluated / "opencv-kcf" / "UAV123_10fps" / "wakeboard7.txt").read_text().splitlines()
+    assert len(lines) == 67
+    assert lines[0] == "623.000,299.000,11.000,38.000"      # = groundtruth.txt line 1 (1-based)
+    assert all(len(line.split(",")) == 4 for line in lines)
+    times = np.loadtxt(evaluated / "opencv-kcf" / "times" / "UAV123_10fps" / "wakeboard7_time.txt")
+    assert times.shape == (67,) and (times > 0).all()
+
+
+def test_eval_reports_plots_and_markdown(evaluated):
+    for png in ("success_plot.png", "precision_plot.png"):
+        data = (evaluated / png).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    md = (evaluated / "summary.md").read_text()
+    assert md.startswith("| tracker | AUC | precision@20 | FPS |")
+    assert all(name in md for name in EVAL_TRACKERS) and "UAVDT/S0601" in md
+
+
+def test_eval_resumes_and_force_reruns(evaluated, capsys):
+    result = evaluated / "opencv-mosse" / "UAVDT" / "S0601.txt"
+    before = result.stat().st_mtime_ns
+    assert main(["eval", str(SEQUENCES), "--sequences", EVAL_SEQS, "--trackers", "opencv-mosse",
+                 "--out", str(evaluated / "."), "--no-progress"]) == 0
+    assert result.stat().st_mtime_ns == before
+    os.utime(result, ns=(before - 10**9, before - 10**9))
+    assert main(["eval", str(SEQUENCES), "--sequences", "UAVDT/S0601", "--trackers", "opencv-mosse",
+                 "--out", str(evaluated), "--force", "--no-progress"]) == 0
+    assert result.stat().st_mtime_ns > before - 10**9
+    assert "opencv-mosse" in capsys.readouterr().out
+
+
+@needs_data
+def test_eval_with_two_worker_processes(evaluated, tmp_path):
+    rc = main(["eval", str(SEQUENCES), "--sequences", EVAL_SEQS, "--trackers", "opencv-mosse", "identity",
+               "--out", str(tmp_path), "--workers", "2", "--no-progress"])
+    assert rc == 0
+    for seq in ("UAV123_10fps/wakeboard7", "UAVDT/S0601"):
+        assert (tmp_path / "opencv-mosse" / f"{seq}.txt").read_text() == \
+            (evaluated / "opencv-mosse" / f"{seq}.txt").read_text()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert sorted(summary["trackers"]) == ["identity", "opencv-mosse"]
+
+
+def test_eval_bad_input_exits_2(tmp_path):
+    assert main(["eval", str(tmp_path), "--trackers", "opencv-kcf", "--out", str(tmp_path / "o")]) == 2
+    assert main(["eval", str(tmp_path), "--trackers", "nope", "--out", str(tmp_path / "o")]) == 2
+
+
+# --- tacf track ---------------------------------------------------------------------------------------------
+def check_boxes_file(path: Path, n: int, box) -> np.ndarray:
+    lines = path.read_text().splitlines()
+    assert lines[0].startswith("# x,y,w,h,pme,ok")
+    rows = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    assert rows.shape == (n, 6)
+    np.testing.assert_array_equal(rows[0, :4], box)
+    assert set(rows[:, 5]) <= {0.0, 1.0}
+    return rows
+
+
+def test_track_image_folder_and_video(tmp_path):
+    frames, box = synthetic_frames(20)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(folder / f"{i:06d}.png"), f)
+    rc = main(["track", str(folder), "--box", ",".join(str(v) for v in box), "--tracker", "opencv-kcf",
+               "--out", str(tmp_path / "boxes.txt"), "--video", str(tmp_path / "out.mp4")])
+    assert rc == 0
+    rows = check_boxes_file(tmp_path / "boxes.txt", 20, box)
+    assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=3)
+    cap = cv2.VideoCapture(str(tmp_path / "out.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 20
+    cap.release()
+
+    mp4 = tmp_path / "input.mp4"
+    writer = cv2.VideoWriter(str(mp4), cv2.VideoWriter_fourcc(*"mp4v"), 10, (160, 120))
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    rc = main(["track", str(mp4), "--box", "30,40,24,24", "--tracker", "opencv-csrt",
+               "--out", str(tmp_path / "boxes_mp4.txt")])
+    assert rc == 0
+    rows = check_boxes_file(tmp_path / "boxes_mp4.txt", 20, box)
+    assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=4)
+
+
+def test_track_bad_arguments(tmp_path):
+    assert main(["track", str(tmp_path), "--box", "1,2,3", "--tracker", "opencv-kcf"]) == 2
+    assert main(["track", str(tmp_path / "missing.mp4"), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2
+    assert main(["track", str(tmp_path), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2   # empty folder
+
+
+# --- tacf bench tracker -------------------------------------------------------------------------------------
+@needs_data
+def test_bench_tracker_json(tmp_path):
+    out = tmp_path / "bench.json"
+    rc = main(["bench", "tracker", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7",
+               "--trackers", "opencv-kcf", "--max-frames", "10", "--json", str(out)])
+    assert rc == 0
+    r = json.loads(out.read_text())
+    assert r["tracker"] == "opencv-kcf" and r["fps"] > 0 and r["frames"] == 10
+    assert set(r["ms_per_frame"]) >= {"p50", "p95"} and r["ms_per_frame"]["p95"] >= r["ms_per_frame"]["p50"]
+    assert r["peers"]["opencv-csrt"]["fps"] > 0 and r["peers"]["opencv-csrt"]["frames"] == 10
+    assert r["sequences"]["UAV123_10fps/wakeboard7"]["frames"] == 10
+
+
+def test_console_script_lists_subcommands():
+    out = subprocess.run([sys.executable, "-m", "tacf.cli", "--help"], capture_output=True, text=True, check=True)
+    assert all(cmd in out.stdout for cmd in ("eval", "track", "bench"))
+
+
+# --- the TACF path ------------------------------------------------------------------------------------------
+@needs_tacf
+@pytest.mark.parametrize("name", ["tacf", "kcc", "kcc+sa+da"])
+def test_tacf_adapter(name):
+    frames, box = synthetic_frames(12)
+    run = track_frames(trackers.make_tracker(name), frames, box)
+    assert run.boxes.shape == (12, 4) and np.isfinite(run.boxes).all()
+    assert np.isfinite(run.pme[1:]).all()
+    assert run.boxes[-1, 0] == pytest.approx(box[0] + 22, abs=4)
+
+
+@needs_tacf
+@needs_data
+def test_eval_and_track_with_tacf(tmp_path):
+    rc = main(["eval", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7", "--trackers", "tacf,kcc",
+               "--out", str(tmp_path), "--no-progress"])
+    assert rc == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    for name in ("tacf", "kcc"):
+        t = summary["trackers"][name]
+        assert t["frames"] == 67 and 0 <= t["auc"] <= 1 and t["fps"] > 0
+    rc = main(["track", str(SEQUENCES / "UAV123_10fps" / "wakeboard7" / "img"), "--box", "622,298,11,38",
+               "--profile", "kcc", "--out", str(tmp_path / "b.txt")])
+    assert rc == 0
+    rows = check_boxes_file(tmp_path / "b.txt", 67, (622, 298, 11, 38))
+    assert np.isfinite(rows[1:, 4]).all()
