@@ -1,0 +1,75 @@
+"""Colour-histogram likelihood used as a detection window (Staple's model; ALGORITHM.md section 6).
+
+Foreground and background histograms (32 bins per channel) are learnt on the normalised patch; at detection
+the per-pixel foreground likelihood, min-max normalised and floored, multiplies the cosine window so that
+features on background-coloured pixels count less. It is not merged into the response.
+"""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def _bin_index(patch: np.ndarray, bins: int) -> tuple[np.ndarray, int]:
+    """Joint histogram bin of every pixel: bins^3 bins for colour patches, bins for grayscale."""
+    shift = int(np.log2(256 // bins))
+    quantised = (patch >> shift).astype(np.intp)
+    if quantised.ndim == 2:
+        return quantised, bins
+    return (quantised[..., 0] * bins + quantised[..., 1]) * bins + quantised[..., 2], bins**3
+
+
+def _centre_mask(area_hw: np.ndarray, block_hw: np.ndarray, inside: bool) -> np.ndarray:
+    """A binary mask on an area-sized grid: the centred block set (inside) or cleared (not inside)."""
+    height, width = (int(v) for v in area_hw)
+    pad_r, pad_c = (max(int((a - b) // 2), 1) for a, b in zip(area_hw, block_hw))
+    mask = np.zeros((height, width), np.uint8) if inside else np.ones((height, width), np.uint8)
+    mask[pad_r:height - pad_r, pad_c:width - pad_c] = 1 if inside else 0
+    return mask
+
+
+class ColourModel:
+    def __init__(self, patch: np.ndarray, bg_area: np.ndarray, fg_area: np.ndarray, target_hw: np.ndarray,
+                 bins: int, learning_rate: float, floor: float):
+        if 256 % bins or bins & (bins - 1):
+            raise ValueError(f"hist_bins must be a power of two dividing 256, got {bins}")
+        self.bins = bins
+        self.learning_rate = learning_rate
+        self.floor = floor
+        patch_hw = patch.shape[1], patch.shape[0]
+        self.bg_mask = cv2.resize(_centre_mask(bg_area, target_hw, inside=False), patch_hw,
+                                  interpolation=cv2.INTER_NEAREST).astype(bool)
+        self.fg_mask = cv2.resize(_centre_mask(bg_area, fg_area, inside=True), patch_hw,
+                                  interpolation=cv2.INTER_NEAREST).astype(bool)
+        self.fg_hist, self.bg_hist = self._histograms(patch)
+
+    def _histograms(self, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        index, count = _bin_index(patch, self.bins)
+        hists = []
+        for mask in (self.fg_mask, self.bg_mask):
+            hist = np.bincount(index[mask], minlength=count).astype(np.float64)
+            hists.append(hist / max(hist.sum(), 1.0))
+        return hists[0], hists[1]
+
+    def update(self, patch: np.ndarray) -> None:
+        """EMA of both histograms on the training patch (the same area the masks were drawn for)."""
+        fg_hist, bg_hist = self._histograms(patch)
+        rate = self.learning_rate
+        self.fg_hist = (1 - rate) * self.fg_hist + rate * fg_hist
+        self.bg_hist = (1 - rate) * self.bg_hist + rate * bg_hist
+
+    def likelihood_window(self, patch: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
+        """Foreground likelihood on the feature grid, normalised to [floor, 1]."""
+        index, _ = _bin_index(patch, self.bins)
+        fg, bg = self.fg_hist[index], self.bg_hist[index]
+        total = fg + bg
+        likelihood = np.divide(fg, total, out=np.zeros_like(fg), where=total > 0)
+        likelihood = cv2.resize(likelihood.astype(np.float32), (grid_hw[1], grid_hw[0]),
+                                interpolation=cv2.INTER_AREA)
+        low, high = likelihood.min(), likelihood.max()
+        if high <= low:
+            return np.ones(grid_hw, np.float32)
+        likelihood = (likelihood - low) / (high - low)
+        if likelihood.mean() < 0.01:
+            return np.ones(grid_hw, np.float32)
+        return np.maximum(likelihood, self.floor)

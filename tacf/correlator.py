@@ -1,0 +1,135 @@
+"""Per-channel kernel cross-correlators (KCC form), batched over the channel axis (ALGORITHM.md section 5).
+
+One feature type (fHOG or Color Names) gets one independent single-channel filter per channel:
+
+    W_d = K_d . Y / (K_d . conj(K_d) + lambda1 + context_d)        with K_d = F(k(x_d, x_d))
+
+All arrays are (C, H, W) in space and (C, H, W//2+1) in frequency: the signals are real, so real FFTs over
+the last two axes serve every channel in one call. The zero displacement sits at the array's corner.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft as sfft
+
+
+def gaussian_label(grid_hw: tuple[int, int], sigma: float) -> np.ndarray:
+    """Desired output: a Gaussian whose peak sits at (H-1, W-1), i.e. displacement (-1, -1).
+
+    The one-cell shift mirrors the authors' label and is undone by the response crop (response.crop_centre).
+    """
+    height, width = grid_hw
+    rows = np.arange(-((height - 1) // 2), (height - 1) // 2 + 1)
+    cols = np.arange(-((width - 1) // 2), (width - 1) // 2 + 1)
+    label = np.zeros(grid_hw)
+    values = np.exp(-(rows[:, None] ** 2 + cols[None, :] ** 2) / (2 * sigma**2))
+    label[np.ix_((rows - 1) % height, (cols - 1) % width)] = values
+    return label
+
+
+@dataclass(frozen=True)
+class GaussianKernel:
+    """k(a, b)[t] = exp(-(|a|^2 + |b|^2 - 2 (a * b)[t]) / (sigma^2 N)), per channel."""
+
+    sigma: float
+
+    def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
+        n = cross.shape[-1] * cross.shape[-2]
+        return np.exp(-(sq_norm_a + sq_norm_b - 2 * cross) / (self.sigma**2 * n))
+
+
+@dataclass(frozen=True)
+class PolynomialKernel:
+    """k(a, b)[t] = ((a * b)[t] / N + offset) ** degree, per channel."""
+
+    offset: float
+    degree: float
+
+    def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
+        n = cross.shape[-1] * cross.shape[-2]
+        return (cross / n + self.offset) ** self.degree
+
+
+def _sq_norms(x: np.ndarray) -> np.ndarray:
+    """Squared norm of every (H, W) slice, shaped to broadcast against the slices."""
+    return np.einsum("...hw,...hw->...", x, x)[..., None, None]
+
+
+class CorrelatorBank:
+    """The filters of one feature type: training with an optional context term, EMA model, detection."""
+
+    def __init__(self, kernel, label: np.ndarray, lambda1: float, learning_rate: float):
+        self.kernel = kernel
+        self.grid_hw = label.shape
+        self.label_hat = sfft.rfft2(label.astype(np.float32))
+        self.lambda1 = lambda1
+        self.learning_rate = learning_rate
+        self.model_x: np.ndarray | None = None  # template in space (kept for its norms)
+        self.model_x_hat: np.ndarray | None = None
+        self.model_filter_hat: np.ndarray | None = None
+        self._fresh: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- kernels ------------------------------------------------------------------------------------------
+    def _fft(self, x: np.ndarray) -> np.ndarray:
+        return sfft.rfft2(x, axes=(-2, -1))
+
+    def _ifft(self, x_hat: np.ndarray) -> np.ndarray:
+        return sfft.irfft2(x_hat, s=self.grid_hw, axes=(-2, -1))
+
+    def auto_kernel_hat(self, x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
+        """F(k(x_d, x_d)) for every channel d (the leading axes are batch axes)."""
+        cross = self._ifft(x_hat * x_hat.conj())
+        norms = _sq_norms(x)
+        return self._fft(self.kernel(cross, norms, norms))
+
+    def cross_kernel_hat(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
+        """F(k(z_d, model_x_d)): a target displaced by +d in z peaks at +d."""
+        cross = self._ifft(z_hat * self.model_x_hat.conj())
+        return self._fft(self.kernel(cross, _sq_norms(z), _sq_norms(self.model_x)))
+
+    def context_energy(self, context_x: np.ndarray) -> np.ndarray:
+        """sum_s |F(k(x_s, x_s))|^2 over context patches (S, C, H, W), already scaled by their penalties."""
+        kernel_hat = self.auto_kernel_hat(context_x, self._fft(context_x))
+        return np.sum(kernel_hat.real**2 + kernel_hat.imag**2, axis=0)
+
+    # -- training ------------------------------------------------------------------------------------------
+    def train(self, x: np.ndarray, context_energy: np.ndarray | None = None) -> None:
+        """Learn fresh filters on x (C, H, W) and blend them into the model."""
+        x_hat = self._fft(x)
+        kernel_hat = self.auto_kernel_hat(x, x_hat)
+        denominator = kernel_hat.real**2 + kernel_hat.imag**2 + self.lambda1
+        if context_energy is not None:
+            denominator = denominator + context_energy
+        filter_hat = kernel_hat * self.label_hat / denominator
+        if self.model_x is None:
+            self.model_x, self.model_x_hat, self.model_filter_hat = x, x_hat, filter_hat
+        else:
+            rate = self.learning_rate
+            self.model_x = (1 - rate) * self.model_x + rate * x
+            self.model_x_hat = (1 - rate) * self.model_x_hat + rate * x_hat
+            self.model_filter_hat = (1 - rate) * self.model_filter_hat + rate * filter_hat
+        self._fresh = filter_hat, kernel_hat
+
+    def fresh_self_responses(self) -> np.ndarray:
+        """real(F^-1(W_d . K_d)) of the filters just trained: how well each channel answers its own sample.
+
+        They feed dimensional attention (ALGORITHM.md section 8).
+        """
+        filter_hat, kernel_hat = self._fresh
+        return self._ifft(filter_hat * kernel_hat)
+
+    # -- detection -----------------------------------------------------------------------------------------
+    def channel_response_hats(self, z: np.ndarray) -> np.ndarray:
+        """F(R_d) for every channel of the sample z (C, H, W)."""
+        return self.model_filter_hat * self.cross_kernel_hat(z, self._fft(z))
+
+    def response(self, z: np.ndarray, channel_weights: np.ndarray | None = None) -> np.ndarray:
+        """sum_d w_d R_d as one H x W map: the weighted channel sum is taken before the inverse FFT."""
+        hats = self.channel_response_hats(z)
+        if channel_weights is None:
+            summed = hats.sum(axis=0)
+        else:
+            summed = np.tensordot(channel_weights.astype(hats.real.dtype), hats, axes=1)
+        return self._ifft(summed)

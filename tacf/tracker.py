@@ -1,0 +1,221 @@
+"""The TACF tracker: `init(frame, box)` then `update(frame) -> TrackResult`, frame after frame.
+
+Per frame (ALGORITHM.md section 7, with the decisions of section B):
+  LOCALISE  sample the search area at the last position; colour-weighted cosine window; per-channel kernel
+            correlators for fHOG and Color Names; dimensional attention weights the channels; spatiotemporal
+            attention multiplies the channel sum; crop; context penalties from PME ratios on context frames;
+            upsample, fuse the two feature types, take the peak.
+  SCALE     DSST scale filter at the new position.
+  UPDATE    train fresh filters (with context patches as hard negatives on context frames), blend them into
+            the model, update the channel weights, colour histograms and scale model.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal.windows import hann
+
+from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
+from tacf.attention.spatiotemporal import to_response_origin
+from tacf.colour import ColourModel
+from tacf.config import TrackerConfig
+from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
+from tacf.features import color_names, fhog
+from tacf.geometry import NormalisedGrid, TargetAreas, round_half_up, search_padding, subwindow
+from tacf.response import crop_centre, fuse, peak_offset, upsample
+from tacf.scale import ScaleFilter
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    box: tuple[float, float, float, float]  # x, y, w, h: 0-based pixels, top-left origin
+    pme: float  # peak-to-median energy of the fused response: high = confident
+    score: float  # peak value of the fused response
+    ok: bool  # False when the PME falls under TrackerConfig.lost_pme (target probably lost)
+    scale: float  # current size relative to the initial box
+
+
+def _check_frame(frame, expected_shape=None) -> np.ndarray:
+    if not isinstance(frame, np.ndarray):
+        raise ValueError(f"frame must be a numpy array, got {type(frame).__name__}")
+    if frame.ndim == 3 and frame.shape[2] == 1:
+        frame = frame[:, :, 0]
+    if not (frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] == 3)):
+        raise ValueError(f"frame must be HxW (gray) or HxWx3 (BGR), got shape {frame.shape}")
+    if frame.shape[0] < 2 or frame.shape[1] < 2:
+        raise ValueError(f"frame is empty or too small: shape {frame.shape}")
+    if frame.dtype != np.uint8:
+        raise ValueError(f"frame must be uint8, got {frame.dtype}")
+    if expected_shape is not None and frame.shape != expected_shape:
+        raise ValueError(f"frame shape {frame.shape} differs from the initial frame's {expected_shape}; "
+                         "call init() again for a new video")
+    return frame
+
+
+def _check_box(box, frame_shape) -> np.ndarray:
+    try:
+        values = np.asarray(box, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"box must be four numbers (x, y, w, h), got {box!r}") from None
+    if values.size != 4 or not np.all(np.isfinite(values)):
+        raise ValueError(f"box must be four finite numbers (x, y, w, h), got {box!r}")
+    x, y, w, h = values
+    if w <= 0 or h <= 0:
+        raise ValueError(f"box width and height must be positive, got w={w}, h={h}")
+    height, width = frame_shape[:2]
+    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
+        raise ValueError(f"box {tuple(values)} lies outside the {width}x{height} image")
+    return values
+
+
+class Tracker:
+    """TACF. Frames are HxWx3 BGR uint8 (OpenCV order) or HxW uint8 grayscale."""
+
+    def __init__(self, config: TrackerConfig | None = None):
+        self.config = config or TrackerConfig.profile()
+        self._frame_shape = None
+
+    # ------------------------------------------------------------------------------------------------------
+    def init(self, frame: np.ndarray, box) -> None:
+        """Start (or restart) tracking the target in box = (x, y, w, h) of this frame."""
+        cfg = self.config
+        frame = _check_frame(frame)
+        x, y, w, h = _check_box(box, frame.shape)
+        self._frame_shape = frame.shape
+        self.frame_number = 1
+        self.pos = np.array([y + h / 2, x + w / 2])
+        self.target_hw = np.maximum(round_half_up([h, w]), 1.0)
+        self.base_target_hw = self.target_hw.copy()
+        self.scale_factor = 1.0
+        self.displacement = None  # last frame's motion in image pixels (for the motion term)
+
+        image_hw = frame.shape[:2]
+        self.padding = search_padding(self.target_hw, cfg.fixed_area)
+        self.areas = self._areas_around(self.target_hw)
+        self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size)
+        grid_hw = self.grid.filter_hw
+        self.cosine_window = np.outer(hann(grid_hw[0], sym=True), hann(grid_hw[1], sym=True)).astype(np.float32)
+
+        sigma_base = math.sqrt(float(np.prod(self.grid.target_hw))) / cfg.cell_size
+        self.banks = {"hog": CorrelatorBank(GaussianKernel(cfg.hog_kernel_sigma),
+                                            gaussian_label(grid_hw, sigma_base * cfg.hog_output_sigma_factor),
+                                            cfg.lambda1, cfg.learning_rate)}
+        if cfg.use_colour_names:
+            self.banks["cn"] = CorrelatorBank(PolynomialKernel(cfg.cn_poly_a, cfg.cn_poly_b),
+                                              gaussian_label(grid_hw, sigma_base * cfg.cn_output_sigma_factor),
+                                              cfg.lambda1, cfg.learning_rate)
+        channels = {"hog": 31, "cn": 11}
+        self.dimensional = {name: DimensionalAttention(channels[name], cfg.dim_threshold, cfg.dim_floor,
+                                                       cfg.dim_learning_rate) for name in self.banks}
+        self.spatiotemporal = {name: SpatiotemporalAttention(cfg.spatial_learning_rate, cfg.motion_gain)
+                               for name in self.banks}
+        self.contextual = ContextualAttention(cfg.context_interval, cfg.context_penalty_total,
+                                              cfg.context_challenge_floor, cfg.context_penalty_rate,
+                                              cfg.context_lambda2)
+        self.colour = None
+        self.scale_filter = None
+        if cfg.scale_estimation:
+            self.scale_filter = ScaleFilter(cfg, image_hw, self.base_target_hw, self.grid.target_hw,
+                                            self.areas.bg_area)
+        self._train(frame)
+
+    def update(self, frame: np.ndarray) -> TrackResult:
+        """Locate the target in the next frame, then learn from it."""
+        if self._frame_shape is None:
+            raise RuntimeError("call init(frame, box) before update(frame)")
+        frame = _check_frame(frame, self._frame_shape)
+        self.frame_number += 1
+
+        # ------- LOCALISE -------
+        fused = self._localise(frame)
+        self.displacement = peak_offset(fused) / self.areas.resize_factor
+        self.pos = np.clip(self.pos + self.displacement, 0, np.asarray(frame.shape[:2]) - 1)
+
+        # ------- SCALE -------
+        if self.scale_filter is not None:
+            self.scale_factor = self.scale_filter.estimate(frame, self.pos, self.scale_factor)
+            self.target_hw = np.maximum(round_half_up(self.base_target_hw * self.scale_factor), 1.0)
+            self.areas = self._areas_around(self.target_hw)
+
+        # ------- UPDATE -------
+        self._train(frame)
+        confidence = pme(fused)
+        return TrackResult(box=self.box, pme=confidence, score=float(fused.max()),
+                           ok=confidence >= self.config.lost_pme, scale=self.scale_factor)
+
+    @property
+    def box(self) -> tuple[float, float, float, float]:
+        height, width = self.target_hw
+        return (float(self.pos[1] - width / 2), float(self.pos[0] - height / 2), float(width), float(height))
+
+    # ------------------------------------------------------------------------------------------------------
+    def _areas_around(self, target_hw: np.ndarray) -> TargetAreas:
+        return TargetAreas.around(target_hw, self.padding, self._frame_shape[:2], self.config.fixed_area,
+                                  self.config.inner_padding)
+
+    def _sample(self, frame: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area)
+
+    def _features(self, patch: np.ndarray, names) -> dict[str, np.ndarray]:
+        extractors = {"hog": lambda p: fhog(p.astype(np.float32) / 255.0, self.config.cell_size),
+                      "cn": lambda p: color_names(p, self.config.cell_size)}
+        return {name: extractors[name](patch) for name in names}
+
+    def _localise(self, frame: np.ndarray) -> np.ndarray:
+        """Fused, upsampled response over the search square; its centre is 'no motion'."""
+        cfg = self.config
+        patch = self._sample(frame, self.pos)
+        window = self.cosine_window
+        if self.colour is not None:
+            window = window * self.colour.likelihood_window(patch, self.grid.filter_hw)
+        features = self._features(patch, self.banks)
+        cropped = {}
+        for name, bank in self.banks.items():
+            weights = self.dimensional[name].weights if cfg.dimensional_attention else None
+            response = bank.response(features[name] * window, weights)
+            if cfg.spatiotemporal_attention:
+                motion = self.displacement if self.frame_number >= 3 else None
+                response = response * self.spatiotemporal[name].update(
+                    response, to_response_origin(window), motion, self.target_hw)
+            cropped[name] = crop_centre(response, self.grid.crop_cells)
+        if cfg.context_attention and self.frame_number > 1 and self.contextual.is_context_frame(self.frame_number):
+            self._update_context_penalties(frame, cropped["hog"])
+        return fuse([upsample(r, self.grid.response_size) for r in cropped.values()])
+
+    def _context_features(self, frame: np.ndarray) -> np.ndarray:
+        """Windowed fHOG of the four context patches around the current position: (4, 31, H, W)."""
+        patches = [self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)]
+        return np.stack([self._features(p, ("hog",))["hog"] * self.cosine_window for p in patches])
+
+    def _update_context_penalties(self, frame: np.ndarray, object_response: np.ndarray) -> None:
+        """Challenge factors: how strongly the HOG filter answers each context patch, relative to the target."""
+        bank = self.banks["hog"]
+        weights = self.dimensional["hog"].weights if self.config.dimensional_attention else None
+        context_pmes = [pme(crop_centre(bank.response(z, weights), self.grid.crop_cells))
+                        for z in self._context_features(frame)]
+        self.contextual.update_penalties(pme(object_response), np.array(context_pmes))
+
+    def _train(self, frame: np.ndarray) -> None:
+        cfg = self.config
+        patch = self._sample(frame, self.pos)
+        features = self._features(patch, self.banks)
+        for name, bank in self.banks.items():
+            context_energy = None
+            if name == "hog" and cfg.context_attention and self.contextual.is_context_frame(self.frame_number):
+                scales = self.contextual.feature_scales().astype(np.float32)[:, None, None, None]
+                context_energy = bank.context_energy(self._context_features(frame) * scales)
+            bank.train(features[name] * self.cosine_window, context_energy)
+            if cfg.dimensional_attention:
+                self.dimensional[name].update(bank.fresh_self_responses())
+        if cfg.colour_window:
+            if self.colour is None:
+                self.colour = ColourModel(patch, self.areas.bg_area * self.areas.resize_factor,
+                                          self.areas.fg_area * self.areas.resize_factor,
+                                          self.target_hw * self.areas.resize_factor,
+                                          cfg.hist_bins, cfg.hist_learning_rate, cfg.likelihood_floor)
+            else:
+                self.colour.update(patch)
+        if self.scale_filter is not None:
+            self.scale_filter.update_model(frame, self.pos, self.scale_factor)

@@ -1,0 +1,127 @@
+"""The three attentions and the response helpers, on hand-made maps."""
+import numpy as np
+import pytest
+
+from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
+from tacf.attention.spatiotemporal import add_motion, attention_map, to_response_origin
+from tacf.response import crop_centre, fuse, fusion_weight, peak_offset
+
+
+def test_pme_on_a_hand_made_map():
+    response = np.zeros((4, 4))
+    response[1, 2] = 4.0
+    # median 0, mean squared deviation 16 / 16 = 1, (max - median)^2 = 16
+    assert pme(response) == pytest.approx(16.0)
+    response += 3.0  # invariant to an offset
+    assert pme(response) == pytest.approx(16.0)
+    assert pme(np.ones((5, 5))) == 0.0
+
+
+def test_sharper_peak_has_higher_pme():
+    grid = np.arange(-10, 11)
+    distance2 = grid[:, None] ** 2 + grid[None, :] ** 2
+    assert pme(np.exp(-distance2 / 2.0)) > pme(np.exp(-distance2 / 50.0))
+
+
+def test_penalties_follow_the_challenge_factors():
+    attention = ContextualAttention(interval=4, penalty_total=4.0, challenge_floor=0.3, penalty_rate=1.0,
+                                    lambda2=1 / 256)
+    attention.update_penalties(object_pme=10.0, context_pmes=np.array([10.0, 5.0, 1.0, 0.0]))
+    challenge = np.array([1.0, 0.5, 0.3, 0.3])  # the last two floored at 0.3
+    np.testing.assert_allclose(attention.penalties, 4 * challenge**2 / np.sum(challenge**2))
+    assert attention.penalties.sum() == pytest.approx(4.0)
+    np.testing.assert_allclose(attention.feature_scales(), attention.penalties / 16)
+
+
+def test_penalties_are_smoothed_across_context_frames():
+    attention = ContextualAttention(4, 1.0, 0.3, penalty_rate=0.2, lambda2=0.0625)
+    np.testing.assert_allclose(attention.penalties, 0.25)
+    attention.update_penalties(1.0, np.array([1.0, 0.3, 0.3, 0.3]))
+    fresh = np.array([1.0, 0.09, 0.09, 0.09]) / 1.27
+    np.testing.assert_allclose(attention.penalties, 0.2 * fresh + 0.8 * 0.25)
+
+
+def test_context_frames_and_offsets():
+    attention = ContextualAttention(4, 4.0, 0.3, 0.2, 1 / 256)
+    assert [k for k in range(1, 14) if attention.is_context_frame(k)] == [1, 5, 9, 13]
+    np.testing.assert_array_equal(context_offsets(np.array([20.0, 10.0])),
+                                  [[-20, 0], [0, -10], [20, 0], [0, 10]])
+
+
+def test_dimensional_gating():
+    attention = DimensionalAttention(channels=3, threshold=0.3, floor=0.1, learning_rate=1.0)
+    responses = np.zeros((3, 5, 5))
+    responses[0, 0, 0], responses[1, 0, 0], responses[2, 0, 0] = 2.0, 0.9, 0.1
+    attention.update(responses)
+    # z = max + mean = 2.08, 0.936, 0.104; mean-1 normalisation: z * 3 / 3.12
+    z = np.array([2.08, 0.936, 0.104]) * 3 / 3.12
+    gated = np.maximum(z - 0.3, 0) + 0.1
+    np.testing.assert_allclose(attention.weights, 3 * gated / gated.sum())
+    assert attention.weights[2] < attention.weights[1] < attention.weights[0]
+
+
+def test_dimensional_weights_move_slowly():
+    attention = DimensionalAttention(channels=2, threshold=0.3, floor=0.3, learning_rate=0.022)
+    responses = np.zeros((2, 4, 4))
+    responses[0, 0, 0] = 1.0
+    attention.update(responses)
+    assert abs(attention.weights[0] - 1.0) < 0.05 and attention.weights.mean() == pytest.approx(1.0)
+
+
+def test_spatial_map_is_largest_at_the_windowed_peak():
+    response = np.zeros((9, 9))
+    response[8, 8] = 1.0  # zero displacement sits at (H-1, W-1)
+    window = to_response_origin(np.outer(np.hanning(9), np.hanning(9)))
+    assert window[8, 8] == pytest.approx(1.0)
+    spatial_map = attention_map(response, window)
+    assert np.unravel_index(np.argmax(spatial_map), spatial_map.shape) == (8, 8)
+    assert spatial_map.min() == pytest.approx(0.5)  # below the mean: exp(0) - 0.5
+
+
+def test_motion_term_adds_a_copy_shifted_along_the_motion():
+    spatial_map = np.zeros((10, 10))
+    spatial_map[0, 0] = 1.0
+    moved = add_motion(spatial_map, displacement=np.array([0.0, 5.0]), target_hw=np.array([10.0, 10.0]),
+                       gain=2.0)
+    gamma = 2 * 5 / np.hypot(10, 10)
+    shift = int(np.floor(gamma * 10 + 0.5))
+    assert moved[0, shift] == pytest.approx(gamma)
+    np.testing.assert_array_equal(add_motion(spatial_map, np.zeros(2), np.ones(2) * 10, 2.0), spatial_map)
+
+
+def test_spatial_map_ema():
+    attention = SpatiotemporalAttention(learning_rate=0.5, motion_gain=2.0)
+    window = np.ones((5, 5))
+    first = np.zeros((5, 5)); first[4, 4] = 1
+    second = np.zeros((5, 5)); second[0, 0] = 1
+    attention.update(first, window, None, np.ones(2))
+    combined = attention.update(second, window, None, np.ones(2))
+    np.testing.assert_allclose(combined, 0.5 * attention_map(first, window) + 0.5 * attention_map(second, window))
+
+
+def test_crop_centres_the_zero_displacement():
+    response = np.zeros((12, 10))
+    response[11, 9] = 1.0  # displacement (-1, -1) in the corner origin: the label peak
+    cropped = crop_centre(response, 5)
+    assert cropped[2, 2] == 1.0
+    np.testing.assert_array_equal(peak_offset(cropped), [0, 0])
+    response = np.zeros((12, 10))
+    response[1, 0] = 1.0  # two rows down, one column right of the label peak
+    np.testing.assert_array_equal(peak_offset(crop_centre(response, 7)), [2, 1])
+
+
+def test_peak_tie_break_is_column_major():
+    response = np.zeros((5, 5))
+    response[0, 3] = response[3, 1] = 1.0
+    np.testing.assert_array_equal(peak_offset(response), [1, -1])  # (3, 1) comes first by columns
+
+
+def test_fusion_prefers_the_confident_response():
+    grid = np.arange(-10, 11)
+    sharp = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / 4.0)
+    rng = np.random.default_rng(0)
+    noisy = rng.random((21, 21))
+    assert fusion_weight(sharp) > fusion_weight(noisy)
+    fused = fuse([sharp, noisy])
+    np.testing.assert_array_equal(peak_offset(fused), [0, 0])
+    assert fusion_weight(np.zeros((5, 5))) == 0.0

@@ -1,0 +1,100 @@
+"""The kernel correlators: closed form against a direct least-squares solve, labels, shift recovery."""
+import numpy as np
+import pytest
+import scipy.fft as sfft
+
+from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
+from tacf.response import crop_centre, peak_offset
+
+
+def _convolution_matrix(kernel: np.ndarray) -> np.ndarray:
+    """A with A @ w.ravel() == real(ifft2(fft2(w) * fft2(kernel))).ravel(): circular convolution by kernel."""
+    height, width = kernel.shape
+    columns = []
+    for index in range(height * width):
+        impulse = np.zeros(kernel.shape)
+        impulse.flat[index] = 1.0
+        columns.append(np.real(np.fft.ifft2(np.fft.fft2(impulse) * np.fft.fft2(kernel))).ravel())
+    return np.stack(columns, axis=1)
+
+
+def _spatial_kernel(bank: CorrelatorBank, x: np.ndarray) -> np.ndarray:
+    return sfft.irfft2(bank.auto_kernel_hat(x, sfft.rfft2(x)), s=x.shape[-2:])
+
+
+@pytest.mark.parametrize("kernel", [GaussianKernel(0.5), PolynomialKernel(1.0, 2.0)])
+def test_closed_form_minimises_the_objective(kernel):
+    """w* = argmin |K0 w - y|^2 + lambda1 |w|^2 + sum_s |Ks w|^2, solved directly, equals the Fourier filter."""
+    rng = np.random.default_rng(0)
+    grid = (6, 5)
+    lambda1 = 1e-2
+    x = rng.normal(size=(1, *grid))
+    contexts = 0.3 * rng.normal(size=(2, 1, *grid))
+    label = gaussian_label(grid, sigma=0.8)
+    bank = CorrelatorBank(kernel, label, lambda1, learning_rate=0.01)
+    bank.train(x, bank.context_energy(contexts))
+    fourier_solution = sfft.irfft2(bank.model_filter_hat[0], s=grid).ravel()
+
+    a_object = _convolution_matrix(_spatial_kernel(bank, x)[0])
+    normal = a_object.T @ a_object + lambda1 * np.eye(a_object.shape[1])
+    for context in contexts:
+        a_context = _convolution_matrix(_spatial_kernel(bank, context)[0])
+        normal += a_context.T @ a_context
+    direct = np.linalg.solve(normal, a_object.T @ label.astype(np.float32).ravel())
+    np.testing.assert_allclose(fourier_solution, direct, rtol=2e-3, atol=2e-4)
+
+
+def test_context_term_lowers_the_response_on_the_context_patch():
+    rng = np.random.default_rng(1)
+    grid = (20, 20)
+    x = rng.random((1, *grid))
+    distractor = rng.random((1, *grid))
+    label = gaussian_label(grid, 1.0)
+    plain = CorrelatorBank(GaussianKernel(0.5), label, 1e-4, 0.01)
+    plain.train(x)
+    with_context = CorrelatorBank(GaussianKernel(0.5), label, 1e-4, 0.01)
+    with_context.train(x, with_context.context_energy(distractor[None]))
+    assert with_context.response(distractor).max() < 0.5 * plain.response(distractor).max()
+    assert with_context.response(x).max() > 0.3  # still answers the target
+
+
+def test_label_peak_sits_at_minus_one_displacement():
+    label = gaussian_label((57, 43), 1.5)
+    assert np.unravel_index(np.argmax(label), label.shape) == (56, 42)
+    assert label.max() == pytest.approx(1.0)
+    even = gaussian_label((8, 6), 1.0)
+    assert np.all(even[3] == 0)  # for even sizes one row (displacement +4) stays empty, as in the authors' code
+
+
+@pytest.mark.parametrize("shift", [(0, 0), (3, -2), (-5, 4), (6, 6)])
+def test_shifted_patch_is_found_at_the_right_offset(shift):
+    rng = np.random.default_rng(2)
+    grid = (48, 40)
+    base = rng.random((60, 60))
+    x = base[6:54, 10:50][None].copy()
+    # the same texture, moved by `shift` cells inside the window
+    z = base[6 - shift[0]:54 - shift[0], 10 - shift[1]:50 - shift[1]][None].copy()
+    bank = CorrelatorBank(GaussianKernel(0.5), gaussian_label(grid, 1.0), 1e-4, 0.01)
+    bank.train(x)
+    cropped = crop_centre(bank.response(z), 21)
+    np.testing.assert_array_equal(peak_offset(cropped), shift)
+
+
+def test_weighted_channel_sum_equals_sum_of_weighted_channel_responses():
+    rng = np.random.default_rng(3)
+    x = rng.random((4, 16, 12)).astype(np.float32)
+    z = rng.random((4, 16, 12)).astype(np.float32)
+    bank = CorrelatorBank(PolynomialKernel(1.0, 2.0), gaussian_label((16, 12), 1.0), 1e-4, 0.01)
+    bank.train(x)
+    weights = np.array([0.5, 1.0, 2.0, 0.0])
+    per_channel = sfft.irfft2(bank.channel_response_hats(z), s=(16, 12))
+    np.testing.assert_allclose(bank.response(z, weights), np.tensordot(weights, per_channel, 1), atol=1e-4)
+
+
+def test_model_is_an_exponential_moving_average():
+    rng = np.random.default_rng(4)
+    first, second = rng.random((2, 1, 10, 10))
+    bank = CorrelatorBank(GaussianKernel(0.5), gaussian_label((10, 10), 1.0), 1e-4, learning_rate=0.25)
+    bank.train(first)
+    bank.train(second)
+    np.testing.assert_allclose(bank.model_x, 0.75 * first + 0.25 * second)
