@@ -1,0 +1,332 @@
+"""`tacf demo`: the whole loop on one machine, for a newcomer's first minute.
+
+1. start `tacf serve` as a child process on a free loopback port and wait until it answers;
+2. publish SOURCE (default: the generated scene) on an image key: the "camera" holds its first frame until the
+   session has its first box (like an operator drawing a box on a paused image), then plays;
+3. start a session on the target's box (the scene's ground truth, a sequence's groundtruth.txt, --box, or a
+   centred box), print boxes and health as they arrive, and how well the boxes follow the ground truth;
+4. stop the session, the publisher and the service, cleanly, in that order.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+from tacf_clients.client import TrackingClient
+from tacf_clients.errors import TacfError
+from tacf_clients.local_service import LocalService, LocalServiceError
+from tacf_clients.publisher import FramePublisher
+from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.sources import DEFAULT_FPS, FrameSource, ImageFolderSource, Pacer, SourceFrame, open_source
+from tacf_clients.zconfig import open_session
+from tacf_schemas.models import BoxResult, Health
+
+log = logging.getLogger(__name__)
+
+Box = tuple[float, float, float, float]
+FOLLOW_IOU = 0.3          # a box "follows" the target when its IoU with the ground truth exceeds this
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    source: str = "scene"
+    box: Box | None = None
+    seconds: float = 10.0
+    fps: float | None = None
+    encoding: str = "jpeg"
+    profile: str | None = None
+    every: int | None = None              # print every Nth box (None: about 3 lines a second)
+    node: str = "demo"
+    image_key: str = "demo/camera/front"
+    start_timeout: float = 60.0           # service start-up (imports, worker spawn) on a slow machine
+
+
+@dataclass
+class DemoReport:
+    ok: bool = False
+    sid: str | None = None
+    boxes: int = 0
+    lost: int = 0
+    seconds: float = 0.0
+    ious: list[float] = field(default_factory=list)
+    last_health: Health | None = None
+    service_exit: int | None = None
+    error: str | None = None
+
+    @property
+    def box_fps(self) -> float:
+        return self.boxes / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def mean_iou(self) -> float | None:
+        return sum(self.ious) / len(self.ious) if self.ious else None
+
+    @property
+    def followed(self) -> float | None:
+        """Fraction of boxes with IoU > FOLLOW_IOU against the ground truth (None without ground truth)."""
+        return sum(v > FOLLOW_IOU for v in self.ious) / len(self.ious) if self.ious else None
+
+
+class GroundTruth:
+    """Ground-truth box by source frame index: the scene's, or a sequence's groundtruth.txt (1-based x,y)."""
+
+    def __init__(self, scene: Scene | None = None, boxes: list[Box] | None = None):
+        self.scene, self.boxes = scene, boxes
+
+    @classmethod
+    def for_source(cls, source: FrameSource) -> "GroundTruth | None":
+        if isinstance(source, SceneSource):
+            return cls(scene=source.scene)
+        if isinstance(source, ImageFolderSource):
+            for candidate in (source.folder / "groundtruth.txt", source.folder.parent / "groundtruth.txt",
+                              source.folder / "groundtruth_rect.txt", source.folder.parent / "groundtruth_rect.txt"):
+                if candidate.is_file():
+                    boxes = _read_groundtruth(candidate)
+                    return cls(boxes=boxes) if boxes else None
+        return None
+
+    def box(self, index: int) -> Box | None:
+        if self.scene is not None:
+            return self.scene.box(index)
+        if self.boxes is not None and 0 <= index < len(self.boxes):
+            box = self.boxes[index]
+            return box if all(math.isfinite(v) for v in box) and box[2] > 0 and box[3] > 0 else None
+        return None
+
+
+def _read_groundtruth(path: Path) -> list[Box]:
+    boxes = []
+    for line in path.read_text().splitlines():
+        parts = line.replace(",", " ").replace("\t", " ").split()
+        if len(parts) < 4:
+            continue
+        try:
+            x, y, w, h = (float(p) for p in parts[:4])
+        except ValueError:
+            boxes.append((math.nan,) * 4)
+            continue
+        boxes.append((x - 1, y - 1, w, h))      # benchmark files are 1-based (MATLAB); the wire is 0-based
+    return boxes
+
+
+class HoldingPublisher:
+    """Publishes a source on a thread; while `hold` is set it republishes the first frame (new seq each time).
+    Remembers which source frame each recent seq carried, for the ground-truth comparison."""
+
+    def __init__(self, session, source: FrameSource, key: str, fps: float, encoding: str):
+        self.source, self.fps = source, fps
+        self.publisher = FramePublisher(session, key, encoding=encoding, quality=90)
+        self.hold, self.stop, self.ended = threading.Event(), threading.Event(), threading.Event()
+        self.hold.set()
+        self._index_of_seq: OrderedDict[int, int] = OrderedDict()
+        self._lock = threading.Lock()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="tacf-demo-publisher")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def index_of(self, seq: int) -> int | None:
+        with self._lock:
+            return self._index_of_seq.get(seq)
+
+    @property
+    def last_seq(self) -> int:
+        return self.publisher.next_seq - 1
+
+    def _put(self, frame: SourceFrame) -> None:
+        sent = self.publisher.put(frame.image)
+        with self._lock:
+            self._index_of_seq[sent.seq] = frame.index
+            while len(self._index_of_seq) > 4096:
+                self._index_of_seq.popitem(last=False)
+
+    def _run(self) -> None:
+        pacer = Pacer(self.fps)
+        try:
+            frames = iter(self.source)
+            current = next(frames, None)
+            while current is not None and not self.stop.is_set():
+                pacer.wait(should_stop=self.stop.is_set)
+                if self.stop.is_set():
+                    break
+                self._put(current)
+                if not self.hold.is_set():
+                    current = next(frames, None)
+        except BaseException as exc:  # reported by the demo, never lost on this thread
+            self.error = exc
+            log.exception("demo publisher failed")
+        finally:
+            self.ended.set()
+
+    def close(self) -> None:
+        self.stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+        self.publisher.close()
+
+
+class Printer:
+    """The demo's console output (it is CLI output, hence print to `out` rather than logging)."""
+
+    def __init__(self, out: TextIO, every: int):
+        self.out, self.every, self.t0 = out, max(1, every), time.monotonic()
+
+    def line(self, text: str) -> None:
+        print(f"[{time.monotonic() - self.t0:5.1f}s] {text}", file=self.out, flush=True)
+
+    def box(self, result: BoxResult, count: int, overlap: float | None) -> None:
+        if count % self.every != 1 and self.every > 1:
+            return
+        x, y, w, h = result.box
+        status = "ok  " if result.ok else "LOST"
+        score = f"  iou {overlap:4.2f}" if overlap is not None else ""
+        self.line(f"box    seq {result.seq:5d}  ({x:6.1f}, {y:6.1f}, {w:5.1f}, {h:5.1f})  {status}  "
+                  f"pme {result.pme:6.1f}{score}  {result.processing_ms:5.1f} ms")
+
+    def health(self, h: Health) -> None:
+        age = f"{h.frame_age_ms:.0f} ms" if h.frame_age_ms is not None else "-"
+        self.line(f"health {h.state:<8}  {h.fps:5.1f} fps  proc {h.processing_ms_mean:.1f}/{h.processing_ms_p95:.1f}"
+                  f" ms (mean/p95)  age {age}  received {h.frames_received}  processed {h.frames_processed}  "
+                  f"dropped {h.frames_dropped}")
+
+
+def initial_box(options: DemoOptions, source: FrameSource, truth: GroundTruth | None) -> tuple[Box, str]:
+    """(box, where it came from) for the first frame."""
+    if options.box is not None:
+        return options.box, "--box"
+    if truth is not None and (box := truth.box(0)) is not None:
+        return box, "ground truth"
+    first = next(iter(source), None)
+    if first is None:
+        raise ValueError(f"source {options.source!r} has no frames")
+    height, width = first.image.shape[:2]
+    w, h = max(8.0, width / 5), max(8.0, height / 5)
+    return ((width - w) / 2, (height - h) / 2, w, h), "centre of the frame (pass --box x,y,w,h to choose)"
+
+
+def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = None,
+             out: TextIO | None = None) -> DemoReport:
+    options, stop, out = options or DemoOptions(), stop or threading.Event(), out or sys.stdout
+    report = DemoReport()
+    printer = Printer(out, options.every or 10)
+    try:
+        source = open_source(options.source)
+    except (ValueError, FileNotFoundError) as exc:
+        report.error = str(exc)
+        print(f"tacf demo: {exc}", file=out)
+        return report
+    with source:
+        truth = GroundTruth.for_source(source)
+        try:
+            box, origin = initial_box(options, source, truth)
+        except ValueError as exc:
+            report.error = str(exc)
+            print(f"tacf demo: {exc}", file=out)
+            return report
+        if not isinstance(source, SceneSource):   # a fresh iterator for the publisher (the probe read frame 0)
+            source.close()
+            source = open_source(options.source)
+        fps = options.fps or (None if source.live else source.fps) or DEFAULT_FPS
+        if options.every is None:
+            printer.every = max(1, round(fps / 3))
+        service = LocalService(node=options.node, ready_timeout=options.start_timeout)
+        printer.line(f"starting the tracking service (tacf serve, node {options.node!r}) on {service.endpoint}")
+        try:
+            with service:
+                _run_loop(options, source, truth, box, origin, fps, service, printer, report, stop)
+                printer.line("stopping the service")
+        except LocalServiceError as exc:
+            report.error = str(exc)
+            printer.line(f"the service failed: {exc}")
+        finally:
+            source.close()
+        report.service_exit = service.process.returncode if service.process else report.service_exit
+    _summary(printer, report, truth is not None)
+    return report
+
+
+def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | None, box: Box, origin: str,
+              fps: float, service: LocalService, printer: Printer, report: DemoReport,
+              stop: threading.Event) -> None:
+    with open_session(service.options) as session:
+        started = time.monotonic()
+        service.wait_ready(session)
+        printer.line(f"service ready in {time.monotonic() - started:.1f} s")
+        client = TrackingClient(session=session, node=options.node, timeout=10.0)
+        publisher = HoldingPublisher(session, source, options.image_key, fps, options.encoding)
+        publisher.start()
+        printer.line(f"publishing {source.name} on {options.image_key!r} at {fps:.0f} fps ({options.encoding})")
+        try:
+            while publisher.last_seq < 0 and not publisher.ended.is_set():
+                time.sleep(0.01)
+            with client.results(node=options.node) as results:
+                info = client.start(options.image_key, box, seq=publisher.last_seq, profile=options.profile,
+                                    sid="demo")
+                report.sid = info.sid
+                printer.line(f"session {info.sid!r} started (profile {info.profile}) on box "
+                             f"({box[0]:.0f}, {box[1]:.0f}, {box[2]:.0f}, {box[3]:.0f}) from {origin}")
+                _follow(options, publisher, results, truth, printer, report, stop)
+                final = client.stop(info.sid)
+                printer.line(f"session {final.sid!r} stopped ({final.state})")
+            report.ok = report.boxes > 0 and publisher.error is None
+        except (TacfError, TimeoutError) as exc:
+            report.error = f"{type(exc).__name__}: {exc}"
+            printer.line(f"error: {report.error}")
+        finally:
+            publisher.close()
+            if publisher.error is not None and report.error is None:
+                report.error = f"publisher: {publisher.error}"
+
+
+def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: GroundTruth | None,
+            printer: Printer, report: DemoReport, stop: threading.Event) -> None:
+    """Print results until the time is up, the source ends or `stop` is set."""
+    deadline = tracking_started = None
+    first_box_timeout = time.monotonic() + options.start_timeout
+    while not stop.is_set():
+        now = time.monotonic()
+        if deadline is not None and now >= deadline:
+            break
+        if deadline is None and now >= first_box_timeout:
+            raise TimeoutError("no box from the session")
+        if publisher.ended.is_set() and deadline is not None:
+            printer.line("the source ended")
+            break
+        item = results.get(timeout=0.2)
+        if isinstance(item, Health):
+            report.last_health = item
+            printer.health(item)
+        elif isinstance(item, BoxResult) and item.sid == report.sid:
+            if deadline is None:             # first box: the camera starts moving
+                publisher.hold.clear()
+                deadline = time.monotonic() + options.seconds
+                tracking_started = time.monotonic()
+            report.boxes += 1
+            report.lost += not item.ok
+            report.seconds = time.monotonic() - tracking_started
+            overlap = None
+            index = publisher.index_of(item.seq)
+            if truth is not None and index is not None and (gt := truth.box(index)) is not None:
+                overlap = iou(tuple(item.box), gt)
+                report.ious.append(overlap)
+            printer.box(item, report.boxes, overlap)
+
+
+def _summary(printer: Printer, report: DemoReport, has_truth: bool) -> None:
+    if report.boxes:
+        text = f"{report.boxes} boxes in {report.seconds:.1f} s ({report.box_fps:.1f} per second), {report.lost} lost"
+        if has_truth and report.ious:
+            text += (f"; boxes on the target (IoU > {FOLLOW_IOU}) in {100 * report.followed:.0f}% of frames, "
+                     f"mean IoU {report.mean_iou:.2f}")
+        printer.line(text)
+    if report.service_exit is not None:
+        printer.line(f"service exited with code {report.service_exit}")
+    printer.line("done" if report.ok else f"demo failed: {report.error or 'no boxes received'}")

@@ -1,0 +1,131 @@
+"""`tacf watch`: a live terminal table of the latest box and health of every session (or of one).
+
+The table is rebuilt from the newest BoxResult and Health of each session (latest-only subscription) every
+`interval` seconds; on a terminal the screen is redrawn in place, otherwise each refresh is printed in turn.
+Rendering is pure (`render_table`) so it can be tested without a terminal.
+"""
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import TextIO
+
+from tacf_clients.client import TrackingClient
+from tacf_clients.errors import TacfError
+from tacf_clients.zconfig import ZenohOptions, open_session
+from tacf_schemas import keys
+from tacf_schemas.models import BoxResult, Health, SessionInfo
+
+STALE_S = 5.0
+CLEAR = "\x1b[H\x1b[2J"
+
+
+@dataclass
+class SessionRow:
+    node: str
+    sid: str
+    image_key: str = ""
+    state: str = "?"
+    box: BoxResult | None = None
+    health: Health | None = None
+    updated: float = field(default_factory=time.monotonic)
+
+    def apply(self, item: BoxResult | Health | SessionInfo) -> None:
+        if isinstance(item, BoxResult):
+            self.box = item
+        elif isinstance(item, Health):
+            self.health, self.state = item, item.state
+        else:
+            self.image_key, self.state = item.image_key, item.state
+            if item.health is not None:
+                self.health = item.health
+        self.updated = time.monotonic()
+
+
+def _fmt_box(box) -> str:
+    return "({:.0f}, {:.0f}, {:.0f}, {:.0f})".format(*box)
+
+
+def _fmt(value, spec: str, missing: str = "-") -> str:
+    return missing if value is None else format(value, spec)
+
+
+def describe_session(info: SessionInfo) -> str:
+    """One line about a session, for `tacf start|stop|status`."""
+    text = (f"{info.sid} on {info.node}: {info.state}, key {info.image_key}, profile {info.profile}, "
+            f"box {_fmt_box(info.box)}")
+    if info.init_seq is not None:
+        text += f", init seq {info.init_seq}"
+    if info.health is not None:
+        h = info.health
+        text += (f", {h.fps:.1f} fps, {h.processing_ms_p95:.1f} ms p95, processed {h.frames_processed}, "
+                 f"dropped {h.frames_dropped}")
+    return text
+
+
+def session_table(sessions: list[SessionInfo]) -> str:
+    """A plain table of SessionInfos, for `tacf list`."""
+    rows = [("NODE", "SID", "STATE", "KEY", "PROFILE", "BOX", "FPS", "PROCESSED", "DROPPED")]
+    for s in sessions:
+        h = s.health
+        rows.append((s.node, s.sid, s.state, s.image_key, s.profile, _fmt_box(s.box),
+                     _fmt(h and h.fps, ".1f"), _fmt(h and h.frames_processed, "d"), _fmt(h and h.frames_dropped, "d")))
+    return _columns(rows)
+
+
+def render_table(rows: list[SessionRow], now: float | None = None) -> str:
+    """The live table: one line per session, newest data."""
+    now = time.monotonic() if now is None else now
+    out = [("NODE", "SID", "STATE", "SEQ", "BOX x,y,w,h", "OK", "PME", "FPS", "MS p95", "AGE ms", "RECV", "DROP")]
+    for row in sorted(rows, key=lambda r: (r.node, r.sid)):
+        b, h = row.box, row.health
+        state = row.state + (" (stale)" if now - row.updated > STALE_S and row.state != "stopped" else "")
+        out.append((row.node, row.sid, state,
+                    _fmt(b and b.seq, "d"), _fmt_box(b.box) if b else "-",
+                    ("yes" if b.ok else "LOST") if b else "-", _fmt(b and b.pme, ".1f"),
+                    _fmt(h and h.fps, ".1f"), _fmt(h and h.processing_ms_p95, ".1f"),
+                    _fmt(h and h.frame_age_ms, ".0f"), _fmt(h and h.frames_received, "d"),
+                    _fmt(h and h.frames_dropped, "d")))
+    if len(out) == 1:
+        return _columns(out) + "\n(no sessions yet)"
+    return _columns(out)
+
+
+def _columns(rows: list[tuple[str, ...]]) -> str:
+    widths = [max(len(str(r[i])) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
+
+
+def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: str | None = None,
+          interval: float = 0.5, duration: float | None = None, stop: threading.Event | None = None,
+          out: TextIO | None = None) -> int:
+    """Show the live table until `stop` is set or `duration` seconds pass. Returns an exit code."""
+    out = out or sys.stdout
+    stop = stop or threading.Event()
+    redraw = out.isatty()
+    rows: dict[tuple[str, str], SessionRow] = {}
+    deadline = None if duration is None else time.monotonic() + duration
+    with open_session(options) as session:
+        client = TrackingClient(session=session, node=node, timeout=2.0)
+        try:
+            for info in client.list():
+                if sid in (keys.WILDCARD, info.sid):
+                    rows.setdefault((info.node, info.sid), SessionRow(info.node, info.sid)).apply(info)
+        except TacfError as exc:
+            print(f"(list failed: {exc}; showing live data only)", file=out)
+        with client.results(sid, node=node, latest_only=True) as stream:
+            next_draw = time.monotonic()
+            while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                item = stream.get(timeout=max(0.0, next_draw - time.monotonic()))
+                if item is not None:
+                    rows.setdefault((item.node, item.sid), SessionRow(item.node, item.sid)).apply(item)
+                if time.monotonic() < next_draw:
+                    continue
+                text = render_table(list(rows.values()))
+                stamp = time.strftime("%H:%M:%S")
+                out.write((CLEAR if redraw else "") + f"tacf watch  {stamp}\n{text}\n\n")
+                out.flush()
+                next_draw = time.monotonic() + interval
+    return 0

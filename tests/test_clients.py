@@ -1,0 +1,208 @@
+"""TrackingClient against a real `tacf serve` on loopback: every control op, subscriptions, typed errors,
+timeouts, and the wildcard list across two services."""
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+import zenoh
+
+from tacf_clients.client import TrackingClient
+from tacf_clients.errors import (ERRORS, DuplicateSession, InvalidBox, InvalidConfig, InvalidId, InvalidKey,
+                                 NoService, RequestTimeout, ServiceError, UnknownSession)
+from tacf_clients.local_service import LocalService, free_port
+from tacf_clients.publisher import publish
+from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.zconfig import ZenohOptions, make_config
+from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo
+
+pytestmark = pytest.mark.zenoh
+
+SCENE = Scene.from_spec("scene:320x240")
+
+
+@pytest.fixture(scope="module")
+def service():
+    with LocalService(node=f"svc{free_port()}") as svc:
+        with zenoh.open(make_config(svc.options)) as session:
+            svc.wait_ready(session)
+        yield svc
+
+
+@pytest.fixture
+def client(service):
+    with TrackingClient(service.options, timeout=5.0) as c:
+        yield c
+
+
+class Camera:
+    """Publishes the scene on its own key in a thread (20 fps) for the duration of a test."""
+
+    def __init__(self, session: zenoh.Session, key: str):
+        self.key, self.stop = key, threading.Event()
+        self.thread = threading.Thread(target=publish, args=(session, SceneSource(SCENE), key),
+                                       kwargs=dict(fps=20, stop=self.stop), daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.stop.set()
+        self.thread.join(timeout=5)
+
+
+@pytest.fixture
+def camera(client, request):
+    cam = Camera(client.session, f"test/cam/{request.node.name[:40]}")
+    yield cam
+    cam.close()
+
+
+def _wait(predicate, timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_error_classes_cover_every_wire_code():
+    assert set(ERRORS) == set(ERROR_CODES)
+    assert all(issubclass(cls, ServiceError) for cls in ERRORS.values())
+
+
+def test_start_status_list_subscribe_stop(client, camera, service):
+    boxes: list[BoxResult] = []
+    health: list[Health] = []
+    with client.subscribe("life", on_box=boxes.append, on_health=health.append):
+        info = client.start(camera.key, SCENE.box(0), sid="life")
+        assert isinstance(info, SessionInfo)
+        assert (info.sid, info.node, info.image_key) == ("life", service.node, camera.key)
+        assert info.state in ("starting", "tracking")
+        assert _wait(lambda: len(boxes) >= 10 and health), "boxes and health arrive"
+    assert all(b.sid == "life" and b.node == service.node for b in boxes)
+    assert health[0].state in ("starting", "tracking")
+
+    listed = {(s.node, s.sid): s for s in client.list()}
+    assert (service.node, "life") in listed
+    status = client.status("life")
+    assert status.sid == "life" and status.state == "tracking"
+    assert status.last_seq is not None and status.last_seq >= boxes[0].seq
+
+    stopped = client.stop("life")
+    assert stopped.state == "stopped"
+    assert "life" not in {s.sid for s in client.list()}
+    with pytest.raises(UnknownSession):
+        client.status("life")
+
+
+def test_boxes_follow_the_target_and_reinit(client, camera):
+    info = client.start(camera.key, SCENE.box(0), sid="follow")
+    try:
+        # the camera started before the session: compare with the ground truth of each box's own frame
+        boxes = list(_take(client.iter_boxes("follow", timeout=10), 15))
+        assert len(boxes) == 15
+        # frame seq n of the camera shows scene frame n (SceneSource yields frames 0, 1, 2, ...)
+        later = boxes[5:]
+        overlaps = [iou(tuple(b.box), SCENE.box(b.seq)) for b in later]
+        assert sum(o > 0.3 for o in overlaps) >= 0.8 * len(overlaps), overlaps
+
+        seq = boxes[-1].seq + 2
+        info = client.reinit("follow", SCENE.box(seq), seq=seq)
+        assert info.sid == "follow" and info.state in ("starting", "tracking")
+        after = [b for b in _take(client.iter_boxes("follow", timeout=10), 10) if b.seq >= seq]
+        assert after and iou(tuple(after[-1].box), SCENE.box(after[-1].seq)) > 0.3
+    finally:
+        client.stop(info.sid)
+
+
+def _take(iterator, n):
+    for i, item in enumerate(iterator):
+        yield item
+        if i + 1 >= n:
+            return
+
+
+def test_results_iterator_latest_only(client, camera):
+    client.start(camera.key, SCENE.box(0), sid="latest")
+    try:
+        with client.results("latest", latest_only=True) as stream:
+            assert _wait(lambda: stream.received >= 5)
+            time.sleep(0.5)                          # a slow reader: older boxes are replaced, not queued
+            items = []
+            while (item := stream.get(timeout=0.05)) is not None:
+                items.append(item)
+        boxes = [i for i in items if isinstance(i, BoxResult)]
+        assert len(boxes) == 1, "latest-only keeps one box per session"
+        assert stream.dropped > 0
+    finally:
+        client.stop("latest")
+
+
+def test_error_replies_raise_typed_exceptions(client, camera, service):
+    with pytest.raises(UnknownSession) as exc:
+        client.stop("no-such-session")
+    assert exc.value.code == "unknown_session"
+    with pytest.raises(UnknownSession):
+        client.status("no-such-session", node=service.node)
+    with pytest.raises(InvalidKey):                       # refused before it is sent
+        client.start("bad/*/key", (1, 2, 3, 4))
+    with pytest.raises(InvalidBox):
+        client.start(camera.key, (10, 10, 0, 5))
+    with pytest.raises(InvalidId):
+        client.stop("not a valid id")
+    with pytest.raises(InvalidConfig):                    # refused by the service
+        client.start(camera.key, SCENE.box(0), profile="no-such-profile", sid="badprofile")
+    with pytest.raises(InvalidBox):
+        client.start(camera.key, (5000, 5000, 20, 20), sid="outside")
+    client.start(camera.key, SCENE.box(0), sid="twice")
+    try:
+        with pytest.raises(DuplicateSession):
+            client.start(camera.key, SCENE.box(0), sid="twice")
+    finally:
+        client.stop("twice")
+
+
+def test_no_service_and_timeout():
+    port = free_port()
+    hub = f"tcp/127.0.0.1:{port}"
+    with zenoh.open(make_config(ZenohOptions.listener(hub))) as silent:
+        # a service that takes queries and never answers them
+        held = []
+        queryable = silent.declare_queryable("tacf/silent/control/*", held.append)
+        with TrackingClient(ZenohOptions.loopback(port), timeout=0.5) as client:
+            started = time.monotonic()
+            with pytest.raises(RequestTimeout):
+                client.status("abc", node="silent")
+            assert 0.4 < time.monotonic() - started < 3
+            with pytest.raises(RequestTimeout):
+                client.list(node="silent")
+            queryable.undeclare()
+            for query in held:
+                query.drop()            # finalise: a query kept alive at exit can abort the interpreter
+            held.clear()
+            assert client.list() == []
+            with pytest.raises(NoService):
+                client.start("cam/a", (1, 2, 3, 4))
+            with pytest.raises(NoService):
+                client.stop("abc")
+
+
+def test_list_across_two_services(service, client, camera):
+    with LocalService(node=f"second{free_port()}") as second:
+        options = ZenohOptions(connect=(service.endpoint, second.endpoint))
+        with TrackingClient(options, timeout=5.0) as both:
+            second.wait_ready(both.session)
+            assert sorted(both.nodes()) == sorted([service.node, second.node])
+            with pytest.raises(Exception):         # two services: start needs node=...
+                both.start(camera.key, SCENE.box(0))
+            info = both.start(camera.key, SCENE.box(0), sid="remote", node=second.node)
+            assert info.node == second.node
+            client.start(camera.key, SCENE.box(0), sid="local")
+            try:
+                sessions = {(s.node, s.sid) for s in both.list()}
+                assert {(second.node, "remote"), (service.node, "local")} <= sessions
+                assert both.status("remote").node == second.node     # found by a wildcard status query
+                assert both.stop("remote").state == "stopped"
+            finally:
+                client.stop("local")

@@ -1,0 +1,172 @@
+"""The onboard BoxConsumer and the `tacf watch` table, fed by real BoxResult / Health messages over Zenoh.
+
+These tests publish the service's result messages themselves (from a second real Zenoh session), so they
+check the consumer's side of the wire contract without a tracker; test_clients.py covers the real service.
+"""
+from __future__ import annotations
+
+import io
+import threading
+import time
+
+import pytest
+import zenoh
+
+from tacf_clients.consumer import BoxConsumer, TrackedBox, tracked_box
+from tacf_clients.local_service import free_port
+from tacf_clients.watch import SessionRow, render_table, watch
+from tacf_clients.zconfig import ZenohOptions, make_config
+from tacf_schemas import box_key, encode, health_key
+from tacf_schemas.models import BoxResult, Health
+
+pytestmark = pytest.mark.zenoh
+
+
+def _box(sid: str, seq: int, box=(64.0, 48.0, 32.0, 24.0), ok: bool = True, node: str = "edge1") -> BoxResult:
+    now = time.time_ns()
+    return BoxResult(node=node, sid=sid, seq=seq, stamp_ns=now - 5_000_000, box=box, ok=ok, pme=20.0, score=0.5,
+                     scale=1.0, processing_ms=3.0, published_ns=now)
+
+
+def _health(sid: str, state: str = "tracking", node: str = "edge1") -> Health:
+    return Health(node=node, sid=sid, state=state, stamp_ns=time.time_ns(), fps=29.5, processing_ms_mean=3.0,
+                  processing_ms_p95=4.5, frame_age_ms=7.0, frames_received=100, frames_processed=98,
+                  frames_dropped=2)
+
+
+class Network:
+    """A 'service' session that listens and a 'vehicle' session that connects to it."""
+
+    def __init__(self):
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.service = zenoh.open(make_config(ZenohOptions.listener(endpoint)))
+        self.options = ZenohOptions(connect=(endpoint,))
+        self.vehicle = zenoh.open(make_config(self.options))
+
+    def put(self, message, leaf: str = "box"):
+        key = (box_key if leaf == "box" else health_key)(message.node, message.sid)
+        self.service.put(key, encode(message))
+
+    def wait_matched(self, key: str, timeout: float = 5.0):
+        publisher = self.service.declare_publisher(key)
+        try:
+            deadline = time.monotonic() + timeout
+            while not publisher.matching_status.matching:
+                assert time.monotonic() < deadline, f"nobody subscribed to {key}"
+                time.sleep(0.02)
+        finally:
+            publisher.undeclare()
+
+    def close(self):
+        self.vehicle.close()
+        self.service.close()
+
+
+@pytest.fixture
+def net():
+    n = Network()
+    yield n
+    n.close()
+
+
+def test_normalised_boxes_for_gimbal_and_mavlink():
+    b = tracked_box(_box("s", 1, box=(64.0, 48.0, 32.0, 24.0)), frame_size=(320, 240))
+    assert b.normalised == pytest.approx((0.2, 0.2, 0.1, 0.1))
+    assert b.corners_normalised == pytest.approx((0.2, 0.2, 0.3, 0.3))
+    assert b.center == (80.0, 60.0) and b.center_norm == pytest.approx((0.25, 0.25))
+    assert 0 < b.age_ms < 1000
+    # partly outside the frame: clipped to 0..1
+    edge = tracked_box(_box("s", 1, box=(-10.0, 230.0, 40.0, 20.0)), frame_size=(320, 240))
+    assert edge.corners_normalised == pytest.approx((0.0, 230 / 240, 30 / 320, 1.0))
+    assert tracked_box(_box("s", 1)).normalised is None      # frame size unknown
+
+
+def test_iterator_one_session_in_order(net):
+    with BoxConsumer(net.vehicle, sid="cam1", frame_size=(320, 240)) as boxes:
+        net.wait_matched(box_key("edge1", "cam1"))
+        for seq in range(5):
+            net.put(_box("cam1", seq))
+        net.put(_box("other", 99))                            # another session: filtered out by the key
+        got = [boxes.get(timeout=5) for _ in range(5)]
+        assert [b.seq for b in got] == [0, 1, 2, 3, 4]
+        assert all(isinstance(b, TrackedBox) and b.normalised is not None for b in got)
+        assert boxes.get(timeout=0.3) is None
+
+
+def test_latest_only_across_sessions(net):
+    with BoxConsumer(net.vehicle, latest_only=True) as boxes:      # every session of every service
+        net.wait_matched(box_key("edge1", "a"))
+        for seq in range(20):
+            net.put(_box("a", seq))
+            net.put(_box("b", 100 + seq, node="edge2"))
+        assert _wait(lambda: boxes.received == 40)
+        newest = {b.sid: b.seq for b in iter(lambda: boxes.get(timeout=0.2), None)}
+        assert newest == {"a": 19, "b": 119}
+        assert boxes.dropped == 38
+
+
+def test_callback_form_and_lost_flag(net):
+    got: list[TrackedBox] = []
+    done = threading.Event()
+
+    def on_box(b: TrackedBox):
+        got.append(b)
+        if len(got) == 3:
+            done.set()
+
+    with BoxConsumer(net.vehicle, sid="cam1", on_box=on_box):
+        net.wait_matched(box_key("edge1", "cam1"))
+        net.put(_box("cam1", 1))
+        net.put(_box("cam1", 2, ok=False))
+        net.service.put(box_key("edge1", "cam1"), b"\x93garbage")    # malformed: dropped, not fatal
+        net.put(_box("cam1", 3))
+        assert done.wait(5)
+    assert [b.ok for b in got] == [True, False, True]
+
+
+def test_consumer_opens_its_own_session(net):
+    with BoxConsumer(sid="cam9", options=net.options) as boxes:
+        net.wait_matched(box_key("edge1", "cam9"))
+        net.put(_box("cam9", 7))
+        assert boxes.get(timeout=5).seq == 7
+
+
+def test_render_table():
+    row = SessionRow("edge1", "cam1")
+    row.apply(_box("cam1", 42, ok=False))
+    row.apply(_health("cam1", state="lost"))
+    text = render_table([row, SessionRow("edge2", "idle")])
+    lines = text.splitlines()
+    assert lines[0].split()[:3] == ["NODE", "SID", "STATE"]
+    assert "cam1" in lines[1] and "lost" in lines[1] and "LOST" in lines[1] and "42" in lines[1]
+    assert "(64, 48, 32, 24)" in lines[1] and "29.5" in lines[1]
+    assert "no sessions" in render_table([])
+
+
+def test_watch_prints_live_rows(net):
+    out = io.StringIO()
+    stop = threading.Event()
+    thread = threading.Thread(target=watch, kwargs=dict(options=net.options, interval=0.2, duration=8, stop=stop,
+                                                        out=out))
+    thread.start()
+    try:
+        net.wait_matched(box_key("edge1", "w1"))
+        for seq in range(5):
+            net.put(_box("w1", seq))
+            net.put(_health("w1"), leaf="health")
+            time.sleep(0.1)
+        assert _wait(lambda: "w1" in out.getvalue() and "tracking" in out.getvalue())
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+    assert not thread.is_alive()
+    assert "tacf watch" in out.getvalue()
+
+
+def _wait(predicate, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return False
