@@ -253,3 +253,27 @@ def test_eval_and_track_with_tacf(tmp_path):
     assert rc == 0
     rows = check_boxes_file(tmp_path / "b.txt", 67, (622, 298, 11, 38))
     assert np.isfinite(rows[1:, 4]).all()
+
+
+# --- the ablation table ---------------------------------------------------------------------------------------
+def test_ablation_table_rows_and_gains():
+    from tacf.eval.report import ablation_table
+
+    entry = lambda auc: {"auc": auc, "precision20": 0.5, "fps": 100.0, "frames": 10, "sequences": {}}  # noqa: E731
+    summary = {"trackers": {"kcc": entry(0.40), "kcc+sa": entry(0.45), "kcc+da": entry(0.38),
+                            "kcc+ca": entry(0.42), "tacf": entry(0.50)}}
+    lines = ablation_table(summary).splitlines()
+    assert [line.split("|")[2].strip() for line in lines[2:]] == list(trackers.ABLATION)
+    assert "| +0.050 |" in lines[3] and "| -0.020 |" in lines[4] and "| +0.100 |" in lines[6]
+
+
+@needs_tacf
+@needs_data
+def test_eval_ablation_command(tmp_path, capsys):
+    rc = main(["eval", "--ablation", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7", "--out",
+               str(tmp_path), "--no-progress"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "KCC (baseline)" in out and "TACF (SA + DA + CA)" in out
+    assert (tmp_path / "ablation.md").read_text() == out
+    assert sorted(json.loads((tmp_path / "summary.json").read_text())["trackers"]) == sorted(trackers.ABLATION)

@@ -66,7 +66,8 @@ def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> Tra
         rep.sequences[seq.name] = {"auc": s.auc, "precision20": s.precision20,
                                    "fps": len(boxes) / seconds if seconds > 0 else float("nan"),
                                    "frames": len(boxes)}
-        rep.success.append(s.success), rep.precision.append(s.precision)
+        rep.success.append(s.success)
+        rep.precision.append(s.precision)
         rep.frames += len(boxes)
         rep.seconds += seconds
     return rep
@@ -144,7 +145,7 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
         ax.set(title=title, xlabel=xlabel, ylabel=ylabel, xlim=(xs[0], xs[-1]), ylim=(0, 1.01))
         ax.grid(alpha=0.3)
         if curves:
-            ax.legend(loc="lower left" if which == 0 else "lower right", fontsize=8)
+            ax.legend(loc="upper right" if which == 0 else "lower right", fontsize=8)
         fig.tight_layout()
         path = Path(out_dir) / fname
         fig.savefig(path)

@@ -59,12 +59,16 @@ def track_frames(tracker: BoxTracker, frames: Iterable[np.ndarray], init_box) ->
     t0 = time.perf_counter()
     tracker.init(first, box)
     times.append(time.perf_counter() - t0)
-    boxes.append(box), oks.append(True), pmes.append(np.nan)
+    boxes.append(box)
+    oks.append(True)
+    pmes.append(np.nan)
     for frame in it:
         t0 = time.perf_counter()
         box = tracker.update(frame)
         times.append(time.perf_counter() - t0)
-        boxes.append(tuple(float(v) for v in box)), oks.append(bool(tracker.ok)), pmes.append(float(tracker.pme))
+        boxes.append(tuple(float(v) for v in box))
+        oks.append(bool(tracker.ok))
+        pmes.append(float(tracker.pme))
     return TrackRun(np.asarray(boxes, dtype=np.float64), np.asarray(times), np.asarray(oks), np.asarray(pmes))
 
 
