@@ -1,0 +1,183 @@
+"""The Tracker API: following a generated moving target, every profile and switch, and bad input."""
+import cv2
+import numpy as np
+import pytest
+
+from tacf import Tracker, TrackerConfig, TrackResult
+
+
+def _texture(rng, shape, blur=3):
+    noise = rng.integers(0, 256, size=shape, dtype=np.uint8)
+    return cv2.GaussianBlur(noise, (0, 0), blur)
+
+
+def moving_target_sequence(frames=40, size=(240, 320), target=(30, 24), velocity=(2.0, 3.0), gray=False):
+    """A textured target sliding over a textured background; returns frames and 0-based (x, y, w, h) truth."""
+    rng = np.random.default_rng(7)
+    channels = () if gray else (3,)
+    background = _texture(rng, size + channels, blur=4)
+    sprite = _texture(rng, target + channels, blur=1)
+    sprite = cv2.add(sprite, 60)  # brighter than the background, as a vehicle on a road
+    y, x = 60.0, 50.0
+    images, boxes = [], []
+    for _ in range(frames):
+        image = background.copy()
+        top, left = int(round(y)), int(round(x))
+        visible = image[top:top + target[0], left:left + target[1]]  # clipped at the image border
+        visible[...] = sprite[:visible.shape[0], :visible.shape[1]]
+        images.append(image)
+        boxes.append((left, top, target[1], target[0]))
+        y, x = y + velocity[0], x + velocity[1]
+    return images, np.array(boxes, dtype=float)
+
+
+def _iou(a, b):
+    ax, ay, aw, ah = a
+    bx, by, bw, bh = b
+    iw = max(0.0, min(ax + aw, bx + bw) - max(ax, bx))
+    ih = max(0.0, min(ay + ah, by + bh) - max(ay, by))
+    return iw * ih / (aw * ah + bw * bh - iw * ih)
+
+
+def _track(config, images, first_box):
+    tracker = Tracker(config)
+    tracker.init(images[0], first_box)
+    return [tracker.update(image) for image in images[1:]]
+
+
+CONFIGS = {
+    "authors": TrackerConfig.profile("authors"),
+    "paper": TrackerConfig.profile("paper"),
+    "kcc": TrackerConfig.profile("kcc"),
+    "kcc+sa": TrackerConfig.profile("kcc", spatiotemporal_attention=True),
+    "kcc+da": TrackerConfig.profile("kcc", dimensional_attention=True),
+    "kcc+ca": TrackerConfig.profile("kcc", context_attention=True),
+    "no-scale-no-colour-hog-only": TrackerConfig.profile("authors", scale_estimation=False, colour_window=False,
+                                                         use_colour_names=False),
+}
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_follows_a_moving_textured_target(name):
+    images, truth = moving_target_sequence()
+    results = _track(CONFIGS[name], images, truth[0])
+    overlaps = [_iou(r.box, t) for r, t in zip(results, truth[1:])]
+    assert np.mean(overlaps) > 0.6, overlaps
+    assert min(overlaps[-10:]) > 0.4
+    assert all(isinstance(r, TrackResult) and r.ok for r in results[:5])
+
+
+def test_grayscale_frames():
+    images, truth = moving_target_sequence(frames=25, gray=True)
+    results = _track(TrackerConfig.profile(), images, truth[0])
+    assert np.mean([_iou(r.box, t) for r, t in zip(results, truth[1:])]) > 0.6
+
+
+def test_scale_estimate_follows_a_growing_target():
+    rng = np.random.default_rng(3)
+    background = _texture(rng, (300, 300, 3), blur=4)
+    sprite = cv2.add(_texture(rng, (40, 40, 3), blur=2), 50)
+    images, sizes = [], []
+    for k in range(30):
+        side = int(round(40 * 1.01**k))
+        image = background.copy()
+        top = 150 - side // 2
+        image[top:top + side, top:top + side] = cv2.resize(sprite, (side, side))
+        images.append(image)
+        sizes.append(side)
+    tracker = Tracker(TrackerConfig.profile())
+    tracker.init(images[0], (130, 130, 40, 40))
+    for image in images[1:]:
+        result = tracker.update(image)
+    assert result.scale > 1.15  # the truth is 1.01^29 = 1.33; the scale filter moves by 3 % steps
+    assert abs(result.box[2] - sizes[-1]) < 0.2 * sizes[-1]
+
+
+def test_reinit_restarts_on_a_new_box():
+    images, truth = moving_target_sequence(frames=20)
+    tracker = Tracker()
+    tracker.init(images[0], truth[0])
+    for image in images[1:10]:
+        tracker.update(image)
+    tracker.init(images[10], truth[10])
+    assert tracker.box == pytest.approx(tuple(truth[10]), abs=1.0)
+    result = tracker.update(images[11])
+    assert _iou(result.box, truth[11]) > 0.6
+
+
+def test_tiny_target_and_target_leaving_the_image():
+    images, truth = moving_target_sequence(frames=60, target=(9, 10), velocity=(0.0, 5.0))
+    tracker = Tracker()
+    tracker.init(images[0], truth[0])
+    for image in images[1:]:  # the target leaves through the right edge around frame 54
+        result = tracker.update(image)
+        assert all(np.isfinite(result.box)) and result.box[2] > 0 and result.box[3] > 0
+    x, y, w, h = result.box
+    assert -w < x < images[0].shape[1] and -h < y < images[0].shape[0]
+
+
+def test_target_larger_than_most_of_the_frame():
+    images, truth = moving_target_sequence(frames=8, size=(100, 120), target=(80, 100), velocity=(0.3, 0.3))
+    tracker = Tracker()
+    tracker.init(images[0], (5, 5, 110, 90))
+    for image in images[1:]:
+        assert np.all(np.isfinite(tracker.update(image).box))
+
+
+@pytest.mark.parametrize("frame, message", [
+    (None, "numpy array"),
+    (np.zeros((0, 0, 3), np.uint8), "empty"),
+    (np.zeros((50, 50, 4), np.uint8), "HxWx3"),
+    (np.zeros((50, 50, 3), np.float32), "uint8"),
+])
+def test_bad_frames_raise_clear_errors(frame, message):
+    with pytest.raises(ValueError, match=message):
+        Tracker().init(frame, (1, 1, 10, 10))
+
+
+@pytest.mark.parametrize("box, message", [
+    ((10, 10, 0, 5), "positive"),
+    ((10, 10, -3, 5), "positive"),
+    ((10, float("nan"), 5, 5), "finite"),
+    ((10, 10, 5), "four"),
+    ("abcd", "four"),
+    ((500, 10, 20, 20), "outside"),
+    ((-40, 10, 20, 20), "outside"),
+])
+def test_bad_boxes_raise_clear_errors(box, message):
+    with pytest.raises(ValueError, match=message):
+        Tracker().init(np.zeros((100, 100, 3), np.uint8), box)
+
+
+def test_update_needs_init_and_a_frame_of_the_same_size():
+    with pytest.raises(RuntimeError, match="init"):
+        Tracker().update(np.zeros((100, 100, 3), np.uint8))
+    tracker = Tracker()
+    tracker.init(np.zeros((100, 100, 3), np.uint8), (10, 10, 20, 20))
+    with pytest.raises(ValueError, match="differs"):
+        tracker.update(np.zeros((120, 100, 3), np.uint8))
+
+
+def test_lost_flag_follows_the_pme_floor():
+    images, truth = moving_target_sequence(frames=3)
+    confident = _track(TrackerConfig.profile(lost_pme=1.0), images, truth[0])
+    never_confident = _track(TrackerConfig.profile(lost_pme=1e9), images, truth[0])
+    assert all(r.ok for r in confident) and not any(r.ok for r in never_confident)
+    assert confident[0].pme == pytest.approx(never_confident[0].pme)
+
+
+def test_config_validation_and_profiles():
+    assert TrackerConfig.profile("paper").lambda1 == 5e-5
+    assert TrackerConfig.profile("authors").context_interval == 4
+    kcc = TrackerConfig.profile("kcc")
+    assert not (kcc.context_attention or kcc.dimensional_attention or kcc.spatiotemporal_attention)
+    with pytest.raises(ValueError, match="unknown tracker profile"):
+        TrackerConfig.profile("fastest")
+    with pytest.raises(ValueError, match="unknown TrackerConfig field"):
+        TrackerConfig.profile("paper", lamda1=1.0)
+    with pytest.raises(ValueError, match="lambda1"):
+        TrackerConfig(lambda1=0.0)
+    with pytest.raises(ValueError, match="num_scales"):
+        TrackerConfig(num_scales=32)
+    with pytest.raises(ValueError, match="finite"):
+        TrackerConfig(learning_rate=float("nan"))
