@@ -26,7 +26,9 @@ def _color_table() -> np.ndarray:
     if table.shape != (32768, N_CHANNELS):
         raise ValueError(f"w2c table has shape {table.shape}, expected (32768, {N_CHANNELS})")
     # Channel-first, so indexing with an (h, w) index image gives (11, h, w) directly.
-    return np.ascontiguousarray(table.T, dtype=np.float32)
+    table = np.ascontiguousarray(table.T, dtype=np.float32)
+    table.flags.writeable = False  # shared by every call
+    return table
 
 
 def color_names(patch_bgr: np.ndarray, cell_size: int = 4) -> np.ndarray:
@@ -42,7 +44,7 @@ def color_names(patch_bgr: np.ndarray, cell_size: int = 4) -> np.ndarray:
     if rows < 1 or cols < 1:
         raise ValueError(f"patch {patch_bgr.shape[:2]} is smaller than one {cell_size}x{cell_size} cell")
     cells = cv2.resize(patch_bgr, (cols, rows), interpolation=cv2.INTER_AREA).reshape(rows, cols, 3)
-    return np.ascontiguousarray(_color_table()[:, _table_index(cells)])
+    return np.take(_color_table(), _table_index(cells), axis=1)  # (11, rows, cols), C-contiguous
 
 
 def _as_bgr_uint8(patch: np.ndarray) -> np.ndarray:

@@ -8,10 +8,12 @@ Everything is vectorised. Constants that depend only on the image size (each pix
 bilinear weights) or on nothing (the orientation lookup table) are computed once and cached.
 
 Orientation binning follows the C code step by step: cos(theta) is truncated to the 10000-step acos table,
-pi is added for gy < 0, and the bin is floor(theta * 18 / (2 pi) + 0.5) in float32. A purely vertical
-gradient with gy < 0 sits exactly on a bin boundary (theta = 3 pi / 2); like the compiled original
-(ALGORITHM.md 4.1) it lands in bin 13, not 14. All of this is folded into one lookup table indexed by the
-truncated cosine and the sign of gy, so the per-pixel work is a single table lookup.
+pi is added for gy < 0, and the bin is floor(theta * 18 / (2 pi) + 0.5) in float32. All of this is folded
+into one lookup table indexed by the truncated cosine and the sign of gy, so the per-pixel work is a single
+table lookup. A purely vertical gradient with gy < 0 sits exactly on a bin boundary (theta = 3 pi / 2):
+evaluated as (theta * 18) / (2 pi), as ALGORITHM.md 4.1 writes it, it gives 13.99999, i.e. bin 13 like the
+measured compiled original. (Multiplying by a float32-rounded 18 / (2 pi) instead would give bin 14; over the
+whole table this is the only entry where the two evaluation orders disagree.)
 
 Known deviations from the compiled original, below 1e-3 relative (ALGORITHM.md, open question 4): the
 magnitude is an exact square root, not the SSE approximate reciprocal square root, so a flat image gives
@@ -105,7 +107,7 @@ def _max_channel_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 @lru_cache(maxsize=16)
 def _pixel_starts(shape: tuple[int, int, int]) -> np.ndarray:
     """Flat index of channel 0 of every pixel of an HxWxC array."""
-    return np.arange(0, shape[0] * shape[1] * shape[2], shape[2])
+    return _read_only(np.arange(0, shape[0] * shape[1] * shape[2], shape[2]))
 
 
 @lru_cache(maxsize=1)
@@ -118,7 +120,7 @@ def _acos_table() -> np.ndarray:
     table[i >= ACOS_STEPS] = 0.0
     # The C code clamps every entry below pi - 1e-6 so that theta + pi stays below 2 pi.
     np.minimum(table, PI32 - np.float32(1e-6), out=table)
-    return table
+    return _read_only(table)
 
 
 @lru_cache(maxsize=1)
@@ -135,13 +137,19 @@ def _orientation_bins() -> np.ndarray:
     mirrored = table[np.clip(TABLE_SIZE // 2 - cosine_index, 0, TABLE_SIZE - 1)]  # the entry for -j
     theta = np.concatenate([table, mirrored + PI32])
     scaled = theta * np.float32(N_SENSITIVE) / (np.float32(2.0) * PI32) + np.float32(0.5)
-    return scaled.astype(np.intp) % N_SENSITIVE
+    return _read_only(scaled.astype(np.intp) % N_SENSITIVE)
 
 
 @lru_cache(maxsize=16)
 def _bin_offsets(n_cells: int) -> np.ndarray:
     """_orientation_bins() scaled to the start of each bin's plane in the flat (18, rows, cols) histogram."""
-    return _orientation_bins() * n_cells
+    return _read_only(_orientation_bins() * n_cells)
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """Cached arrays are shared between calls, so they are frozen."""
+    array.flags.writeable = False
+    return array
 
 
 def _magnitude_and_table_index(gx: np.ndarray, gy: np.ndarray, squared: np.ndarray
@@ -174,7 +182,7 @@ def _bilinear_layout(cell_size: int, rows: int, cols: int) -> tuple[np.ndarray, 
             indices.append(np.where(valid, row_cell[:, None] * cols + col_cell[None, :], 0))
             weights.append(np.where(valid, np.outer(row_weight, col_weight), 0.0) / cell_size**2)
     # float32 weights: the product with the magnitude is then as cheap as the C code's float32 one.
-    return np.stack(indices), np.stack(weights).astype(np.float32)
+    return _read_only(np.stack(indices)), _read_only(np.stack(weights).astype(np.float32))
 
 
 def _axis_cells(n_cells: int, cell_size: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
