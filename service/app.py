@@ -1,0 +1,133 @@
+"""TrackingService: one Zenoh session, the control queryable, the session manager, liveliness; and serve(),
+the `tacf serve` main loop with SIGTERM/SIGINT handling.
+
+    with TrackingService(ServiceOptions(node="edge")) as service:   # in-process (tests)
+        ...
+    serve(options)                                                  # until SIGTERM/SIGINT, then clean exit
+"""
+from __future__ import annotations
+
+import logging
+import signal
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+
+from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
+
+from .config import ZenohOptions, service_config, worker_endpoints
+from .control import ControlServer
+from .frames import FrameHistory
+from .manager import SessionManager
+from .state import StateStore
+from .trackers import DEFAULT_FACTORY
+
+log = logging.getLogger(__name__)
+
+SHUTDOWN_BUDGET_S = 1.5     # workers get this long in total; the whole exit stays under 2 s
+
+
+def default_node_id() -> str:
+    return sanitise_id(socket.gethostname(), fallback="edge")
+
+
+@dataclass
+class ServiceOptions:
+    node: str = field(default_factory=default_node_id)
+    zenoh: ZenohOptions = field(default_factory=ZenohOptions)
+    max_sessions: int = 8
+    state_file: str | None = None
+    tracker_factory: str = DEFAULT_FACTORY
+    init_wait_s: float = 1.0
+    spare_workers: int = 1
+    log_level: int = logging.INFO
+
+
+class TrackingService:
+    def __init__(self, options: ServiceOptions) -> None:
+        validate_id(options.node, "node id")
+        if options.max_sessions < 1:
+            raise ValueError("max_sessions must be >= 1")
+        self.options = options
+        self.node = options.node
+        self._session = None
+        self._token = None
+        self._history: FrameHistory | None = None
+        self.manager: SessionManager | None = None
+        self._control: ControlServer | None = None
+
+    def open(self) -> "TrackingService":
+        import zenoh
+        options = self.options
+        endpoints = worker_endpoints(options.zenoh)
+        self._session = zenoh.open(service_config(options.zenoh))
+        try:
+            self._history = FrameHistory(self._session)
+            store = StateStore(options.state_file) if options.state_file else None
+            self.manager = SessionManager(self._session, self.node, self._history, options.zenoh, endpoints,
+                                          max_sessions=options.max_sessions, store=store,
+                                          tracker_factory=options.tracker_factory, init_wait_s=options.init_wait_s,
+                                          spare_workers=options.spare_workers, log_level=options.log_level)
+            self.manager.restore()
+            self.manager.start_supervisor()
+            self._control = ControlServer(self._session, self.node, self.manager)
+            self._token = self._session.liveliness().declare_token(service_liveliness_key(self.node))
+        except BaseException:
+            self.close()
+            raise
+        log.info("tacf service %r ready (workers connect to %s)", self.node, ", ".join(endpoints))
+        return self
+
+    def close(self) -> None:
+        """Withdraw the service token, stop answering, stop the workers, close the session. Idempotent."""
+        started = time.monotonic()
+        if self._token is not None:
+            _quietly(self._token.undeclare)
+            self._token = None
+        if self._control is not None:
+            self._control.close(timeout=0.5)
+            self._control = None
+        if self.manager is not None:
+            self.manager.shutdown(timeout=SHUTDOWN_BUDGET_S - (time.monotonic() - started))
+            self.manager = None
+        if self._history is not None:
+            self._history.close()
+            self._history = None
+        if self._session is not None:
+            _quietly(self._session.close)
+            self._session = None
+        log.info("tacf service %r stopped in %.2f s", self.node, time.monotonic() - started)
+
+    def __enter__(self) -> "TrackingService":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def serve(options: ServiceOptions) -> int:
+    """Run until SIGTERM or SIGINT; return the exit code."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        service = TrackingService(options).open()
+    except Exception as exc:
+        log.error("cannot start the service: %s", exc)
+        return 1
+    try:
+        while not stop.wait(0.5):
+            pass
+        log.info("signal received: shutting down")
+    finally:
+        service.close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+def _quietly(fn) -> None:
+    try:
+        fn()
+    except Exception as exc:
+        log.debug("%s: %s", getattr(fn, "__name__", fn), exc)

@@ -1,0 +1,56 @@
+"""`tacf serve`: the command-line front of the tracking service. Only argparse at import time."""
+from __future__ import annotations
+
+import argparse
+import logging
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "serve", help="run the Zenoh tracking service",
+        description="Run the TACF tracking service: a Zenoh peer (loopback only by default) answering "
+                    "tacf/<node>/control/<op> and running one worker process per session.")
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh listen endpoint (repeatable; default tcp/127.0.0.1:7447 when neither "
+                             "--connect nor --zenoh-config is given)")
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
+    parser.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, access control...); "
+                                                              "--listen/--connect override its endpoints")
+    parser.add_argument("--mode", choices=("peer", "client", "router"), default="peer", help="Zenoh mode")
+    parser.add_argument("--node", metavar="ID", help="service id, [A-Za-z0-9_-]{1,64} (default: the hostname "
+                                                    "sanitised, or 'edge')")
+    parser.add_argument("--max-sessions", type=int, default=8, metavar="N", help="session limit (default 8)")
+    parser.add_argument("--state", metavar="FILE", help="persist sessions in FILE and restore them on start")
+    parser.add_argument("--init-wait", type=float, default=1.0, metavar="S",
+                        help="how long start waits for a first frame to check the box against (default 1 s)")
+    parser.add_argument("--spare-workers", type=int, default=1, metavar="N",
+                        help="worker processes kept warm so that a start tracks within milliseconds (default 1)")
+    parser.add_argument("--tracker-factory", default=None, metavar="MODULE:FUNCTION", help=argparse.SUPPRESS)
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tacf_schemas import InvalidIdError, validate_id
+
+    from .app import ServiceOptions, default_node_id, serve
+    from .config import ZenohOptions
+    from .trackers import DEFAULT_FACTORY
+
+    log = logging.getLogger("tacf_service")
+    node = args.node or default_node_id()
+    try:
+        validate_id(node, "node id")
+    except InvalidIdError as exc:
+        log.error("%s", exc)
+        return 2
+    if args.max_sessions < 1:
+        log.error("--max-sessions must be >= 1")
+        return 2
+    zenoh_options = ZenohOptions(listen=tuple(args.listen), connect=tuple(args.connect),
+                                 config_file=args.zenoh_config, mode=args.mode)
+    options = ServiceOptions(node=node, zenoh=zenoh_options, max_sessions=args.max_sessions, state_file=args.state,
+                             tracker_factory=args.tracker_factory or DEFAULT_FACTORY, init_wait_s=args.init_wait,
+                             spare_workers=max(0, args.spare_workers),
+                             log_level=logging.getLogger().getEffectiveLevel())
+    return serve(options)

@@ -1,0 +1,102 @@
+"""Zenoh configurations: the service's (from the command line) and its worker processes'.
+
+The service is a Zenoh peer that listens on loopback only by default. Each worker process opens its own
+session in *client* mode connected to one of the service's endpoints; a peer routes for its clients, so a
+worker receives frames from any camera the service can reach and its boxes reach every subscriber.
+"""
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+_UNSPECIFIED_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
+_ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<host>\[[^\]]*\]|[^:/]+):(?P<port>\d+)(?P<rest>[#?].*)?$")
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """What the command line says about Zenoh. Pickled into worker processes."""
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    config_file: str | None = None
+    mode: str = "peer"
+    extra: dict[str, str] = field(default_factory=dict)   # key path -> JSON5 value, applied last
+
+    def effective_listen(self) -> tuple[str, ...]:
+        """CLI listen endpoints; with no --listen, --connect or config file: loopback only (DEFAULT_LISTEN).
+        With --connect (e.g. to a router on this host) or a config file, nothing is added."""
+        if self.listen:
+            return self.listen
+        if self.config_file or self.connect:
+            return ()
+        return (DEFAULT_LISTEN,)
+
+
+def _base(config_file: str | None):
+    import zenoh
+    if config_file:
+        return zenoh.Config.from_file(str(Path(config_file)))
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def service_config(options: ZenohOptions):
+    """The service session's config: the file (if any), then the command-line overrides."""
+    conf = _base(options.config_file)
+    if options.config_file is None or options.mode != "peer":
+        conf.insert_json5("mode", json.dumps(options.mode))
+    listen = options.effective_listen()
+    if listen or options.config_file is None:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if options.connect or options.config_file is None:
+        conf.insert_json5("connect/endpoints", json.dumps(list(options.connect)))
+    for key, value in options.extra.items():
+        conf.insert_json5(key, value)
+    return conf
+
+
+def worker_endpoints(options: ZenohOptions) -> list[str]:
+    """Endpoints a worker process on this host connects to: the service's listen endpoints with unspecified
+    hosts mapped to loopback; without any, the service's own connect endpoints (a router)."""
+    listen = list(options.effective_listen())
+    if not listen and options.config_file:
+        listen = _configured_list(options.config_file, "listen/endpoints", options.mode)
+    endpoints = []
+    for endpoint in listen:
+        m = _ENDPOINT_RE.match(endpoint)
+        if not m or m.group("port") == "0":
+            continue
+        host = _UNSPECIFIED_HOSTS.get(m.group("host"), m.group("host"))
+        endpoints.append(f"{m.group('proto')}/{host}:{m.group('port')}{m.group('rest') or ''}")
+    if endpoints:
+        return endpoints
+    connect = list(options.connect) or (_configured_list(options.config_file, "connect/endpoints", options.mode)
+                                        if options.config_file else [])
+    if connect:
+        return connect
+    raise ValueError("worker processes need an endpoint of the service: give --listen with a fixed port "
+                     "(or --connect to a router)")
+
+
+def worker_config(options: ZenohOptions, endpoints: list[str]):
+    """A worker's config: client of the service (same file, so TLS/auth settings carry over)."""
+    conf = _base(options.config_file)
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("listen/endpoints", json.dumps([]))
+    conf.insert_json5("connect/endpoints", json.dumps(endpoints))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/timeout_ms", "5000")
+    return conf
+
+
+def _configured_list(config_file: str, key: str, mode: str) -> list[str]:
+    import zenoh
+    value = json.loads(zenoh.Config.from_file(config_file).get_json(key))
+    if isinstance(value, dict):
+        value = value.get(mode, [])
+    return [str(v) for v in value or []]

@@ -1,0 +1,139 @@
+"""FrameHistory: the last few frames of each image key that a session follows.
+
+A start or reinit request may name the seq of the frame its box was drawn on; by the time the request
+arrives, newer frames have come in. The service keeps the last `depth` frames of each subscribed key (as the
+raw msgpack payloads, never decoded here) so that a worker is initialised on the frame the box belongs to
+and then catches up through the newer ones, instead of applying the box to a frame where the target has moved.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+from tacf_schemas import DecodeError, Frame, decode
+
+log = logging.getLogger(__name__)
+
+DEFAULT_DEPTH = 24
+MAX_BYTES_PER_KEY = 96 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class StoredFrame:
+    seq: int
+    width: int
+    height: int
+    payload: bytes          # the Frame's msgpack bytes as received
+
+
+class _KeyHistory:
+    def __init__(self, depth: int) -> None:
+        self.frames: deque[StoredFrame] = deque(maxlen=depth)
+        self.users = 0
+        self.subscriber = None
+
+    def add(self, frame: StoredFrame) -> None:
+        self.frames.append(frame)
+        while len(self.frames) > 1 and sum(len(f.payload) for f in self.frames) > MAX_BYTES_PER_KEY:
+            self.frames.popleft()
+
+
+class FrameHistory:
+    """Per-key frame rings fed by callback subscribers on the service's session (parsing only)."""
+
+    def __init__(self, session, depth: int = DEFAULT_DEPTH) -> None:
+        self._session = session
+        self._depth = depth
+        self._keys: dict[str, _KeyHistory] = {}
+        self._cond = threading.Condition()
+
+    def acquire(self, key: str) -> None:
+        """Start keeping frames of `key` (reference counted: one per session on that key)."""
+        with self._cond:
+            history = self._keys.get(key)
+            if history is None:
+                history = self._keys[key] = _KeyHistory(self._depth)
+                history.subscriber = self._session.declare_subscriber(key, lambda s, k=key: self._on_sample(k, s))
+            history.users += 1
+
+    def release(self, key: str) -> None:
+        with self._cond:
+            history = self._keys.get(key)
+            if history is None:
+                return
+            history.users -= 1
+            if history.users <= 0:
+                del self._keys[key]
+                _undeclare(history.subscriber)
+
+    def close(self) -> None:
+        with self._cond:
+            for history in self._keys.values():
+                _undeclare(history.subscriber)
+            self._keys.clear()
+            self._cond.notify_all()
+
+    def _on_sample(self, key: str, sample) -> None:
+        try:
+            payload = sample.payload.to_bytes()
+            frame = decode(payload, Frame)
+        except DecodeError:
+            return                  # the workers count rejected frames
+        except Exception:           # never let a callback raise into zenoh
+            log.exception("frame history callback failed on %s", key)
+            return
+        stored = StoredFrame(frame.seq, frame.width, frame.height, payload)
+        with self._cond:
+            history = self._keys.get(key)
+            if history is not None:
+                history.add(stored)
+                self._cond.notify_all()
+
+    def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
+        """The frame with `seq` and every newer one kept (in arrival order); with seq None or not kept,
+        just the newest frame; [] when nothing has arrived."""
+        with self._cond:
+            history = self._keys.get(key)
+            frames = list(history.frames) if history else []
+        if not frames:
+            return []
+        if seq is not None:
+            for i, frame in enumerate(frames):
+                if frame.seq == seq:
+                    return frames[i:]
+        return frames[-1:]
+
+    def frames_after(self, key: str, last: StoredFrame) -> list[StoredFrame]:
+        """Frames of `key` that arrived after `last` (all kept frames if `last` has left the ring)."""
+        with self._cond:
+            history = self._keys.get(key)
+            frames = list(history.frames) if history else []
+        for i, frame in enumerate(frames):
+            if frame is last:
+                return frames[i + 1:]
+        return frames
+
+    def wait_for(self, key: str, seq: int | None, timeout: float, cancel: threading.Event | None = None) -> None:
+        """Wait up to `timeout` s for a first frame of `key` (and, when seq is given, for that seq when it is
+        newer than anything kept)."""
+        def satisfied() -> bool:
+            if cancel is not None and cancel.is_set():
+                return True
+            history = self._keys.get(key)
+            if history is None or not history.frames:
+                return False
+            if seq is None:
+                return True
+            newest = history.frames[-1].seq
+            return newest >= seq or any(f.seq == seq for f in history.frames)
+        with self._cond:
+            self._cond.wait_for(satisfied, timeout)
+
+
+def _undeclare(entity) -> None:
+    try:
+        entity.undeclare()
+    except Exception:  # already closed with the session
+        pass

@@ -1,0 +1,62 @@
+"""HealthStats: the counters and timing windows behind a session's Health message."""
+from __future__ import annotations
+
+import time
+from collections import deque
+
+from tacf_schemas import Health
+
+FPS_WINDOW_S = 2.0
+TIMING_WINDOW = 120          # processing times kept for mean / p95
+
+
+class HealthStats:
+    """Updated by the worker's frame loop (one thread); snapshot() builds a Health message."""
+
+    def __init__(self) -> None:
+        self.frames_received = 0
+        self.frames_processed = 0
+        self.frames_dropped = 0
+        self.frames_rejected = 0
+        self.last_seq: int | None = None
+        self.last_pme: float | None = None
+        self.last_stamp_ns: int | None = None
+        self._processing_ms: deque[float] = deque(maxlen=TIMING_WINDOW)
+        self._processed_at: deque[float] = deque()
+
+    def received(self, count: int = 1) -> None:
+        self.frames_received += count
+
+    def dropped(self, count: int = 1) -> None:
+        self.frames_dropped += count
+
+    def rejected(self) -> None:
+        self.frames_rejected += 1
+
+    def processed(self, seq: int, stamp_ns: int, processing_ms: float, pme: float | None) -> None:
+        self.frames_processed += 1
+        self.last_seq, self.last_stamp_ns, self.last_pme = seq, stamp_ns, pme
+        self._processing_ms.append(processing_ms)
+        now = time.monotonic()
+        self._processed_at.append(now)
+        while self._processed_at and now - self._processed_at[0] > FPS_WINDOW_S:
+            self._processed_at.popleft()
+
+    def fps(self) -> float:
+        now = time.monotonic()
+        while self._processed_at and now - self._processed_at[0] > FPS_WINDOW_S:
+            self._processed_at.popleft()
+        return len(self._processed_at) / FPS_WINDOW_S
+
+    def snapshot(self, node: str, sid: str, state: str, restarts: int = 0, message: str | None = None) -> Health:
+        times = sorted(self._processing_ms)
+        mean = sum(times) / len(times) if times else 0.0
+        p95 = times[min(len(times) - 1, int(0.95 * len(times)))] if times else 0.0
+        now_ns = time.time_ns()
+        age = (now_ns - self.last_stamp_ns) / 1e6 if self.last_stamp_ns else None
+        return Health(node=node, sid=sid, state=state, stamp_ns=now_ns, fps=self.fps(),
+                      processing_ms_mean=mean, processing_ms_p95=p95, frame_age_ms=age,
+                      frames_received=self.frames_received, frames_processed=self.frames_processed,
+                      frames_dropped=self.frames_dropped, frames_rejected=self.frames_rejected,
+                      pme=self.last_pme, last_seq=self.last_seq, restarts=restarts,
+                      message=message[:1024] if message else None)

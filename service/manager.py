@@ -1,0 +1,588 @@
+"""SessionManager: the session table, its limits, and the supervision of one worker process per session.
+
+Control operations (start, stop, reinit, list, status) run on the control threads; a supervisor thread reads
+every worker's pipe, notices dead workers (process sentinels) and restarts them from their last box with a
+backoff, and saves the table when it changed. A session whose worker keeps crashing (MAX_CRASHES within
+CRASH_WINDOW_S) stays `failed` until it is re-initialised or stopped.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import multiprocessing.connection
+import secrets
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+from tacf_schemas import (Health, ReinitRequest, SessionInfo, SessionList, StartRequest, decode, encode,
+                          health_key)
+from tacf_schemas import Health as HealthModel
+from tacf_schemas.keys import InvalidKeyError, validate_image_key
+
+from .config import ZenohOptions
+from .errors import ServiceError
+from .frames import FrameHistory, StoredFrame
+from .state import PersistedSession, StateStore
+from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
+from .worker import Assignment, WorkerSpec, run_worker
+
+log = logging.getLogger(__name__)
+
+SUPERVISE_PERIOD_S = 0.2
+SAVE_PERIOD_S = 1.0
+STOP_GRACE_S = 1.0
+MAX_CRASHES = 5
+CRASH_WINDOW_S = 60.0
+RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
+CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
+SPARE_RESPAWN_MIN_S = 2.0       # a spare that dies is replaced at most this often (no spawn storm)
+
+
+@dataclass
+class WorkerHandle:
+    """A worker process and the parent's end of its pipe."""
+    process: multiprocessing.process.BaseProcess
+    conn: multiprocessing.connection.Connection
+    idle: bool = False              # said "idle": warm and waiting for an assignment
+
+
+@dataclass
+class Session:
+    """One tracking session: what was asked, what the worker last reported, and the worker itself."""
+    sid: str
+    image_key: str
+    profile: str
+    overrides: dict
+    box: tuple                          # the last box (initial box until the first result)
+    created_ns: int
+    init_seq: int | None = None         # the frame to (re)initialise on, then the one it was initialised on
+    last_seq: int | None = None
+    restarts: int = 0
+    state: str = "starting"
+    message: str | None = None
+    health: Health | None = None
+    # worker side
+    process: multiprocessing.process.BaseProcess | None = None
+    conn: multiprocessing.connection.Connection | None = None
+    send_lock: threading.Lock = field(default_factory=threading.Lock)
+    worker_ready: bool = False          # the worker said "ready": it can take an init
+    init_pending: bool = False          # an init (init_box, init_seq) waits to be sent
+    init_box: tuple | None = None
+    init_frames: list = field(default_factory=list)   # frames pinned for the init: the init frame, then newer
+    init_released: bool = False         # start validation is over: the pending init may go out
+    gave_up: bool = False               # failed for good (bad box or config, crash loop): no restart
+    stopping: bool = False
+    restart_at: float | None = None
+    crashes: deque = field(default_factory=deque)
+
+    def info(self, node: str) -> SessionInfo:
+        return SessionInfo(node=node, sid=self.sid, image_key=self.image_key, profile=self.profile,
+                           overrides=self.overrides, state=self.state, box=self.box, init_seq=self.init_seq,
+                           last_seq=self.last_seq, created_ns=self.created_ns, restarts=self.restarts,
+                           health=self.health)
+
+    def persisted(self) -> PersistedSession:
+        return PersistedSession(sid=self.sid, image_key=self.image_key, profile=self.profile,
+                                overrides=self.overrides, box=self.box, last_seq=self.last_seq,
+                                created_ns=self.created_ns, restarts=self.restarts)
+
+
+class SessionManager:
+    def __init__(self, zenoh_session, node: str, history: FrameHistory, zenoh_options: ZenohOptions,
+                 endpoints: list[str], *, max_sessions: int = 8, store: StateStore | None = None,
+                 tracker_factory: str = DEFAULT_FACTORY, init_wait_s: float = 1.0, spare_workers: int = 1,
+                 log_level: int = logging.INFO) -> None:
+        self.node = node
+        self.max_sessions = max_sessions
+        self._zenoh = zenoh_session
+        self._history = history
+        self._zenoh_options = zenoh_options
+        self._endpoints = tuple(endpoints)
+        self._store = store
+        self._tracker_factory = tracker_factory
+        self._init_wait_s = init_wait_s
+        self._log_level = log_level
+        self._mp = multiprocessing.get_context("spawn")
+        self._worker_spec = WorkerSpec(node=node, zenoh=zenoh_options, endpoints=tuple(endpoints),
+                                       tracker_factory=tracker_factory, log_level=log_level)
+        self._spare_target = spare_workers
+        self._spares: list[WorkerHandle] = []
+        self._spare_spawned_at = 0.0
+        self._lock = threading.RLock()
+        self._sessions: dict[str, Session] = {}
+        self._closing = threading.Event()
+        self._dirty = False
+        self._supervisor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start_supervisor(self) -> None:
+        self._replenish_spares()
+        self._supervisor.start()
+
+    def restore(self) -> int:
+        """Bring back the sessions of the state file, each re-initialised from its last box."""
+        if self._store is None:
+            return 0
+        restored = 0
+        for saved in self._store.load()[: self.max_sessions]:
+            try:
+                validate_image_key(saved.image_key)
+            except InvalidKeyError as exc:
+                log.warning("not restoring session %s: %s", saved.sid, exc)
+                continue
+            session = Session(sid=saved.sid, image_key=saved.image_key, profile=saved.profile,
+                              overrides=dict(saved.overrides), box=tuple(saved.box), created_ns=saved.created_ns,
+                              init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts)
+            with self._lock:
+                self._sessions[session.sid] = session
+            self._history.acquire(session.image_key)
+            self._queue_init(session, session.box, saved.last_seq, released=True)
+            self._spawn(session)
+            restored += 1
+        if restored:
+            log.info("restored %d session(s) from %s", restored, self._store.path)
+        return restored
+
+    def shutdown(self, timeout: float = 1.5) -> None:
+        """Stop every worker (stop command, then SIGTERM, then SIGKILL) within `timeout`; keep the table saved
+        so that the sessions come back on the next start."""
+        deadline = time.monotonic() + timeout
+        self._closing.set()
+        with self._lock:
+            sessions = list(self._sessions.values())
+        if self._supervisor.is_alive():
+            self._supervisor.join(timeout=SUPERVISE_PERIOD_S * 2)
+        with self._lock:
+            spares, self._spares = self._spares, []
+        for session in sessions:
+            session.stopping = True
+            self._send(session, ("stop",))
+        for spare in spares:
+            _send_to(spare.conn, ("stop",))
+        _reap([s.process for s in sessions if s.process] + [w.process for w in spares], deadline)
+        self._save(force=True)
+        for session in sessions:
+            _close_conn(session)
+        for spare in spares:
+            _quiet_close(spare.conn)
+
+    # ------------------------------------------------------------------ control operations
+
+    def start(self, request: StartRequest) -> SessionInfo:
+        try:
+            image_key = validate_image_key(request.image_key)
+        except InvalidKeyError as exc:
+            raise ServiceError("invalid_key", str(exc)) from None
+        profile = request.profile or default_profile()
+        overrides = dict(request.overrides)
+        try:
+            check_tracker_config(profile, overrides)
+        except (ValueError, TypeError) as exc:
+            raise ServiceError("invalid_config", str(exc)) from None
+        sid = request.sid or _new_sid()
+        session = Session(sid=sid, image_key=image_key, profile=profile, overrides=overrides,
+                          box=tuple(request.box), created_ns=time.time_ns())
+        with self._lock:
+            self._check_open()
+            if sid in self._sessions:
+                raise ServiceError("duplicate_session", f"session {sid!r} already exists on node {self.node!r}")
+            if len(self._sessions) >= self.max_sessions:
+                raise ServiceError("too_many_sessions", f"node {self.node!r} already runs {len(self._sessions)} "
+                                                        f"session(s) (--max-sessions {self.max_sessions})")
+            self._sessions[sid] = session                      # reserved: the id and the slot
+        try:
+            self._history.acquire(image_key)
+            self._history.wait_for(image_key, request.seq, self._init_wait_s, cancel=self._closing)
+            self._check_open()
+            self._queue_init(session, session.box, request.seq, released=False)
+            if session.init_frames:
+                _check_box_in_frame(session.box, session.init_frames[0])
+            self._spawn(session)
+        except BaseException:
+            self._discard(session)
+            raise
+        self._release_init(session)
+        self._mark_dirty(save_now=True)
+        log.info("started session %s on %s (profile %s, box %s, asked seq %s, init seq %s)", sid, image_key,
+                 profile, session.box, request.seq, session.init_seq)
+        return session.info(self.node)
+
+    def stop(self, sid: str) -> SessionInfo:
+        with self._lock:
+            session = self._get(sid)
+            del self._sessions[sid]
+            session.stopping = True
+        self._send(session, ("stop",))
+        _reap([session.process] if session.process else [], time.monotonic() + STOP_GRACE_S)
+        _close_conn(session)
+        self._history.release(session.image_key)
+        session.state = "stopped"
+        self._publish_health(session, "stopped", "stopped by request")
+        self._mark_dirty(save_now=True)
+        log.info("stopped session %s", sid)
+        return session.info(self.node)
+
+    def reinit(self, request: ReinitRequest) -> SessionInfo:
+        with self._lock:
+            session = self._get(request.sid)
+        frames = self._history.frames_from(session.image_key, request.seq)
+        if frames:
+            _check_box_in_frame(tuple(request.box), frames[0])
+        with self._lock:
+            session.box = tuple(request.box)
+            session.gave_up, session.crashes = False, deque()
+            session.state, session.message = "starting", None
+            self._queue_init(session, session.box, request.seq, released=True)
+            needs_worker = session.process is None or session.process.exitcode is not None
+        if needs_worker:
+            _close_conn(session)
+            self._spawn(session)
+        else:
+            self._flush_init(session)
+        self._mark_dirty(save_now=True)
+        log.info("re-initialised session %s with box %s (seq %s)", session.sid, session.box, request.seq)
+        return session.info(self.node)
+
+    def list(self) -> SessionList:
+        with self._lock:
+            infos = [s.info(self.node) for s in self._sessions.values()]
+        return SessionList(node=self.node, max_sessions=self.max_sessions, sessions=infos)
+
+    def status(self, sid: str) -> SessionInfo:
+        with self._lock:
+            return self._get(sid).info(self.node)
+
+    def idle_spares(self) -> int:
+        """How many warm workers wait for a session (tests wait for one before timing a start)."""
+        self._drain_spares()
+        with self._lock:
+            return sum(1 for w in self._spares if w.idle and w.process.exitcode is None)
+
+    def worker_pids(self) -> dict[str, int]:
+        """Worker process ids by session id (for tests and diagnostics)."""
+        with self._lock:
+            return {s.sid: s.process.pid for s in self._sessions.values() if s.process and s.process.pid}
+
+    # ------------------------------------------------------------------ helpers of the control operations
+
+    def _check_open(self) -> None:
+        if self._closing.is_set():
+            raise ServiceError("unavailable", f"node {self.node!r} is shutting down")
+
+    def _get(self, sid: str) -> Session:
+        session = self._sessions.get(sid)
+        if session is None:
+            raise ServiceError("unknown_session", f"no session {sid!r} on node {self.node!r}")
+        return session
+
+    def _discard(self, session: Session) -> None:
+        with self._lock:
+            if self._sessions.get(session.sid) is session:
+                del self._sessions[session.sid]
+        session.stopping = True
+        self._send(session, ("stop",))
+        if session.process is not None:
+            _reap([session.process], time.monotonic() + STOP_GRACE_S)
+        _close_conn(session)
+        self._history.release(session.image_key)
+
+    # ------------------------------------------------------------------ workers
+
+    def _spawn(self, session: Session) -> None:
+        """Give the session a worker: a warm spare when there is one, else a new process."""
+        assignment = Assignment(sid=session.sid, image_key=session.image_key, profile=session.profile,
+                                overrides=session.overrides, restarts=session.restarts)
+        with self._lock:
+            idle = [w for w in self._spares if w.idle and w.process.exitcode is None]
+            handle = idle[0] if idle else None
+            if handle is not None:
+                self._spares.remove(handle)
+        if handle is None:
+            handle = self._new_worker()
+        with self._lock:
+            session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
+            session.restart_at = None
+            if session.state == "failed" and not session.gave_up:
+                session.state = "starting"
+        self._send(session, ("assign", assignment))
+        log.debug("worker pid %d serves session %s%s", handle.process.pid, session.sid,
+                  " (warm spare)" if idle else "")
+
+    def _new_worker(self) -> WorkerHandle:
+        parent_conn, child_conn = self._mp.Pipe(duplex=True)
+        process = self._mp.Process(target=run_worker, args=(self._worker_spec, child_conn), name="tacf-worker",
+                                   daemon=True)
+        process.start()
+        child_conn.close()
+        return WorkerHandle(process, parent_conn)
+
+    def _replenish_spares(self) -> None:
+        with self._lock:
+            dead = [w for w in self._spares if w.process.exitcode is not None]
+            for handle in dead:
+                self._spares.remove(handle)
+                _quiet_close(handle.conn)
+            missing = self._spare_target - len(self._spares)
+            now = time.monotonic()
+            if missing <= 0 or self._closing.is_set() or (dead and now - self._spare_spawned_at < SPARE_RESPAWN_MIN_S):
+                return
+            self._spare_spawned_at = now
+        for _ in range(missing):
+            handle = self._new_worker()
+            with self._lock:
+                self._spares.append(handle)
+
+    def _drain_spares(self) -> None:
+        with self._lock:
+            spares = list(self._spares)
+        for handle in spares:
+            try:
+                while handle.conn.poll():
+                    if handle.conn.recv()[0] == "idle":
+                        handle.idle = True
+            except (EOFError, OSError):
+                pass
+
+    def _queue_init(self, session: Session, box: tuple, seq: int | None, released: bool) -> None:
+        """Pin the frames to initialise on now (the frame `seq`, or the newest, and any newer ones), so that
+        they are still there when the worker is ready."""
+        frames = self._history.frames_from(session.image_key, seq)
+        if seq is not None and frames and frames[0].seq != seq:
+            log.warning("session %s: frame seq %d is no longer kept; initialising on seq %d", session.sid, seq,
+                        frames[0].seq)
+        session.init_box, session.init_frames = tuple(box), frames
+        session.init_seq = frames[0].seq if frames else seq
+        session.init_pending, session.init_released = True, released
+
+    def _release_init(self, session: Session) -> None:
+        session.init_released = True
+        self._flush_init(session)
+
+    def _flush_init(self, session: Session) -> None:
+        """Send the pending init once the worker is ready: the box and the frames from init_seq on."""
+        with self._lock:
+            if not (session.init_pending and session.init_released and session.worker_ready):
+                return
+            session.init_pending = False
+            box, pinned, session.init_frames = session.init_box, session.init_frames, []
+        if pinned:
+            frames = pinned + self._history.frames_after(session.image_key, pinned[-1])
+        else:
+            frames = self._history.frames_from(session.image_key, None)
+        frames = _catch_up_subset(frames, CATCHUP_FRAMES)
+        self._send(session, ("init", box, [f.payload for f in frames]))
+
+    def _send(self, session: Session, message: tuple) -> None:
+        conn = session.conn
+        if conn is None:
+            return
+        with session.send_lock:
+            _send_to(conn, message)
+
+    # ------------------------------------------------------------------ supervision
+
+    def _supervise(self) -> None:
+        while not self._closing.is_set():
+            try:
+                self._supervise_once()
+            except Exception:
+                log.exception("supervisor iteration failed")
+                time.sleep(SUPERVISE_PERIOD_S)
+
+    def _supervise_once(self) -> None:
+        with self._lock:
+            sessions = [s for s in self._sessions.values() if s.process is not None]
+        waitables = [s.conn for s in sessions if s.conn is not None] + [s.process.sentinel for s in sessions]
+        waitables += [w.conn for w in self._spares if not w.idle]
+        try:
+            if waitables:
+                multiprocessing.connection.wait(waitables, timeout=SUPERVISE_PERIOD_S)
+            else:
+                self._closing.wait(SUPERVISE_PERIOD_S)
+        except (OSError, ValueError):
+            pass                # a connection closed under us by stop(); the next round has a fresh list
+        for session in sessions:
+            self._drain(session)
+            process = session.process
+            if process is not None and process.exitcode is not None and not session.stopping:
+                self._on_worker_exit(session)
+        now = time.monotonic()
+        with self._lock:
+            due = [s for s in self._sessions.values()
+                   if s.restart_at is not None and s.restart_at <= now and not s.stopping]
+        for session in due:
+            if not self._closing.is_set():
+                self._restart(session)
+        self._drain_spares()
+        self._replenish_spares()
+        self._save()
+
+    def _drain(self, session: Session) -> None:
+        conn = session.conn
+        if conn is None:
+            return
+        try:
+            while conn.poll():
+                self._on_message(session, conn.recv())
+        except (EOFError, OSError):
+            pass
+
+    def _on_message(self, session: Session, message: tuple) -> None:
+        kind = message[0]
+        if kind == "result":
+            _, seq, box, ok, _pme = message
+            with self._lock:
+                session.last_seq, session.box = seq, tuple(box)
+                if not session.gave_up:
+                    session.state = "tracking" if ok else "lost"
+            self._dirty = True
+        elif kind == "health":
+            try:
+                health = decode(message[1], HealthModel)
+            except Exception:
+                return
+            with self._lock:
+                session.health = health
+                if not session.gave_up and session.state != "failed":
+                    session.state = health.state
+        elif kind == "ready":
+            session.worker_ready = True
+            self._flush_init(session)
+        elif kind == "initialised":
+            with self._lock:
+                session.init_seq = message[1]
+                session.state, session.message = "tracking", None
+        elif kind == "failed":
+            with self._lock:
+                session.state, session.message, session.gave_up = "failed", message[1], True
+            log.warning("session %s failed: %s", session.sid, message[1])
+
+    def _on_worker_exit(self, session: Session) -> None:
+        code = session.process.exitcode
+        _close_conn(session)
+        with self._lock:
+            session.process = None
+            if session.gave_up:
+                return
+            session.state = "failed"
+            session.message = f"worker exited with code {code}"
+            now = time.monotonic()
+            session.crashes.append(now)
+            while session.crashes and now - session.crashes[0] > CRASH_WINDOW_S:
+                session.crashes.popleft()
+            if len(session.crashes) > MAX_CRASHES:
+                session.gave_up = True
+                session.message += f"; {len(session.crashes)} crashes in {CRASH_WINDOW_S:.0f} s, not restarting"
+            else:
+                backoff = RESTART_BACKOFF_S[min(len(session.crashes), len(RESTART_BACKOFF_S)) - 1]
+                session.restart_at = now + backoff
+        log.warning("session %s: %s", session.sid, session.message)
+        self._publish_health(session, "failed", session.message)
+
+    def _restart(self, session: Session) -> None:
+        with self._lock:
+            if self._sessions.get(session.sid) is not session:
+                return
+            session.restarts += 1
+            self._queue_init(session, session.box, session.last_seq, released=True)
+        log.info("restarting session %s from box %s (seq %s), restart #%d", session.sid, session.box,
+                 session.last_seq, session.restarts)
+        self._spawn(session)
+        self._dirty = True
+
+    def _publish_health(self, session: Session, state: str, message: str | None) -> None:
+        """Health on behalf of a session whose worker cannot publish it (dead or stopped)."""
+        last = session.health
+        counters = last.model_dump(include={"frames_received", "frames_processed", "frames_dropped",
+                                            "frames_rejected", "pme", "last_seq"}) if last else {}
+        health = Health(node=self.node, sid=session.sid, state=state, stamp_ns=time.time_ns(), fps=0.0,
+                        processing_ms_mean=0.0, processing_ms_p95=0.0, restarts=session.restarts,
+                        message=(message or "")[:1024] or None, **counters)
+        session.health = health
+        try:
+            self._zenoh.put(health_key(self.node, session.sid), encode(health))
+        except Exception as exc:
+            log.debug("cannot publish health of %s: %s", session.sid, exc)
+
+    # ------------------------------------------------------------------ persistence
+
+    def _mark_dirty(self, save_now: bool = False) -> None:
+        self._dirty = True
+        if save_now:
+            self._save(force=True)
+
+    def _save(self, force: bool = False) -> None:
+        if self._store is None or not (self._dirty or force):
+            return
+        now = time.monotonic()
+        if not force and now - getattr(self, "_saved_at", 0.0) < SAVE_PERIOD_S:
+            return
+        with self._lock:
+            table = [s.persisted() for s in self._sessions.values()]
+            self._dirty = False
+        self._saved_at = now
+        try:
+            self._store.save(table)
+        except OSError as exc:
+            log.error("cannot save the session table to %s: %s", self._store.path, exc)
+
+
+def _new_sid() -> str:
+    return "s" + secrets.token_hex(4)
+
+
+def _catch_up_subset(frames: list, limit: int) -> list:
+    """The first frame (the init frame), then at most `limit` newer ones evenly spaced, ending on the newest:
+    the tracker follows the target's motion without falling far behind a live feed."""
+    if len(frames) <= limit + 1:
+        return frames
+    rest = frames[1:]
+    step = len(rest) / limit
+    return [frames[0]] + [rest[min(len(rest) - 1, round((i + 1) * step) - 1)] for i in range(limit)]
+
+
+def _check_box_in_frame(box: tuple, frame: StoredFrame) -> None:
+    x, y, w, h = box
+    if x >= frame.width or y >= frame.height or x + w <= 0 or y + h <= 0:
+        raise ServiceError("invalid_box", f"box {list(box)} lies outside the {frame.width}x{frame.height} "
+                                          f"frame seq {frame.seq}")
+
+
+def _reap(processes: list, deadline: float) -> None:
+    """Wait for processes until `deadline`, then SIGTERM, then SIGKILL the rest."""
+    for process in processes:
+        process.join(timeout=max(0.0, deadline - time.monotonic()))
+    alive = [p for p in processes if p.exitcode is None]
+    for process in alive:
+        process.terminate()
+    for process in alive:
+        process.join(timeout=0.3)
+        if process.exitcode is None:
+            process.kill()
+            process.join(timeout=0.5)
+
+
+def _send_to(conn, message: tuple) -> None:
+    try:
+        conn.send(message)
+    except (BrokenPipeError, EOFError, OSError):
+        pass            # the worker is gone; the supervisor reports it
+
+
+def _quiet_close(conn) -> None:
+    try:
+        conn.close()
+    except OSError:
+        pass
+
+
+def _close_conn(session: Session) -> None:
+    if session.conn is not None:
+        try:
+            session.conn.close()
+        except OSError:
+            pass
+        session.conn = None

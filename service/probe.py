@@ -1,0 +1,46 @@
+"""A minimal control caller (used by the benchmark and tests). The full client API is tacf_clients.
+
+    reply = call(session, "edge", "start", StartRequest(image_key="cam", box=(10, 10, 40, 40)))
+    # -> SessionInfo, or raises ControlError(code, message)
+"""
+from __future__ import annotations
+
+from tacf_schemas import (CONTROL_REPLIES, MSGPACK_ENCODING, DecodeError, Error, ListRequest, WireModel, control_key,
+                          decode, encode)
+
+
+class ControlError(Exception):
+    def __init__(self, code: str, message: str):
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+
+
+def call(session, node: str, op: str, request: WireModel | bytes | None = None, timeout: float = 5.0):
+    """One control request to one node; the reply model, or ControlError (timeout -> code "timeout")."""
+    import zenoh
+    payload = encode(request) if isinstance(request, WireModel) else request
+    replies = session.get(control_key(node, op), payload=payload, encoding=zenoh.Encoding(MSGPACK_ENCODING),
+                          timeout=timeout)
+    for reply in replies:
+        return _reply_model(op, reply)
+    raise ControlError("timeout", f"no reply from {node!r} to {op} within {timeout} s")
+
+
+def list_all(session, timeout: float = 3.0) -> list:
+    """tacf/*/control/list: one SessionList per reachable service."""
+    import zenoh
+    replies = session.get(control_key("*", "list"), payload=encode(ListRequest()),
+                          encoding=zenoh.Encoding(MSGPACK_ENCODING), timeout=timeout)
+    return [_reply_model("list", r) for r in replies if r.ok is not None]
+
+
+def _reply_model(op: str, reply):
+    if reply.ok is not None:
+        return decode(reply.ok.payload.to_bytes(), CONTROL_REPLIES[op])
+    raw = reply.err.payload.to_bytes()
+    try:
+        error = decode(raw, Error)
+    except DecodeError:
+        raise ControlError("transport", raw.decode("utf-8", "replace")[:200]) from None
+    raise ControlError(error.code, error.message)

@@ -1,0 +1,48 @@
+"""A synthetic video for tests and benchmarks: a textured square moving over a textured background.
+
+    scene = MovingTargetScene(1280, 720)
+    image, box = scene.frame(i)        # HxWx3 BGR uint8, ground-truth [x, y, w, h]
+"""
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+
+class MovingTargetScene:
+    def __init__(self, width: int = 640, height: int = 360, target: int = 64, speed: float = 3.0,
+                 seed: int = 7) -> None:
+        rng = np.random.default_rng(seed)
+        noise = rng.integers(0, 256, (height // 8 + 1, width // 8 + 1, 3), dtype=np.uint8)
+        self.background = cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC)
+        self.background = cv2.GaussianBlur(self.background, (0, 0), 2.0)
+        checker = (np.indices((target, target)).sum(axis=0) // 8 % 2).astype(np.uint8)
+        texture = rng.integers(0, 80, (target, target, 3), dtype=np.uint8)
+        self.target = (texture + checker[..., None] * np.array([40, 160, 220], np.uint8)).astype(np.uint8)
+        self.width, self.height, self.size, self.speed = width, height, target, speed
+
+    def box(self, i: int) -> tuple[float, float, float, float]:
+        """The target's box on frame i: a smooth loop (speed px/frame at most) inside the frame."""
+        span_x, span_y = self.width - self.size - 20, self.height - self.size - 20
+        t = i * self.speed / max(span_x, 1)
+        x = 10 + span_x * (0.5 + 0.5 * math.sin(t))
+        y = 10 + span_y * (0.5 + 0.5 * math.sin(0.7 * t + 1.0))
+        return (float(int(x)), float(int(y)), float(self.size), float(self.size))
+
+    def frame(self, i: int) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+        box = self.box(i)
+        x, y = int(box[0]), int(box[1])
+        image = self.background.copy()
+        image[y:y + self.size, x:x + self.size] = self.target
+        return image, box
+
+
+def iou(a, b) -> float:
+    ax2, ay2, bx2, by2 = a[0] + a[2], a[1] + a[3], b[0] + b[2], b[1] + b[3]
+    iw = max(0.0, min(ax2, bx2) - max(a[0], b[0]))
+    ih = max(0.0, min(ay2, by2) - max(a[1], b[1]))
+    inter = iw * ih
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return inter / union if union > 0 else 0.0

@@ -1,0 +1,38 @@
+"""Tracker factories used by worker processes. A factory is named "module:function" so that it can cross
+the spawn boundary as a string; it takes (profile, overrides) and returns an object with
+init(frame, box) and update(frame) -> result with .box, .ok, .pme, .score, .scale (tacf.Tracker)."""
+from __future__ import annotations
+
+import importlib
+from typing import Callable
+
+DEFAULT_FACTORY = "tacf_service.trackers:tacf_tracker"
+
+
+def tacf_tracker(profile: str, overrides: dict):
+    from tacf import Tracker, TrackerConfig
+    return Tracker(TrackerConfig.profile(profile, **overrides))
+
+
+def check_tracker_config(profile: str, overrides: dict) -> None:
+    """Raise ValueError if TrackerConfig rejects the profile or an override (tacf.config is light)."""
+    from tacf.config import TrackerConfig
+    TrackerConfig.profile(profile, **overrides)
+
+
+def default_profile() -> str:
+    from tacf.config import DEFAULT_PROFILE
+    return DEFAULT_PROFILE
+
+
+def preload(factory: str) -> None:
+    """Import the factory's module and, for TACF, the tracker's heavy modules, before any assignment."""
+    module = factory.partition(":")[0]
+    importlib.import_module(module)
+    if factory == DEFAULT_FACTORY:
+        importlib.import_module("tacf.tracker")
+
+
+def load_factory(path: str) -> Callable:
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)

@@ -1,0 +1,351 @@
+"""The worker process of one tracking session.
+
+Each session runs in its own process (multiprocessing "spawn" context: Zenoh's runtime does not survive fork)
+so that N cores serve N feeds at full speed. The worker opens its own Zenoh session (client of the service),
+subscribes to the image key latest-only, runs the tracker on its main thread, and publishes a BoxResult per
+processed frame and Health about once a second itself: frames never pass through the service process.
+
+Latest-only: the subscriber callback only stores the newest payload in a one-slot LatestFrame (the
+RingChannel(1) behaviour) and counts every arrival and every overwritten frame, so `frames_dropped` is exact;
+the tracker never runs inside a Zenoh callback.
+
+Workers are started ahead of need (warm spares: interpreter, numpy, OpenCV, the tracker's modules and the
+Zenoh session are ready), so a start request gets a tracking worker in milliseconds instead of seconds.
+
+Parent <-> worker protocol over a multiprocessing Pipe (tuples):
+    worker -> parent   ("idle",)                           warm and waiting for an assignment
+                       ("ready",)                          assigned, subscribed, tracker built: send the init
+                       ("result", seq, box, ok, pme)       per processed frame (the parent keeps the last box)
+                       ("health", health_msgpack)          about 1 Hz
+                       ("failed", message)                 the tracker cannot be initialised (bad box, config)
+                       ("initialised", seq)                the tracker was initialised on frame seq
+    parent -> worker   ("assign", Assignment)              become the worker of this session
+                       ("init", box, [frame payloads])     init on the first decodable payload, catch up
+                                                           through the rest; [] = init on the next live frame
+                       ("stop",)
+The worker also stops when the pipe breaks (the service died), so no worker outlives its service.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+
+from .config import ZenohOptions
+from .trackers import DEFAULT_FACTORY
+
+log = logging.getLogger(__name__)
+
+HEALTH_PERIOD_S = 1.0
+COMMAND_POLL_S = 0.1
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """What every worker process of a service shares, pickled across the spawn boundary."""
+    node: str
+    zenoh: ZenohOptions = field(default_factory=ZenohOptions)
+    endpoints: tuple[str, ...] = ()
+    tracker_factory: str = DEFAULT_FACTORY
+    log_level: int = logging.INFO
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """The session a worker serves."""
+    sid: str
+    image_key: str
+    profile: str
+    overrides: dict = field(default_factory=dict)
+    restarts: int = 0
+
+
+class LatestFrame:
+    """A one-slot mailbox: put() replaces the held payload (counting it as dropped), take() waits for one."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._payload: bytes | None = None
+        self._woken = False
+        self.received = 0
+        self.overwritten = 0
+
+    def put(self, payload: bytes) -> None:
+        with self._cond:
+            if self._payload is not None:
+                self.overwritten += 1
+            self._payload = payload
+            self.received += 1
+            self._cond.notify()
+
+    def wake(self) -> None:
+        with self._cond:
+            self._woken = True
+            self._cond.notify()
+
+    def take(self, timeout: float) -> bytes | None:
+        with self._cond:
+            self._cond.wait_for(lambda: self._payload is not None or self._woken, timeout)
+            payload, self._payload, self._woken = self._payload, None, False
+            return payload
+
+    def discard(self) -> None:
+        with self._cond:
+            if self._payload is not None:
+                self.overwritten += 1
+            self._payload = None
+
+
+def run_worker(spec: WorkerSpec, conn) -> None:
+    """Process entry point (the target of the spawned Process)."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")      # one core per session; the service scales by processes
+    logging.basicConfig(level=spec.log_level,
+                        format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
+    worker = Worker(spec, conn)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)           # a terminal's Ctrl-C goes to the service
+    signal.signal(signal.SIGTERM, lambda *_: worker.request_stop())
+    try:
+        worker.run()
+    except Exception:
+        log.exception("worker crashed")
+        raise SystemExit(1)
+
+
+class Worker:
+    def __init__(self, spec: WorkerSpec, conn) -> None:
+        self.spec = spec
+        self._conn = conn
+        self._send_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._slot = LatestFrame()
+        self._pending_lock = threading.Lock()
+        self._pending_init: tuple | None = None
+        self._tracker = None
+        self._init_box: tuple | None = None      # box to initialise on the next frame
+        self._image_shape: tuple | None = None   # shape of the frame the tracker was initialised on
+        self._state = "starting"
+        self._message: str | None = None
+        self._stats = None
+        self.job: Assignment | None = None
+        self._assigned = _Flag()
+        self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
+        self._extra_received = 0        # catch-up frames handed over by the service
+        self._skipped = 0               # frames not used: duplicates, or no box to track yet
+
+    def request_stop(self) -> None:
+        self._stop.set()
+        self._slot.wake()
+
+    # ------------------------------------------------------------------ main loop
+
+    def run(self) -> None:
+        import cv2
+        import zenoh
+
+        from .config import worker_config
+        from .trackers import load_factory, preload
+
+        cv2.setNumThreads(1)
+        preload(self.spec.tracker_factory)
+        commands = threading.Thread(target=self._read_commands, name="commands", daemon=True)
+        commands.start()
+        conf = worker_config(self.spec.zenoh, list(self.spec.endpoints))
+        with zenoh.open(conf) as session:
+            self._send(("idle",))
+            if self._assigned.wait_until(self._stop):
+                try:
+                    self._tracker = load_factory(self.spec.tracker_factory)(self.job.profile, self.job.overrides)
+                except (ValueError, TypeError) as exc:
+                    self._state = "failed"
+                    self._send(("failed", f"tracker config: {exc}"))
+                else:
+                    self._serve(session, zenoh)
+        commands.join(timeout=1.0)
+
+    def _serve(self, session, zenoh) -> None:
+        """Track the assigned session until stopped."""
+        from tacf_schemas import MSGPACK_ENCODING, box_key, health_key, session_liveliness_key
+
+        from .health import HealthStats
+
+        self._stats = HealthStats()
+        encoding = zenoh.Encoding(MSGPACK_ENCODING)
+        node, sid = self.spec.node, self.job.sid
+        token = session.liveliness().declare_token(session_liveliness_key(node, sid))
+        self._box_pub = session.declare_publisher(box_key(node, sid), encoding=encoding, express=True)
+        self._health_pub = session.declare_publisher(health_key(node, sid), encoding=encoding)
+        frames = session.declare_subscriber(self.job.image_key, self._on_frame)
+        self._send(("ready",))
+        next_health = time.monotonic()
+        while not self._stop.is_set():
+            self._apply_pending_init()
+            payload = self._slot.take(timeout=0.2)
+            if payload is not None and not self._stop.is_set():
+                self._process(payload)
+            if time.monotonic() >= next_health:
+                self._publish_health()
+                next_health = time.monotonic() + HEALTH_PERIOD_S
+        self._state = "stopped"
+        self._publish_health()
+        frames.undeclare()
+        token.undeclare()
+
+    def _on_frame(self, sample) -> None:
+        """Zenoh callback: keep the newest payload only. Never tracks, never blocks."""
+        try:
+            self._slot.put(sample.payload.to_bytes())
+        except Exception:
+            log.exception("frame callback failed")
+
+    # ------------------------------------------------------------------ commands from the service
+
+    def _read_commands(self) -> None:
+        while not self._stop.is_set():
+            try:
+                if not self._conn.poll(COMMAND_POLL_S):
+                    continue
+                message = self._conn.recv()
+            except (EOFError, OSError):
+                log.warning("service pipe closed: stopping")
+                self.request_stop()
+                return
+            if message[0] == "assign":
+                self.job = message[1]
+                self._assigned.set()
+            elif message[0] == "init":
+                with self._pending_lock:
+                    self._pending_init = (tuple(message[1]), list(message[2]))
+                self._slot.wake()
+            elif message[0] == "stop":
+                self.request_stop()
+
+    def _send(self, message: tuple) -> None:
+        try:
+            with self._send_lock:
+                self._conn.send(message)
+        except (BrokenPipeError, EOFError, OSError):
+            self.request_stop()
+
+    # ------------------------------------------------------------------ tracking
+
+    def _apply_pending_init(self) -> None:
+        with self._pending_lock:
+            pending, self._pending_init = self._pending_init, None
+        if pending is None:
+            return
+        box, payloads = pending
+        self._init_box, self._image_shape = box, None
+        self._state, self._message = "starting", None
+        for payload in payloads:         # init on the first decodable one, then catch up through the rest
+            self._extra_received += 1
+            self._process(payload)
+
+    def _process(self, payload: bytes) -> None:
+        from tacf_schemas import DecodeError, Frame, decode
+        from tacf_schemas.images import FrameError, decode_frame
+
+        if self._init_box is None and self._image_shape is None:
+            self._skipped += 1                          # not told what to track yet (waiting for init)
+            return
+        started = time.perf_counter()
+        try:
+            frame = decode(payload, Frame)
+        except DecodeError as exc:
+            self._reject(str(exc))
+            return
+        if (frame.seq, frame.stamp_ns) == self._last_frame_id:
+            self._skipped += 1                          # the live copy of the last catch-up frame
+            return
+        try:
+            image = decode_frame(frame)
+        except FrameError as exc:
+            self._reject(str(exc))
+            return
+        self._last_frame_id = (frame.seq, frame.stamp_ns)
+        if self._image_shape is None:
+            self._initialise(image, frame)
+            return
+        if image.shape != self._image_shape:
+            self._reject(f"frame size {image.shape[1]}x{image.shape[0]} differs from the init frame "
+                         f"{self._image_shape[1]}x{self._image_shape[0]}; reinit the session")
+            return
+        try:
+            result = self._tracker.update(image)
+        except Exception as exc:                        # a tracker bug must not kill the session
+            log.exception("tracker update failed on seq %d", frame.seq)
+            self._reject(f"tracker update failed: {exc}")
+            return
+        processing_ms = (time.perf_counter() - started) * 1e3
+        self._state = "tracking" if result.ok else "lost"
+        self._publish_box(frame, result, processing_ms)
+        self._stats.processed(frame.seq, frame.stamp_ns, processing_ms, float(result.pme))
+
+    def _initialise(self, image, frame) -> None:
+        box = self._init_box
+        try:
+            self._tracker.init(image, box)
+        except ValueError as exc:
+            self._init_box = None
+            self._state, self._message = "failed", f"cannot initialise on seq {frame.seq}: {exc}"
+            log.warning("%s", self._message)
+            self._send(("failed", self._message))
+            self._publish_health()
+            return
+        self._image_shape = image.shape
+        self._init_box = None
+        self._state = "tracking"
+        self._send(("initialised", frame.seq))
+        log.info("initialised on seq %d with box %s", frame.seq, box)
+
+    def _reject(self, reason: str) -> None:
+        self._stats.rejected()
+        self._message = reason
+        if self._stats.frames_rejected <= 3 or self._stats.frames_rejected % 100 == 0:
+            log.warning("rejected frame (%d so far): %s", self._stats.frames_rejected, reason)
+
+    def _publish_box(self, frame, result, processing_ms: float) -> None:
+        from tacf_schemas import BoxResult, encode
+        box = tuple(float(c) for c in result.box)
+        message = BoxResult(node=self.spec.node, sid=self.job.sid, seq=frame.seq, stamp_ns=frame.stamp_ns,
+                            box=box, ok=bool(result.ok), pme=_finite(result.pme), score=_finite(result.score),
+                            scale=_finite(result.scale), processing_ms=processing_ms, published_ns=time.time_ns())
+        self._box_pub.put(encode(message))
+        self._send(("result", frame.seq, box, bool(result.ok), _finite(result.pme)))
+
+    def _publish_health(self) -> None:
+        from tacf_schemas import encode
+        stats = self._stats
+        stats.frames_received = self._slot.received + self._extra_received
+        stats.frames_dropped = self._slot.overwritten + self._skipped
+        health = stats.snapshot(self.spec.node, self.job.sid, self._state, self.job.restarts, self._message)
+        payload = encode(health)
+        try:
+            self._health_pub.put(payload)
+        except Exception as exc:     # session closing
+            log.debug("health put failed: %s", exc)
+        self._send(("health", payload))
+
+
+class _Flag:
+    """A one-shot event that can also be abandoned by a stop event."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+
+    def set(self) -> None:
+        self._event.set()
+
+    def wait_until(self, stop: threading.Event) -> bool:
+        while not stop.is_set():
+            if self._event.wait(0.1):
+                return True
+        return False
+
+
+def _finite(value) -> float:
+    value = float(value)
+    return value if value == value and abs(value) != float("inf") else 0.0
