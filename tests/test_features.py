@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tacf.features import color_names, fhog
 
+SEQUENCES = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
 TEXTURE = 0.2357
 CN_BLACK, CN_BLUE, CN_GREEN, CN_RED, CN_WHITE = 0, 1, 4, 8, 9
 
@@ -115,6 +117,23 @@ def test_fhog_rejects_too_small_and_bad_rank():
 @pytest.mark.parametrize("shape", [(9, 14), (12, 16, 3), (15, 10, 2)])
 def test_fhog_matches_pixel_by_pixel_reference(shape):
     image = random_image(shape, seed=3)
+    np.testing.assert_allclose(fhog(image), reference_fhog(image), rtol=1e-5, atol=1e-6)
+
+
+def test_fhog_matches_reference_with_other_cell_size():
+    image = random_image((14, 19, 3), seed=4)
+    np.testing.assert_allclose(fhog(image, cell_size=3, clip=0.3), reference_fhog(image, cell=3, clip=0.3),
+                               rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.data
+def test_fhog_matches_reference_on_real_frame_patch():
+    frames = sorted(SEQUENCES.glob("UAV123_10fps/boat5/img/*.jpg"))
+    if not frames:
+        pytest.skip("shared sequences not available")
+    import cv2
+    patch = cv2.imread(str(frames[0]))[300:342, 400:437]  # 42x37: a real, textured colour patch
+    image = cv2.cvtColor(patch, cv2.COLOR_BGR2RGB).astype(np.float32) / 255
     np.testing.assert_allclose(fhog(image), reference_fhog(image), rtol=1e-5, atol=1e-6)
 
 
