@@ -43,12 +43,13 @@ def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray
     ``image`` is HxW or HxWxC (float32; 0..1 or 0..255, the scale only changes the effect of the
     normalisation epsilon). Channels 0-17 are contrast-sensitive orientations, 18-26 contrast-insensitive,
     27-30 texture (one per block normaliser). Gradients use the whole image; only the pixels inside the
-    full cells are binned. Needs at least 2x2 cells.
+    full cells are binned. A grid only one cell high or wide (possible for thin DSST scale patches) is
+    normalised as if that cell row or column were duplicated; the C code reads raw energies there instead.
     """
     image = _as_hwc_float32(image)
     rows, cols = image.shape[0] // cell_size, image.shape[1] // cell_size
-    if rows < 2 or cols < 2:
-        raise ValueError(f"fhog needs at least 2x2 cells, got {image.shape[:2]} with cell_size {cell_size}")
+    if rows < 1 or cols < 1:
+        raise ValueError(f"image {image.shape[:2]} is smaller than one {cell_size}x{cell_size} cell")
     gx, gy, squared = _max_channel_gradients(image)
     used = (slice(0, rows * cell_size), slice(0, cols * cell_size))
     magnitude, table_index = _magnitude_and_table_index(gx[used], gy[used], squared[used])
@@ -192,7 +193,8 @@ def _axis_cells(n_cells: int, cell_size: int) -> tuple[list[np.ndarray], list[np
     frac = u - low
     cells, weights = [low, low + 1], [1.0 - frac, frac]
     for cell, weight in zip(cells, weights):
-        weight[(cell == 0) | (cell == n_cells - 1)] *= BOUNDARY_FACTOR
+        weight[cell == 0] *= BOUNDARY_FACTOR
+        weight[cell == n_cells - 1] *= BOUNDARY_FACTOR  # a single cell is both first and last, as in C
         cell[cell >= n_cells] = -1
     return cells, weights
 
@@ -214,11 +216,15 @@ def _block_normalisers(insensitive: np.ndarray, cell_size: int) -> np.ndarray:
     cell sees 4 blocks. Order k = 0..3 as in the C code: the blocks whose top-left cell is at offset
     (0, 0), (-1, 0), (0, -1), (-1, -1) from the cell.
     """
+    rows, cols = insensitive.shape[1:]
     energy = np.einsum("orc,orc->rc", insensitive, insensitive)
+    if rows == 1 or cols == 1:  # degenerate grid: duplicate the single cell row / column (see fhog)
+        energy = np.pad(energy, ((0, rows == 1), (0, cols == 1)), mode="edge")
     eps = np.float32(1e-4 / 4 / cell_size**4)
     block = energy[:-1, :-1] + energy[1:, :-1] + energy[:-1, 1:] + energy[1:, 1:] + eps
     padded = cv2.copyMakeBorder(np.float32(1.0) / np.sqrt(block), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
-    return np.stack([padded[1:, 1:], padded[:-1, 1:], padded[1:, :-1], padded[:-1, :-1]])
+    blocks = (padded[1:, 1:], padded[:-1, 1:], padded[1:, :-1], padded[:-1, :-1])
+    return np.stack([normaliser[:rows, :cols] for normaliser in blocks])
 
 
 def _normalise_and_truncate(sensitive: np.ndarray, cell_size: int, clip: np.float32) -> np.ndarray:
