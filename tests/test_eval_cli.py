@@ -231,27 +231,30 @@ def test_console_script_lists_subcommands():
 @needs_tacf
 @pytest.mark.parametrize("name", ["tacf", "kcc", "kcc+sa+da"])
 def test_tacf_adapter(name):
-    frames, box = synthetic_frames(12)
+    frames, box = synthetic_frames(8)
     run = track_frames(trackers.make_tracker(name), frames, box)
-    assert run.boxes.shape == (12, 4) and np.isfinite(run.boxes).all()
+    assert run.boxes.shape == (8, 4) and np.isfinite(run.boxes).all()
     assert np.isfinite(run.pme[1:]).all()
-    assert run.boxes[-1, 0] == pytest.approx(box[0] + 22, abs=4)
+    assert run.boxes[-1, 0] == pytest.approx(box[0] + 14, abs=4)
 
 
 @needs_tacf
 @needs_data
 def test_eval_and_track_with_tacf(tmp_path):
     rc = main(["eval", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7", "--trackers", "tacf,kcc",
-               "--out", str(tmp_path), "--no-progress"])
+               "--max-frames", "15", "--out", str(tmp_path), "--no-progress"])
     assert rc == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     for name in ("tacf", "kcc"):
         t = summary["trackers"][name]
-        assert t["frames"] == 67 and 0 <= t["auc"] <= 1 and t["fps"] > 0
-    rc = main(["track", str(SEQUENCES / "UAV123_10fps" / "wakeboard7" / "img"), "--box", "622,298,11,38",
-               "--profile", "kcc", "--out", str(tmp_path / "b.txt")])
+        assert t["frames"] == 15 and 0.3 <= t["auc"] <= 1 and t["fps"] > 0
+    folder = tmp_path / "img"
+    folder.mkdir()
+    for p in sorted((SEQUENCES / "UAV123_10fps" / "wakeboard7" / "img").iterdir())[:10]:
+        (folder / p.name).symlink_to(p)
+    rc = main(["track", str(folder), "--box", "622,298,11,38", "--profile", "kcc", "--out", str(tmp_path / "b.txt")])
     assert rc == 0
-    rows = check_boxes_file(tmp_path / "b.txt", 67, (622, 298, 11, 38))
+    rows = check_boxes_file(tmp_path / "b.txt", 10, (622, 298, 11, 38))
     assert np.isfinite(rows[1:, 4]).all()
 
 
@@ -268,12 +271,18 @@ def test_ablation_table_rows_and_gains():
 
 
 @needs_tacf
-@needs_data
 def test_eval_ablation_command(tmp_path, capsys):
-    rc = main(["eval", "--ablation", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7", "--out",
-               str(tmp_path), "--no-progress"])
+    frames, box = synthetic_frames(8)
+    seq = tmp_path / "data" / "synthetic" / "drift"
+    (seq / "img").mkdir(parents=True)
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(seq / "img" / f"{i:06d}.png"), f)
+    (seq / "groundtruth.txt").write_text("".join(f"{31 + 2 * i},{41 + i},24,24\n" for i in range(8)))
+    rc = main(["eval", "--ablation", str(tmp_path / "data"), "--out", str(tmp_path / "out"), "--no-progress"])
     assert rc == 0
     out = capsys.readouterr().out
     assert "KCC (baseline)" in out and "TACF (SA + DA + CA)" in out
-    assert (tmp_path / "ablation.md").read_text() == out
-    assert sorted(json.loads((tmp_path / "summary.json").read_text())["trackers"]) == sorted(trackers.ABLATION)
+    assert (tmp_path / "out" / "ablation.md").read_text() == out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert sorted(summary["trackers"]) == sorted(trackers.ABLATION)
+    assert all(t["sequences"]["synthetic/drift"]["auc"] > 0.5 for t in summary["trackers"].values())

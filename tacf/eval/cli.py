@@ -42,6 +42,8 @@ def register(subparsers) -> None:
                    help="the paper's ablation: kcc, kcc+sa, kcc+da, kcc+ca, tacf (ignores --trackers)")
     p.add_argument("--ranges", type=Path, metavar="FILE",
                    help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
+    p.add_argument("--max-frames", type=int, metavar="N",
+                   help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -68,12 +70,16 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_bench)
 
 
-def _load(root: Path, pattern: str | None, ranges: Path | None = None):
-    from .datasets import detect_layout, load_sequences
+def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frames: int | None = None):
+    from .datasets import Sequence, detect_layout, load_sequences
 
     layout = detect_layout(root)
     kwargs = {"ranges": ranges} if ranges is not None and layout == "uav123" else {}
     seqs = load_sequences(root, pattern, layout=layout, **kwargs)
+    if max_frames is not None:
+        if max_frames < 1:
+            raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
+        seqs = [Sequence(s.name, s.frames[:max_frames], s.gt[:max_frames]) for s in seqs]
     log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
     return seqs
 
@@ -85,7 +91,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     try:
         trackers = list(ABLATION) if args.ablation else _names(args.trackers, DEFAULT_TRACKERS)
-        seqs = _load(args.root, args.sequences, args.ranges)
+        seqs = _load(args.root, args.sequences, args.ranges, args.max_frames)
     except (ValueError, FileNotFoundError) as exc:
         log.error("%s", exc)
         return 2

@@ -53,7 +53,7 @@ def center_error(pred, gt) -> np.ndarray:
     a, b = _as_boxes(pred), _as_boxes(gt)
     ca = a[:, :2] + (a[:, 2:] - 1) / 2
     cb = b[:, :2] + (b[:, 2:] - 1) / 2
-    d = np.hypot(*(ca - cb).T)
+    d = np.sqrt(np.sum((ca - cb) ** 2, axis=1))
     return np.where(np.isfinite(d), d, np.inf)
 
 
