@@ -60,6 +60,18 @@ def read_ranges(path: Path) -> dict[str, FrameRange]:
     return ranges
 
 
+def _frame_range(frames: list[Path], first: int, last: int) -> list[Path]:
+    """Frames numbered first..last (by the number in the file name, e.g. 000445.jpg; by position otherwise)."""
+    numbered = {}
+    for p in frames:
+        digits = re.findall(r"\d+", p.stem)
+        if digits:
+            numbered.setdefault(int(digits[-1]), p)
+    if len(numbered) == len(frames):
+        return [numbered[i] for i in range(first, last + 1) if i in numbered]
+    return frames[first - 1:last]
+
+
 def find_range_tables(root: Path) -> list[Path]:
     """configSeqs*.m and *ranges*.txt files in ROOT or one level down (sorted, .m first)."""
     root = Path(root)
@@ -100,5 +112,5 @@ def load(root: Path, ranges: dict[str, FrameRange] | Path | None = None) -> list
                 continue
             gt = read_boxes(anno)
             last = rng.last if rng.last else rng.first + len(gt) - 1
-            seqs.append(make_sequence(f"{set_dir.name}/{name}", frames[rng.first - 1:last], gt))
+            seqs.append(make_sequence(f"{set_dir.name}/{name}", _frame_range(frames, rng.first, last), gt))
     return seqs
