@@ -12,8 +12,11 @@ pi is added for gy < 0, and the bin is floor(theta * 18 / (2 pi) + 0.5) in float
 into one lookup table indexed by the truncated cosine and the sign of gy, so the per-pixel work is a single
 table lookup. A purely vertical gradient with gy < 0 sits exactly on a bin boundary (theta = 3 pi / 2):
 evaluated as (theta * 18) / (2 pi), as ALGORITHM.md 4.1 writes it, it gives 13.99999, i.e. bin 13 like the
-measured compiled original. (Multiplying by a float32-rounded 18 / (2 pi) instead would give bin 14; over the
-whole table this is the only entry where the two evaluation orders disagree.)
+measured compiled original. Multiplying by a float32-rounded 18 / (2 pi), as the C source reads, gives bin 14
+instead, and a plain `g++ -O2` build of gradientMex.cpp does give 14: the bin-13 build presumably folded the
+constant differently. Over the whole table this is the only entry where the two evaluation orders disagree;
+with it switched, this module matches such a build to ~1e-4 on real patches (rare single-pixel bin flips
+from the approximate reciprocal square root aside).
 
 Known deviations from the compiled original, below 1e-3 relative (ALGORITHM.md, open question 4): the
 magnitude is an exact square root, not the SSE approximate reciprocal square root, so a flat image gives
