@@ -84,7 +84,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="initial box x,y,w,h (default: the scene's target, a sequence's groundtruth.txt, "
                         "or a centred box)")
     p.add_argument("--seconds", type=_positive_float, default=10.0, help="how long to track (default 10)")
-    p.add_argument("--fps", type=_positive_float, default=None, help="publishing rate (default: the source's, or 30)")
+    p.add_argument("--fps", type=_positive_float, default=None, help="publishing rate (default: the source's, or 20)")
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg")
     p.add_argument("--profile", help="tracker profile")
     p.add_argument("--every", type=int, default=None, metavar="N",

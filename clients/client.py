@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import pydantic
 import zenoh
 
-from tacf_clients.errors import (AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest, NoService,
+from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest, NoService,
                                  ProtocolError, RequestTimeout, TacfError, UnknownSession, error_from_wire)
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
@@ -179,7 +179,7 @@ class TrackingClient:
         if not nodes:
             raise NoService("no tracking service answered on tacf/*/control/list")
         if len(nodes) > 1:
-            raise AmbiguousSession(f"{len(nodes)} services on the network ({', '.join(nodes)}): pass node=...")
+            raise AmbiguousNode(f"{len(nodes)} services on the network ({', '.join(nodes)}): pass node=...")
         return nodes[0]
 
     def _node_of(self, sid: str) -> str:

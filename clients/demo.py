@@ -24,13 +24,14 @@ from tacf_clients.errors import TacfError
 from tacf_clients.local_service import LocalService, LocalServiceError
 from tacf_clients.publisher import FramePublisher
 from tacf_clients.scene import Scene, SceneSource, iou
-from tacf_clients.sources import DEFAULT_FPS, FrameSource, ImageFolderSource, Pacer, SourceFrame, open_source
+from tacf_clients.sources import FrameSource, ImageFolderSource, Pacer, SourceFrame, open_source
 from tacf_clients.zconfig import open_session
 from tacf_schemas.models import BoxResult, Health
 
 log = logging.getLogger(__name__)
 
 Box = tuple[float, float, float, float]
+DEMO_FPS = 20.0           # the scene's rate (and any source's without its own): real time for the tracker on one core
 FOLLOW_IOU = 0.3          # a box "follows" the target when its IoU with the ground truth exceeds this
 
 
@@ -234,7 +235,7 @@ def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = 
         if not isinstance(source, SceneSource):   # a fresh iterator for the publisher (the probe read frame 0)
             source.close()
             source = open_source(options.source)
-        fps = options.fps or (None if source.live else source.fps) or DEFAULT_FPS
+        fps = options.fps or (None if source.live or isinstance(source, SceneSource) else source.fps) or DEMO_FPS
         if options.every is None:
             printer.every = max(1, round(fps / 3))
         service = LocalService(node=options.node, ready_timeout=options.start_timeout)
@@ -248,7 +249,7 @@ def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = 
             printer.line(f"the service failed: {exc}")
         finally:
             source.close()
-        report.service_exit = service.process.returncode if service.process else report.service_exit
+        report.service_exit = service.returncode
     _summary(printer, report, truth is not None)
     return report
 
@@ -258,7 +259,9 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
               stop: threading.Event) -> None:
     with open_session(service.options) as session:
         started = time.monotonic()
-        service.wait_ready(session)
+        if not service.wait_ready(session, cancel=stop):
+            report.error = "interrupted"
+            return
         printer.line(f"service ready in {time.monotonic() - started:.1f} s")
         client = TrackingClient(session=session, node=options.node, timeout=10.0)
         publisher = HoldingPublisher(session, source, options.image_key, fps, options.encoding)

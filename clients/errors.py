@@ -99,6 +99,12 @@ class NoService(TacfError):
     code = "no_service"
 
 
+class AmbiguousNode(TacfError):
+    """Several services are on the network and the call does not say which one: pass node=..."""
+
+    code = "ambiguous_node"
+
+
 class AmbiguousSession(TacfError):
     """The session id exists on several services: pass node=... to say which."""
 

@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -46,6 +47,7 @@ class LocalService:
         self.log_path = log_path or Path(tempfile.gettempdir()) / f"tacf-serve-{node}-{self.port}.log"
         self.env = env
         self.process: subprocess.Popen | None = None
+        self.returncode: int | None = None       # the child's exit code once stopped
 
     @property
     def options(self) -> ZenohOptions:
@@ -66,22 +68,25 @@ class LocalService:
                                             stderr=subprocess.STDOUT, env=env)
         return self
 
-    def wait_ready(self, client_session) -> None:
-        """Poll the control queryable with `client_session` until this node answers (or raise LocalServiceError)."""
+    def wait_ready(self, client_session, cancel: threading.Event | None = None) -> bool:
+        """Poll the control queryable with `client_session` until this node answers: True; False if `cancel`
+        was set first; LocalServiceError if the child exits or does not answer within `ready_timeout`."""
         from tacf_clients.client import TrackingClient
         from tacf_clients.errors import TacfError
 
         deadline = time.monotonic() + self.ready_timeout
         client = TrackingClient(session=client_session, node=self.node, timeout=1.0)
         while time.monotonic() < deadline:
+            if cancel is not None and cancel.is_set():
+                return False
             self.check_alive()
             try:
                 client.services()
-                return
+                return True
             except TacfError:
                 time.sleep(0.1)
         raise LocalServiceError(f"tacf serve did not answer within {self.ready_timeout:g} s; log: {self.log_path}\n"
-                           f"{self.log_tail()}")
+                                f"{self.log_tail()}")
 
     def check_alive(self) -> None:
         if self.process is not None and self.process.poll() is not None:
@@ -108,6 +113,7 @@ class LocalService:
                 process.kill()
                 process.wait(timeout=5)
         log.debug("tacf serve exited with code %s", process.returncode)
+        self.returncode = process.returncode
         return process.returncode
 
     def __enter__(self) -> "LocalService":

@@ -2,17 +2,16 @@
 timeouts, and the wildcard list across two services."""
 from __future__ import annotations
 
-import threading
 import time
 
 import pytest
 import zenoh
 
 from tacf_clients.client import TrackingClient
-from tacf_clients.errors import (ERRORS, DuplicateSession, InvalidBox, InvalidConfig, InvalidId, InvalidKey,
+from tacf_clients.demo import HoldingPublisher
+from tacf_clients.errors import (ERRORS, AmbiguousNode, DuplicateSession, InvalidBox, InvalidConfig, InvalidId, InvalidKey,
                                  NoService, RequestTimeout, ServiceError, UnknownSession)
 from tacf_clients.local_service import LocalService, free_port
-from tacf_clients.publisher import publish
 from tacf_clients.scene import Scene, SceneSource, iou
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo
@@ -36,23 +35,13 @@ def client(service):
         yield c
 
 
-class Camera:
-    """Publishes the scene on its own key in a thread (20 fps) for the duration of a test."""
-
-    def __init__(self, session: zenoh.Session, key: str):
-        self.key, self.stop = key, threading.Event()
-        self.thread = threading.Thread(target=publish, args=(session, SceneSource(SCENE), key),
-                                       kwargs=dict(fps=20, stop=self.stop), daemon=True)
-        self.thread.start()
-
-    def close(self):
-        self.stop.set()
-        self.thread.join(timeout=5)
-
-
 @pytest.fixture
 def camera(client, request):
-    cam = Camera(client.session, f"test/cam/{request.node.name[:40]}")
+    """The scene published on its own key at 20 fps; it holds its first frame until `camera.hold.clear()`."""
+    cam = HoldingPublisher(client.session, SceneSource(SCENE), f"test/cam/{request.node.name[:40]}", 20, "jpeg")
+    cam.key = cam.publisher.key
+    cam.start()
+    assert _wait(lambda: cam.last_seq >= 0)
     yield cam
     cam.close()
 
@@ -97,21 +86,23 @@ def test_start_status_list_subscribe_stop(client, camera, service):
 
 
 def test_boxes_follow_the_target_and_reinit(client, camera):
-    info = client.start(camera.key, SCENE.box(0), sid="follow")
+    info = client.start(camera.key, SCENE.box(0), seq=camera.last_seq, sid="follow")
     try:
-        # the camera started before the session: compare with the ground truth of each box's own frame
-        boxes = list(_take(client.iter_boxes("follow", timeout=10), 15))
-        assert len(boxes) == 15
-        # frame seq n of the camera shows scene frame n (SceneSource yields frames 0, 1, 2, ...)
-        later = boxes[5:]
-        overlaps = [iou(tuple(b.box), SCENE.box(b.seq)) for b in later]
-        assert sum(o > 0.3 for o in overlaps) >= 0.8 * len(overlaps), overlaps
+        boxes = client.iter_boxes("follow", timeout=15)
+        first = next(boxes)
+        camera.hold.clear()                      # the target starts moving once the session tracks
+        later = [b for b in _take(boxes, 25) if camera.index_of(b.seq)]
+        assert len(later) >= 10
+        overlaps = [iou(tuple(b.box), SCENE.box(camera.index_of(b.seq))) for b in later]
+        assert sum(o > 0.5 for o in overlaps) >= 0.8 * len(overlaps), overlaps
+        assert first.seq < later[0].seq
 
-        seq = boxes[-1].seq + 2
-        info = client.reinit("follow", SCENE.box(seq), seq=seq)
+        seq = camera.last_seq
+        truth = SCENE.box(camera.index_of(seq))
+        info = client.reinit("follow", truth, seq=seq)
         assert info.sid == "follow" and info.state in ("starting", "tracking")
         after = [b for b in _take(client.iter_boxes("follow", timeout=10), 10) if b.seq >= seq]
-        assert after and iou(tuple(after[-1].box), SCENE.box(after[-1].seq)) > 0.3
+        assert after and iou(tuple(after[-1].box), SCENE.box(camera.index_of(after[-1].seq))) > 0.3
     finally:
         client.stop(info.sid)
 
@@ -194,11 +185,11 @@ def test_list_across_two_services(service, client, camera):
         with TrackingClient(options, timeout=5.0) as both:
             second.wait_ready(both.session)
             assert sorted(both.nodes()) == sorted([service.node, second.node])
-            with pytest.raises(Exception):         # two services: start needs node=...
+            with pytest.raises(AmbiguousNode):     # two services: start needs node=...
                 both.start(camera.key, SCENE.box(0))
             info = both.start(camera.key, SCENE.box(0), sid="remote", node=second.node)
             assert info.node == second.node
-            client.start(camera.key, SCENE.box(0), sid="local")
+            client.start(camera.key, SCENE.box(0), sid="local", node=service.node)
             try:
                 sessions = {(s.node, s.sid) for s in both.list()}
                 assert {(second.node, "remote"), (service.node, "local")} <= sessions
@@ -206,3 +197,25 @@ def test_list_across_two_services(service, client, camera):
                 assert both.stop("remote").state == "stopped"
             finally:
                 client.stop("local")
+
+
+def test_command_line_start_list_status_stop(service, camera, capsys):
+    from tacf.cli import main
+
+    zenoh_args = ["--connect", service.endpoint]
+    assert main(["start", "--key", camera.key, "--box", "148,167,25,19", "--sid", "cli1", "--seq",
+                 str(camera.last_seq), *zenoh_args]) == 0
+    assert f"started cli1 on {service.node}" in capsys.readouterr().out
+    assert main(["list", *zenoh_args]) == 0
+    out = capsys.readouterr().out
+    assert "cli1" in out and service.node in out and "SID" in out
+    assert main(["status", "cli1", "--json", *zenoh_args]) == 0
+    assert SessionInfo.model_validate_json(capsys.readouterr().out).sid == "cli1"
+    assert main(["watch", "cli1", "--duration", "1.5", "--interval", "0.5", *zenoh_args]) == 0
+    assert "cli1" in capsys.readouterr().out
+    assert main(["stop", "cli1", *zenoh_args]) == 0
+    assert "stopped cli1" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        main(["stop", "cli1", *zenoh_args])
+    assert exc.value.code == 1
+    assert "UnknownSession" in capsys.readouterr().err
