@@ -91,25 +91,23 @@ class TrackingClient:
 
     def stop(self, sid: str, *, node: str | None = None) -> SessionInfo:
         """Stop session `sid`; returns its final SessionInfo (state "stopped")."""
-        request = _build(StopRequest, sid=_sid(sid))
-        info = self._call_one(node or self._node_of(sid), "stop", request, SessionInfo)
+        info = self._call_session(sid, node, "stop", _build(StopRequest, sid=_sid(sid)))
         with self._lock:
             self._nodes_of_sid.pop(sid, None)
         return info
 
     def reinit(self, sid: str, box: BoxLike, seq: int | None = None, *, node: str | None = None) -> SessionInfo:
         """Re-initialise session `sid` on a new box (drawn on frame `seq`, if given)."""
-        request = _build(ReinitRequest, sid=sid, box=_box(box), seq=seq)
-        return self._call_one(node or self._node_of(sid), "reinit", request, SessionInfo)
+        return self._call_session(sid, node, "reinit", _build(ReinitRequest, sid=_sid(sid), box=_box(box), seq=seq))
 
     def status(self, sid: str, *, node: str | None = None) -> SessionInfo:
         """The session's current SessionInfo (state, last box, latest health)."""
-        request = _build(StatusRequest, sid=sid)
-        return self._call_one(node or self._node_of(sid), "status", request, SessionInfo)
+        return self._call_session(sid, node, "status", _build(StatusRequest, sid=_sid(sid)))
 
     def list(self, *, node: str | None = None) -> list[SessionInfo]:
         """Every session on every service that answers (or on `node` only), sorted by node then sid."""
-        return [info for listing in self.services(node=node) for info in listing.sessions]
+        sessions = [info for listing in self.services(node=node) for info in listing.sessions]
+        return sorted(sessions, key=lambda info: (info.node, info.sid))
 
     def services(self, *, node: str | None = None) -> list[SessionList]:
         """One SessionList per service that answers (a wildcard query on tacf/*/control/list)."""
@@ -121,9 +119,16 @@ class TrackingClient:
             raise errors[0]
         if not listings and node:
             raise NoService(f"service {node!r} did not answer")
+        seen: dict[str, set[str]] = {}
         for listing in listings:
             for info in listing.sessions:
-                self._remember(info)
+                seen.setdefault(info.sid, set()).add(info.node)
+        with self._lock:                 # remember where each sid lives, unless it lives on several services
+            for sid, nodes in seen.items():
+                if len(nodes) == 1:
+                    self._nodes_of_sid[sid] = next(iter(nodes))
+                else:
+                    self._nodes_of_sid.pop(sid, None)
         return sorted(listings, key=lambda lst: lst.node)
 
     def nodes(self) -> list[str]:
@@ -171,8 +176,11 @@ class TrackingClient:
 
     # --- plumbing -------------------------------------------------------------------------------------------------
     def _remember(self, info: SessionInfo) -> None:
+        self._remember_node(info.sid, info.node)
+
+    def _remember_node(self, sid: str, node: str) -> None:
         with self._lock:
-            self._nodes_of_sid[info.sid] = info.node
+            self._nodes_of_sid[sid] = node
 
     def _single_node(self) -> str:
         nodes = self.nodes()
@@ -182,25 +190,35 @@ class TrackingClient:
             raise AmbiguousNode(f"{len(nodes)} services on the network ({', '.join(nodes)}): pass node=...")
         return nodes[0]
 
-    def _node_of(self, sid: str) -> str:
-        """The node holding session `sid`: the default node, a remembered one, or found by a status query."""
-        _sid(sid)
-        if self.node:
-            return self.node
+    def _call_session(self, sid: str, node: str | None, op: str, request: WireModel) -> SessionInfo:
+        """Call `op` on the service holding `sid`. A node remembered from an earlier reply may be out of date
+        (the session was stopped and started elsewhere): then look it up again once."""
+        if node or self.node:
+            return self._call_one(node or self.node, op, request, SessionInfo)
         with self._lock:
-            if sid in self._nodes_of_sid:
-                return self._nodes_of_sid[sid]
+            cached = self._nodes_of_sid.get(sid)
+        if cached is not None:
+            try:
+                return self._call_one(cached, op, request, SessionInfo)
+            except (UnknownSession, NoService):
+                with self._lock:
+                    self._nodes_of_sid.pop(sid, None)
+        return self._call_one(self._find_node(sid), op, request, SessionInfo)
+
+    def _find_node(self, sid: str) -> str:
+        """The node holding session `sid`, found by a wildcard status query."""
         replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo)
         found = sorted({r.model.node for r in replies if r.model is not None})
         if len(found) > 1:
             raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: pass node=...")
         if found:
+            self._remember_node(sid, found[0])
             return found[0]
-        errors = [r.error for r in replies if r.error is not None]
         if not replies:
             raise NoService("no tracking service answered on tacf/*/control/status")
         # Prefer an error that says more than "not here" (e.g. a timeout of the one service that has it).
-        errors.sort(key=lambda e: isinstance(e, UnknownSession))
+        errors = sorted((r.error for r in replies if r.error is not None),
+                        key=lambda e: isinstance(e, UnknownSession))
         raise errors[0] if errors else UnknownSession(f"unknown session {sid!r}")
 
     def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]):

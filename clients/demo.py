@@ -276,6 +276,7 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
                 report.sid = info.sid
                 printer.line(f"session {info.sid!r} started (profile {info.profile}) on box "
                              f"({box[0]:.0f}, {box[1]:.0f}, {box[2]:.0f}, {box[3]:.0f}) from {origin}")
+                printer.line("waiting for the first box (the service starts a worker process for the session)")
                 _follow(options, publisher, results, truth, printer, report, stop)
                 final = client.stop(info.sid)
                 printer.line(f"session {final.sid!r} stopped ({final.state})")

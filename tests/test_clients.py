@@ -118,14 +118,17 @@ def test_results_iterator_latest_only(client, camera):
     client.start(camera.key, SCENE.box(0), sid="latest")
     try:
         with client.results("latest", latest_only=True) as stream:
-            assert _wait(lambda: stream.received >= 5)
-            time.sleep(0.5)                          # a slow reader: older boxes are replaced, not queued
+            assert _wait(lambda: stream.received >= 3)
+            before = stream.received
+            time.sleep(1.0)                          # a slow reader: older boxes are replaced, not queued
             items = []
-            while (item := stream.get(timeout=0.05)) is not None:
+            while (item := stream.get(timeout=0)) is not None:
                 items.append(item)
+            arrived = stream.received - before
         boxes = [i for i in items if isinstance(i, BoxResult)]
-        assert len(boxes) == 1, "latest-only keeps one box per session"
-        assert stream.dropped > 0
+        assert arrived >= 5
+        assert 1 <= len(boxes) <= 2, "latest-only keeps the newest box per session"
+        assert stream.dropped >= arrived - 3
     finally:
         client.stop("latest")
 

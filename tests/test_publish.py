@@ -15,7 +15,7 @@ import zenoh
 from tacf_clients.local_service import free_port
 from tacf_clients.publisher import FramePublisher, publish
 from tacf_clients.scene import Scene, SceneSource, iou
-from tacf_clients.sources import CaptureSource, ImageFolderSource, Pacer, open_source
+from tacf_clients.sources import CaptureSource, ImageFolderSource, Pacer, Thinner, open_source
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
 from tacf_schemas.images import decode_frame
@@ -176,6 +176,19 @@ def test_pacer_keeps_the_rate_without_bursting():
     for _ in range(3):
         pacer.wait()
     assert time.monotonic() - t0 >= 0.03
+
+
+def test_thinner_keeps_every_third_frame_of_a_30fps_camera():
+    thinner = Thinner(10)
+    admitted = []
+    started = time.monotonic()
+    for i in range(30):
+        admitted.append(thinner.admit())
+        time.sleep(1 / 30)
+    expected = (time.monotonic() - started) * 10        # about 10 a second, whatever the sleeps really took
+    assert expected - 2 <= sum(admitted) <= expected + 1.5
+    assert sum(admitted) < 20
+    assert all(Thinner(None).admit() for _ in range(5))
 
 
 # ----------------------------------------------------------------------------------------------- publisher
