@@ -5,7 +5,8 @@ Without a file, the defaults keep everything on this machine: peer mode, multica
 service's default endpoint tcp/127.0.0.1:7447, and listen on a random loopback port so that other loopback peers
 (for example a service's worker processes) can reach this session through gossip (ZENOH.md §2.3).
 
-Only `zenoh` is imported here (no numpy, no tracker).
+Zenoh itself is imported only when a config is built, so that `tacf --help` or `tacf eval` (which register
+these arguments) never load it.
 """
 from __future__ import annotations
 
@@ -13,8 +14,10 @@ import argparse
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import zenoh
+if TYPE_CHECKING:
+    import zenoh
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
@@ -48,12 +51,14 @@ class ZenohOptions:
         """Options for a session that only listens on `endpoint` (e.g. a test's hub)."""
         return cls(connect=(), listen=(endpoint,))
 
-    def to_config(self) -> zenoh.Config:
+    def to_config(self) -> "zenoh.Config":
         return make_config(self)
 
 
-def make_config(options: ZenohOptions | None = None) -> zenoh.Config:
+def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
     """Build a `zenoh.Config` from `options` (None: loopback defaults)."""
+    import zenoh
+
     options = options or ZenohOptions()
     if options.config_file is not None:
         conf = zenoh.Config.from_file(str(options.config_file))
@@ -100,8 +105,10 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
                         mode=getattr(args, "mode", None))
 
 
-def open_session(options: ZenohOptions | zenoh.Config | None = None) -> zenoh.Session:
+def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh.Session":
     """Open a Zenoh session; use it as a context manager so it is always closed (ZENOH.md §8)."""
+    import zenoh
+
     conf = options if isinstance(options, zenoh.Config) else make_config(options)
     return zenoh.open(conf)
 

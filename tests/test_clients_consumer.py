@@ -170,3 +170,22 @@ def _wait(predicate, timeout: float = 5.0) -> bool:
             return True
         time.sleep(0.02)
     return False
+
+
+def test_client_side_never_imports_the_tracker_and_the_cli_stays_light():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, argparse\n"
+        "import tacf_clients.cli as cli\n"
+        "cli.register(argparse.ArgumentParser().add_subparsers())\n"
+        "assert 'zenoh' not in sys.modules and 'cv2' not in sys.modules, 'tacf --help must stay light'\n"
+        "import tacf_clients.client, tacf_clients.consumer, tacf_clients.publisher, tacf_clients.demo\n"
+        "import tacf_clients.watch, tacf_clients.sources, tacf_clients.scene\n"
+        "heavy = [m for m in sys.modules if m.startswith(('tacf.tracker', 'tacf.features', 'tacf_service', "
+        "'scipy'))]\n"
+        "assert not heavy, heavy\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr

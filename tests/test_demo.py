@@ -19,12 +19,12 @@ pytestmark = pytest.mark.zenoh
 
 def test_demo_on_the_generated_scene_follows_the_target():
     out = io.StringIO()
-    report = run_demo(DemoOptions(seconds=4.0, fps=20, node="demotest"), out=out)
+    report = run_demo(DemoOptions(seconds=3.0, fps=20, node="demotest"), out=out)
     text = out.getvalue()
     assert report.ok, text
     assert report.error is None
     assert report.service_exit == 0, "the service stops cleanly on SIGTERM"
-    assert report.boxes >= 20, text
+    assert report.boxes >= 15, text
     assert report.followed is not None and report.followed >= 0.9, text
     assert report.mean_iou > 0.6, text
     assert report.last_health is not None and report.last_health.state in ("tracking", "lost")
@@ -37,7 +37,7 @@ def test_demo_command_on_a_sequence_folder(tmp_path):
     scene = Scene.from_spec("scene:320x240")
     (tmp_path / "seq" / "img").mkdir(parents=True)
     lines = []
-    for i in range(60):
+    for i in range(40):
         cv2.imwrite(str(tmp_path / "seq" / "img" / f"{i + 1:06d}.jpg"), scene.frame(i))
         x, y, w, h = scene.box(i)
         lines.append(f"{x + 1:.0f},{y + 1:.0f},{w:.0f},{h:.0f}")
@@ -50,7 +50,7 @@ def test_demo_command_on_a_sequence_folder(tmp_path):
                            "--fps", "20"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "from ground truth" in done.stdout
-    assert "the source ended" in done.stdout          # 60 frames: the demo stops before its 20 s
+    assert "the source ended" in done.stdout          # 40 frames: the demo stops before its 20 s
     assert "boxes on the target" in done.stdout and "done" in done.stdout
 
 
