@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 
 Box = tuple[float, float, float, float]
 DEMO_FPS = 20.0           # the scene's rate (and any source's without its own): real time for the tracker on one core
+FAILED_GRACE_S = 5.0      # a session reported "failed" for this long (the service restarts workers) ends the demo
 FOLLOW_IOU = 0.3          # a box "follows" the target when its IoU with the ground truth exceeds this
 
 
@@ -196,7 +197,7 @@ class Printer:
         age = f"{h.frame_age_ms:.0f} ms" if h.frame_age_ms is not None else "-"
         self.line(f"health {h.state:<8}  {h.fps:5.1f} fps  proc {h.processing_ms_mean:.1f}/{h.processing_ms_p95:.1f}"
                   f" ms (mean/p95)  age {age}  received {h.frames_received}  processed {h.frames_processed}  "
-                  f"dropped {h.frames_dropped}")
+                  f"dropped {h.frames_dropped}" + (f"  ({h.message})" if h.message else ""))
 
 
 def initial_box(options: DemoOptions, source: FrameSource, truth: GroundTruth | None) -> tuple[Box, str]:
@@ -293,7 +294,7 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
 def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: GroundTruth | None,
             printer: Printer, report: DemoReport, stop: threading.Event) -> None:
     """Print results until the time is up, the source ends or `stop` is set."""
-    deadline = tracking_started = None
+    deadline = tracking_started = failed_since = None
     first_box_timeout = time.monotonic() + options.start_timeout
     while not stop.is_set():
         now = time.monotonic()
@@ -305,9 +306,15 @@ def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: G
             printer.line("the source ended")
             break
         item = results.get(timeout=0.2)
-        if isinstance(item, Health):
+        if isinstance(item, Health) and item.sid == report.sid:
             report.last_health = item
             printer.health(item)
+            if item.state != "failed":
+                failed_since = None
+            elif failed_since is None:
+                failed_since = now
+            elif now - failed_since > FAILED_GRACE_S:
+                raise TimeoutError(f"the session failed: {item.message or 'no message'}")
         elif isinstance(item, BoxResult) and item.sid == report.sid:
             if deadline is None:             # first box: the camera starts moving
                 publisher.hold.clear()
