@@ -89,6 +89,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from .runner import pending_jobs, run_jobs
     from .trackers import ABLATION
 
+    if args.ablation and args.trackers:
+        log.warning("--ablation runs %s; --trackers ignored", ", ".join(ABLATION))
     try:
         trackers = list(ABLATION) if args.ablation else _names(args.trackers, DEFAULT_TRACKERS)
         seqs = _load(args.root, args.sequences, args.ranges, args.max_frames)
