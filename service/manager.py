@@ -42,10 +42,13 @@ SPARE_RESPAWN_MIN_S = 2.0       # a spare that dies is replaced at most this oft
 
 @dataclass
 class WorkerHandle:
-    """A worker process and the parent's end of its pipe."""
+    """A worker process and the parent's end of its pipe. Only _drain_worker reads the pipe, under recv_lock,
+    and routes each message to the owning session (none while the worker is a spare)."""
     process: multiprocessing.process.BaseProcess
     conn: multiprocessing.connection.Connection
     idle: bool = False              # said "idle": warm and waiting for an assignment
+    owner: "Session | None" = None
+    recv_lock: threading.Lock = field(default_factory=threading.Lock)
 
 
 @dataclass
@@ -66,6 +69,7 @@ class Session:
     # worker side
     process: multiprocessing.process.BaseProcess | None = None
     conn: multiprocessing.connection.Connection | None = None
+    worker: WorkerHandle | None = None
     send_lock: threading.Lock = field(default_factory=threading.Lock)
     worker_ready: bool = False          # the worker said "ready": it can take an init
     init_pending: bool = False          # an init (init_box, init_seq) waits to be sent
@@ -149,7 +153,7 @@ class SessionManager:
     def shutdown(self, timeout: float = 1.5) -> None:
         """Stop every worker (stop command, then SIGTERM, then SIGKILL) within `timeout`; keep the table saved
         so that the sessions come back on the next start."""
-        deadline = time.monotonic() + timeout
+        deadline = time.monotonic() + max(0.1, timeout - 0.4)     # then SIGTERM, then SIGKILL
         self._closing.set()
         with self._lock:
             sessions = list(self._sessions.values())
@@ -161,7 +165,7 @@ class SessionManager:
             session.stopping = True
             self._send(session, ("stop",))
         for spare in spares:
-            _send_to(spare.conn, ("stop",))
+            spare.process.terminate()           # a spare serves nothing: no need for a graceful stop
         _reap([s.process for s in sessions if s.process] + [w.process for w in spares], deadline)
         self._save(force=True)
         for session in sessions:
@@ -302,7 +306,10 @@ class SessionManager:
                 self._spares.remove(handle)
         if handle is None:
             handle = self._new_worker()
+        with handle.recv_lock:
+            handle.owner = session
         with self._lock:
+            session.worker = handle
             session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
             session.restart_at = None
             if session.state == "failed" and not session.gave_up:
@@ -339,9 +346,17 @@ class SessionManager:
         with self._lock:
             spares = list(self._spares)
         for handle in spares:
+            self._drain_worker(handle)
+
+    def _drain_worker(self, handle: WorkerHandle) -> None:
+        """Read every pending message of a worker and route it: to its session, or (a spare) note "idle"."""
+        with handle.recv_lock:
             try:
                 while handle.conn.poll():
-                    if handle.conn.recv()[0] == "idle":
+                    message = handle.conn.recv()
+                    if handle.owner is not None:
+                        self._on_message(handle.owner, message)
+                    elif message[0] == "idle":
                         handle.idle = True
             except (EOFError, OSError):
                 pass
@@ -421,14 +436,9 @@ class SessionManager:
         self._save()
 
     def _drain(self, session: Session) -> None:
-        conn = session.conn
-        if conn is None:
-            return
-        try:
-            while conn.poll():
-                self._on_message(session, conn.recv())
-        except (EOFError, OSError):
-            pass
+        worker = session.worker
+        if worker is not None:
+            self._drain_worker(worker)
 
     def _on_message(self, session: Session, message: tuple) -> None:
         kind = message[0]
@@ -551,15 +561,17 @@ def _check_box_in_frame(box: tuple, frame: StoredFrame) -> None:
                                           f"frame seq {frame.seq}")
 
 
-def _reap(processes: list, deadline: float) -> None:
-    """Wait for processes until `deadline`, then SIGTERM, then SIGKILL the rest."""
+def _reap(processes: list, deadline: float, kill_after: float = 0.3) -> None:
+    """Wait for processes until `deadline`, then SIGTERM them, then SIGKILL what is left `kill_after` s later."""
     for process in processes:
         process.join(timeout=max(0.0, deadline - time.monotonic()))
     alive = [p for p in processes if p.exitcode is None]
     for process in alive:
         process.terminate()
+    kill_at = time.monotonic() + kill_after
     for process in alive:
-        process.join(timeout=0.3)
+        process.join(timeout=max(0.0, kill_at - time.monotonic()))
+    for process in alive:
         if process.exitcode is None:
             process.kill()
             process.join(timeout=0.5)
@@ -580,9 +592,11 @@ def _quiet_close(conn) -> None:
 
 
 def _close_conn(session: Session) -> None:
-    if session.conn is not None:
-        try:
-            session.conn.close()
-        except OSError:
-            pass
-        session.conn = None
+    worker, conn = session.worker, session.conn
+    session.worker, session.conn = None, None
+    if conn is not None:
+        if worker is not None:
+            with worker.recv_lock:       # never close a pipe under a reader
+                _quiet_close(conn)
+        else:
+            _quiet_close(conn)

@@ -18,9 +18,10 @@ class MovingTargetScene:
         noise = rng.integers(0, 256, (height // 8 + 1, width // 8 + 1, 3), dtype=np.uint8)
         self.background = cv2.resize(noise, (width, height), interpolation=cv2.INTER_CUBIC)
         self.background = cv2.GaussianBlur(self.background, (0, 0), 2.0)
-        checker = (np.indices((target, target)).sum(axis=0) // 8 % 2).astype(np.uint8)
-        texture = rng.integers(0, 80, (target, target, 3), dtype=np.uint8)
-        self.target = (texture + checker[..., None] * np.array([40, 160, 220], np.uint8)).astype(np.uint8)
+        self.background = (self.background * 0.6 + 50).astype(np.uint8)      # busy but lower contrast
+        blocks = rng.integers(0, 256, (6, 6, 3), dtype=np.uint8)                # a distinctive block pattern
+        self.target = cv2.resize(blocks, (target, target), interpolation=cv2.INTER_NEAREST)
+        cv2.rectangle(self.target, (0, 0), (target - 1, target - 1), (0, 0, 0), 3)
         self.width, self.height, self.size, self.speed = width, height, target, speed
 
     def box(self, i: int) -> tuple[float, float, float, float]:

@@ -107,7 +107,7 @@ def run_worker(spec: WorkerSpec, conn) -> None:
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     worker = Worker(spec, conn)
     signal.signal(signal.SIGINT, signal.SIG_IGN)           # a terminal's Ctrl-C goes to the service
-    signal.signal(signal.SIGTERM, lambda *_: worker.request_stop())
+    signal.signal(signal.SIGTERM, worker.on_sigterm)
     try:
         worker.run()
     except Exception:
@@ -135,6 +135,12 @@ class Worker:
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
         self._extra_received = 0        # catch-up frames handed over by the service
         self._skipped = 0               # frames not used: duplicates, or no box to track yet
+
+    def on_sigterm(self, *_) -> None:
+        """Stop gracefully when serving; while still starting up (imports, session), just leave."""
+        self.request_stop()
+        if not self._serving:
+            raise SystemExit(0)
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -172,6 +178,7 @@ class Worker:
 
         from .health import HealthStats
 
+        self._serving = True
         self._stats = HealthStats()
         encoding = zenoh.Encoding(MSGPACK_ENCODING)
         node, sid = self.spec.node, self.job.sid

@@ -1,0 +1,104 @@
+"""Loopback Zenoh helpers for tests, the benchmark and demos: free ports, peer configs, a frame publisher.
+
+    port = free_port(); endpoint = f"tcp/127.0.0.1:{port}"
+    session = zenoh.open(peer_config(connect=[endpoint]))
+    with FramePublisher(session, "cam/a", MovingTargetScene(640, 360), fps=10) as feed:
+        ...  feed.truth[seq] is the target's box on frame seq
+"""
+from __future__ import annotations
+
+import json
+import logging
+import socket
+import threading
+import time
+
+from tacf_schemas import encode
+
+log = logging.getLogger(__name__)
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def peer_config(listen=(), connect=(), mode: str = "peer"):
+    """Loopback-only config: explicit endpoints, multicast scouting off."""
+    import zenoh
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    return conf
+
+
+class FramePublisher:
+    """Publishes a scene as Frames on a key at a fixed rate from a thread; remembers each frame's true box."""
+
+    def __init__(self, session, key: str, scene, fps: float = 10.0, encoding: str = "jpeg", quality: int = 85,
+                 cache: int = 0) -> None:
+        self.key, self.scene, self.fps, self.encoding, self.quality = key, scene, fps, encoding, quality
+        self.truth: dict[int, tuple] = {}
+        self.put_ns: dict[int, int] = {}
+        self.seq = -1
+        self._session = session
+        self._publisher = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"publish-{key}", daemon=True)
+        self._cache = [self._encode(i) for i in range(cache)]   # pre-encoded frames (loop) for fast rates
+
+    def __enter__(self) -> "FramePublisher":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def start(self) -> "FramePublisher":
+        self._publisher = self._session.declare_publisher(self.key)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        if self._publisher is not None:
+            try:
+                self._publisher.undeclare()
+            except Exception:
+                pass
+
+    def _encode(self, i: int):
+        from tacf_schemas.images import encode_frame
+        image, box = self.scene.frame(i)
+        return encode_frame(image, i, self.encoding, quality=self.quality), box
+
+    def _run(self) -> None:
+        period = 1.0 / self.fps
+        next_at = time.monotonic()
+        i = 0
+        while not self._stop.is_set():
+            if self._cache:
+                frame, box = self._cache[i % len(self._cache)]
+                frame = frame.model_copy(update={"seq": i})
+            else:
+                frame, box = self._encode(i)
+            stamp = time.time_ns()
+            frame = frame.model_copy(update={"stamp_ns": stamp})
+            self.truth[i] = box
+            try:
+                self._publisher.put(encode(frame))
+            except Exception as exc:
+                log.debug("put failed: %s", exc)
+                return
+            self.put_ns[i] = stamp
+            self.seq = i
+            i += 1
+            next_at += period
+            delay = next_at - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                next_at = time.monotonic()

@@ -1,0 +1,392 @@
+"""The tracking service in-process, over real Zenoh sessions on loopback (one service for the module).
+
+Covers start/list/status/stop, boxes following a moving target, init on the frame the box was drawn on,
+several sessions on one feed, reinit, latest-only under a fast publisher, every bad control input, bad frames
+counted in Health without harming other sessions, a worker SIGKILL and its recovery, too many sessions.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import statistics
+import threading
+import time
+
+import msgpack
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from tacf_schemas import (BoxResult, Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
+                          box_key, control_key, encode, health_key, session_liveliness_key)
+from tacf_schemas.images import encode_frame
+from tacf_service.app import ServiceOptions, TrackingService
+from tacf_service.config import ZenohOptions
+from tacf_service.loopback import FramePublisher, free_port, peer_config
+from tacf_service.probe import ControlError, call, list_all
+from tacf_service.scene import MovingTargetScene, iou
+
+pytestmark = pytest.mark.zenoh
+
+NODE = "edge-test"
+PROFILE = "kcc"         # the real TACF tracker, attentions off: the fastest profile, plenty for a synthetic scene
+
+
+def wait_until(predicate, timeout: float, period: float = 0.05):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(period)
+    return predicate()
+
+
+class Collector:
+    """Subscribes to a session's boxes and health; keeps them with their arrival time."""
+
+    def __init__(self, session, node: str, sid: str) -> None:
+        self.boxes: list[tuple[int, BoxResult]] = []
+        self.health: list[Health] = []
+        self._lock = threading.Lock()
+        self._subs = [session.declare_subscriber(box_key(node, sid), self._on_box),
+                      session.declare_subscriber(health_key(node, sid), self._on_health)]
+
+    def _on_box(self, sample) -> None:
+        from tacf_schemas import decode
+        with self._lock:
+            self.boxes.append((time.time_ns(), decode(sample.payload.to_bytes(), BoxResult)))
+
+    def _on_health(self, sample) -> None:
+        from tacf_schemas import decode
+        with self._lock:
+            self.health.append(decode(sample.payload.to_bytes(), Health))
+
+    def results(self) -> list[BoxResult]:
+        with self._lock:
+            return [b for _, b in self.boxes]
+
+    def last_health(self) -> Health | None:
+        with self._lock:
+            return self.health[-1] if self.health else None
+
+    def close(self) -> None:
+        for sub in self._subs:
+            sub.undeclare()
+
+
+@pytest.fixture(scope="module")
+def endpoint():
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture(scope="module")
+def service(endpoint, tmp_path_factory):
+    options = ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(endpoint,)), max_sessions=6,
+                             state_file=str(tmp_path_factory.mktemp("state") / "sessions.json"), spare_workers=2)
+    svc = TrackingService(options).open()
+    assert wait_until(lambda: svc.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    yield svc
+    started = time.monotonic()
+    svc.close()
+    assert time.monotonic() - started < 2.0
+
+
+@pytest.fixture(scope="module")
+def client(endpoint, service):
+    session = zenoh.open(peer_config(connect=[endpoint]))
+    yield session
+    session.close()
+
+
+@pytest.fixture(scope="module")
+def feed(client):
+    """A 640x360 JPEG feed at 10 fps of a textured square moving over a textured background."""
+    with FramePublisher(client, "test/cam/moving", MovingTargetScene(640, 360, speed=3.0), fps=10) as pub:
+        assert wait_until(lambda: pub.seq >= 3, 10)
+        yield pub
+
+
+def start(client, service=None, **fields):
+    """Start a session; with `service`, first wait for a warm worker so that timing does not depend on a cold
+    start of a worker process (3-8 s on a loaded 2-core box), which is not what these tests are about."""
+    if service is not None:
+        assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    fields.setdefault("profile", PROFILE)
+    return call(client, NODE, "start", StartRequest(**fields), timeout=10)
+
+
+def mean_iou(results, truth, last: int | None = None) -> float:
+    pairs = [(r.box, truth[r.seq]) for r in results if r.seq in truth]
+    if last:
+        pairs = pairs[-last:]
+    return statistics.fmean(iou(a, b) for a, b in pairs) if pairs else 0.0
+
+
+# ---------------------------------------------------------------------------------------------- lifecycle
+
+def test_start_list_status_stop(service, client, feed):
+    seq = feed.seq
+    info = start(client, service, image_key=feed.key, box=feed.truth[seq], seq=seq, sid="lifecycle")
+    assert (info.node, info.sid, info.image_key, info.profile) == (NODE, "lifecycle", feed.key, PROFILE)
+    assert info.state in ("starting", "tracking")
+    lists = list_all(client)                             # tacf/*/control/list
+    assert [s.sid for lst in lists if lst.node == NODE for s in lst.sessions] == ["lifecycle"]
+    assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="lifecycle")).state == "tracking", 20)
+    alive = [str(r.ok.key_expr) for r in client.liveliness().get(session_liveliness_key(NODE, "*"), timeout=2)
+             if r.ok is not None]
+    assert alive == [session_liveliness_key(NODE, "lifecycle")]
+    stopped = call(client, NODE, "stop", StopRequest(sid="lifecycle"))
+    assert stopped.state == "stopped"
+    assert call(client, NODE, "list").sessions == []
+    with pytest.raises(ControlError) as err:
+        call(client, NODE, "stop", StopRequest(sid="lifecycle"))
+    assert err.value.code == "unknown_session"
+
+
+def test_boxes_follow_moving_target_and_several_targets_in_one_feed(service, client, feed):
+    moving = Collector(client, NODE, "mover")
+    static = Collector(client, NODE, "patch")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="mover")
+        patch_box = (20.0, 20.0, 60.0, 60.0)            # a background patch the square never crosses at speed 3
+        start(client, service, image_key=feed.key, box=patch_box, sid="patch")
+        assert wait_until(lambda: len(moving.results()) >= 15 and len(static.results()) >= 8, 40), \
+            (len(moving.results()), len(static.results()))
+        assert mean_iou(moving.results(), feed.truth) > 0.6
+        assert mean_iou(moving.results(), feed.truth, last=10) > 0.6
+        assert statistics.fmean(iou(r.box, patch_box) for r in static.results()) > 0.7
+        first, last = moving.results()[0], moving.results()[-1]
+        assert abs(last.box[0] - first.box[0]) + abs(last.box[1] - first.box[1]) > 10   # it did move
+        def health_with_frames():
+            h = moving.last_health()
+            return h if h is not None and h.frames_processed > 0 else None
+        health = wait_until(health_with_frames, 5)
+        assert health.state == "tracking" and health.fps > 0 and health.processing_ms_p95 > 0
+        assert health.frames_received >= health.frames_processed > 0
+    finally:
+        moving.close()
+        static.close()
+        for sid in ("mover", "patch"):
+            call(client, NODE, "stop", StopRequest(sid=sid))
+
+
+def test_init_uses_the_frame_the_box_was_drawn_on(service, client, feed):
+    """With the feed already followed, a box drawn on a frame ~1 s old initialises on exactly that frame."""
+    start(client, service, image_key=feed.key, box=feed.truth[feed.seq], sid="anchor")
+    late = Collector(client, NODE, "late")
+    try:
+        time.sleep(1.5)
+        assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+        drawn = feed.seq - 8                             # the operator drew on a frame 0.8 s ago
+        info = start(client, image_key=feed.key, box=feed.truth[drawn], seq=drawn, sid="late")
+        assert info.init_seq == drawn
+        assert wait_until(lambda: len(late.results()) >= 8, 30)
+        assert mean_iou(late.results(), feed.truth) > 0.6
+        assert call(client, NODE, "status", StatusRequest(sid="late")).init_seq == drawn
+    finally:
+        late.close()
+        call(client, NODE, "stop", StopRequest(sid="late"))
+        call(client, NODE, "stop", StopRequest(sid="anchor"))
+
+
+def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
+    results = Collector(client, NODE, "re")
+    try:
+        start(client, service, image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0), sid="re")
+        assert wait_until(lambda: len(results.results()) >= 3, 30)
+        info = call(client, NODE, "reinit", ReinitRequest(sid="re", box=feed.truth[feed.seq], seq=feed.seq))
+        assert info.box == feed.truth[info.init_seq if info.init_seq in feed.truth else feed.seq]
+        marker = len(results.results())
+        assert wait_until(lambda: len(results.results()) >= marker + 10, 30)
+        assert mean_iou(results.results()[marker + 2:], feed.truth) > 0.6
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="re"))
+
+
+# ---------------------------------------------------------------------------------------------- latest-only
+
+def test_latest_only_under_a_fast_publisher(service, client):
+    """100 fps into a tracker that cannot keep up: stale frames are dropped and counted, latency stays bounded."""
+    scene = MovingTargetScene(640, 360, speed=0.5)
+    results = Collector(client, NODE, "fast")
+    with FramePublisher(client, "test/cam/fast", scene, fps=100, cache=50) as pub:
+        assert wait_until(lambda: pub.seq >= 5, 10)
+        try:
+            start(client, service, image_key=pub.key, box=pub.truth[pub.seq], seq=pub.seq, sid="fast")
+            assert wait_until(lambda: len(results.results()) >= 30, 40)
+            health = results.last_health()
+            assert health is not None and health.frames_dropped > 0
+            assert health.frames_received > health.frames_processed
+            with results._lock:
+                latency_ms = [(t - b.stamp_ns) / 1e6 for t, b in results.boxes]
+            p95_processing = sorted(b.processing_ms for b in results.results())[int(0.95 * len(latency_ms))]
+            later = latency_ms[len(latency_ms) // 2:]
+            # latest-only: each result is at most ~2 processing times behind the newest frame, never a backlog
+            assert max(later) < 3 * p95_processing + 500, (max(later), p95_processing)
+            assert statistics.median(later) <= statistics.median(latency_ms[:len(latency_ms) // 2]) + 200
+        finally:
+            results.close()
+            call(client, NODE, "stop", StopRequest(sid="fast"))
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+
+@pytest.mark.parametrize("op,payload,code", [
+    ("start", b"\xc1\xc1", "invalid_request"),                                        # not msgpack
+    ("start", msgpack.packb([1, 2, 3]), "invalid_request"),                           # not a map
+    ("start", msgpack.packb({"image_key": "cam"}), "invalid_request"),                # missing box
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 2, 3, 4], "bogus": 1}), "invalid_request"),
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 2, 0, 4]}), "invalid_request"),   # zero width
+    ("start", msgpack.packb({"image_key": "cam", "box": "1,2,3,4"}), "invalid_request"),
+    ("start", msgpack.packb({"v": 99, "image_key": "cam", "box": [1, 2, 3, 4]}), "invalid_request"),
+    ("start", None, "invalid_request"),
+    ("start", encode(StartRequest(image_key="cam/*", box=(1, 1, 5, 5))), "invalid_key"),
+    ("start", encode(StartRequest(image_key="cam/**/x", box=(1, 1, 5, 5))), "invalid_key"),
+    ("start", encode(StartRequest(image_key="a//b", box=(1, 1, 5, 5))), "invalid_key"),
+    ("start", encode(StartRequest(image_key="cam#1", box=(1, 1, 5, 5))), "invalid_key"),
+    ("start", encode(StartRequest(image_key="tacf/edge/control/start", box=(1, 1, 5, 5))), "invalid_key"),
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 2, 3, 4], "sid": "bad/id"}), "invalid_request"),
+    ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), profile="nope")), "invalid_config"),
+    ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), overrides={"nope": 1})), "invalid_config"),
+    ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), overrides={"cell_size": -3})),
+     "invalid_config"),
+    ("stop", encode(StopRequest(sid="nobody")), "unknown_session"),
+    ("status", encode(StatusRequest(sid="nobody")), "unknown_session"),
+    ("reinit", encode(ReinitRequest(sid="nobody", box=(1, 1, 5, 5))), "unknown_session"),
+    ("stop", msgpack.packb({"sid": "*"}), "invalid_request"),
+    ("list", msgpack.packb({"x": 1}), "invalid_request"),
+])
+def test_bad_control_requests_get_typed_errors(service, client, op, payload, code):
+    with pytest.raises(ControlError) as err:
+        call(client, NODE, op, payload)
+    assert err.value.code == code, err.value.message
+
+
+def test_unknown_op_and_wildcard_op(service, client):
+    for key in (f"tacf/{NODE}/control/explode", f"tacf/{NODE}/control/*"):
+        replies = list(client.get(key, timeout=3))
+        assert len(replies) == 1 and replies[0].err is not None
+        from tacf_schemas import Error, decode
+        assert decode(replies[0].err.payload.to_bytes(), Error).code == "unknown_op"
+
+
+def test_box_outside_image_and_duplicate_id(service, client, feed):
+    for box in [(5000.0, 10.0, 20.0, 20.0), (10.0, 400.0, 20.0, 20.0), (-100.0, -100.0, 50.0, 50.0)]:
+        with pytest.raises(ControlError) as err:
+            start(client, service, image_key=feed.key, box=box, sid="outside")
+        assert err.value.code == "invalid_box"
+    start(client, service, image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0), sid="dup")
+    try:
+        with pytest.raises(ControlError) as err:
+            start(client, service, image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0), sid="dup")
+        assert err.value.code == "duplicate_session"
+    finally:
+        call(client, NODE, "stop", StopRequest(sid="dup"))
+    assert call(client, NODE, "list").sessions == []
+
+
+def test_bad_frames_are_counted_and_harm_no_session(service, client, feed):
+    """Garbage on one session's key is counted as rejected; that session and another one keep tracking."""
+    key = "test/cam/hostile"
+    scene = MovingTargetScene(320, 240, target=48, speed=1.0)
+    victim, bystander = Collector(client, NODE, "victim"), Collector(client, NODE, "bystander")
+    publisher = client.declare_publisher(key)
+    good = [encode_frame(scene.frame(i)[0], i, "jpeg") for i in range(3)]
+    try:
+        start(client, service, image_key=key, box=scene.box(0), sid="victim")
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="bystander")
+
+        def victim_tracking():
+            publisher.put(encode(good[0].model_copy(update={"stamp_ns": time.time_ns()})))
+            return call(client, NODE, "status", StatusRequest(sid="victim")).state == "tracking"
+        assert wait_until(victim_tracking, 30, period=0.2)
+        jpeg = good[1].data
+        hostile = [
+            b"\xc1garbage",                                                           # not msgpack
+            msgpack.packb({"seq": 1}),                                                # missing fields
+            msgpack.packb({"seq": 1, "stamp_ns": 1, "encoding": "rgb16", "width": 320, "height": 240,
+                           "data": b"x"}),                                            # unknown encoding
+            msgpack.packb({"seq": 1, "stamp_ns": 1, "encoding": "jpeg", "width": 0, "height": 0,
+                           "data": b""}),                                             # 0x0
+            msgpack.packb({"seq": 1, "stamp_ns": 1, "encoding": "bgr8", "width": 100000, "height": 100000,
+                           "data": b""}),                                             # gigantic
+            encode(Frame(seq=5, stamp_ns=1, encoding="jpeg", width=320, height=240,
+                         data=jpeg[:200] + b"\x00" * 500)),                             # corrupt JPEG
+            encode(Frame(seq=6, stamp_ns=1, encoding="jpeg", width=640, height=480, data=jpeg)),  # size lies
+            encode(Frame(seq=7, stamp_ns=1, encoding="bgr8", width=320, height=240, data=b"\x00" * 100)),
+            encode(Frame(seq=8, stamp_ns=1, encoding="jpeg", width=8000, height=8000,
+                         data=b"\xff\xd8\xff\xc0\x00\x11\x08\x1f\x40\x1f\x40" + b"\x00" * 64)),  # bomb header
+            encode(Frame(seq=9, stamp_ns=1, encoding="png", width=320, height=240, data=b"\x89PNG\r\n\x1a\n")),
+            encode(Frame(seq=10, stamp_ns=1, encoding="mono8", width=64, height=64, data=b"\x00" * 4096)),
+        ]
+        for payload in hostile:
+            publisher.put(payload)
+            time.sleep(0.15)           # one at a time: latest-only would otherwise drop most of them unseen
+        for i in (1, 2):
+            publisher.put(encode(good[i].model_copy(update={"seq": 100 + i, "stamp_ns": time.time_ns()})))
+            time.sleep(0.2)
+
+        def counted():
+            h = victim.last_health()
+            return h if h and h.frames_rejected >= 8 and h.frames_processed >= 1 else None
+        health = wait_until(counted, 10)
+        assert health is not None, victim.last_health()
+        assert health.state in ("tracking", "lost")
+        assert victim.results()[-1].seq >= 101
+        assert wait_until(lambda: len(bystander.results()) > 0, 20)
+        states = {s.sid: s.state for s in call(client, NODE, "list").sessions}
+        assert states["victim"] in ("tracking", "lost") and states["bystander"] == "tracking"
+    finally:
+        publisher.undeclare()
+        victim.close()
+        bystander.close()
+        call(client, NODE, "stop", StopRequest(sid="victim"))
+        call(client, NODE, "stop", StopRequest(sid="bystander"))
+
+
+# ---------------------------------------------------------------------------------------------- faults
+
+def test_worker_sigkill_is_reported_and_recovers_from_its_last_box(service, client, feed):
+    results = Collector(client, NODE, "victim2")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="victim2")
+        assert wait_until(lambda: len(results.results()) >= 8, 30)
+        assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+        pid = service.manager.worker_pids()["victim2"]
+        os.kill(pid, signal.SIGKILL)
+        failed = wait_until(lambda: any(h.state == "failed" for h in results.health), 5)
+        assert failed, [h.state for h in results.health]
+        count = len(results.results())
+        assert wait_until(lambda: service.manager.worker_pids().get("victim2") not in (None, pid), 10)
+        assert wait_until(lambda: len(results.results()) >= count + 8, 30)
+        info = call(client, NODE, "status", StatusRequest(sid="victim2"))
+        assert info.restarts == 1 and info.state in ("tracking", "lost")
+        assert mean_iou(results.results()[count:], feed.truth) > 0.5    # continued from its last box
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="victim2"))
+
+
+def test_too_many_sessions(endpoint, client, tmp_path):
+    port = free_port()
+    small = TrackingService(ServiceOptions(node="small", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
+                                                                           connect=(endpoint,)),
+                                           max_sessions=1, spare_workers=0, init_wait_s=0.2)).open()
+    try:
+        request = dict(image_key="test/cam/none", box=(1.0, 1.0, 10.0, 10.0), profile=PROFILE)
+        assert call(client, "small", "start", StartRequest(sid="one", **request)).sid == "one"
+        with pytest.raises(ControlError) as err:
+            call(client, "small", "start", StartRequest(sid="two", **request))
+        assert err.value.code == "too_many_sessions"
+        nodes = {lst.node for lst in list_all(client)}     # one wildcard query reaches both services
+        assert {"small", NODE} <= nodes
+    finally:
+        started = time.monotonic()
+        small.close()
+        assert time.monotonic() - started < 2.0
+
+
+def test_control_keys_layout():
+    assert control_key(NODE, "list") == f"tacf/{NODE}/control/list"
