@@ -68,7 +68,7 @@ def test_start_status_list_subscribe_stop(client, camera, service):
         assert isinstance(info, SessionInfo)
         assert (info.sid, info.node, info.image_key) == ("life", service.node, camera.key)
         assert info.state in ("starting", "tracking")
-        assert _wait(lambda: len(boxes) >= 10 and health), "boxes and health arrive"
+        assert _wait(lambda: len(boxes) >= 10 and health, timeout=40), "boxes and health arrive"
     assert all(b.sid == "life" and b.node == service.node for b in boxes)
     assert health[0].state in ("starting", "tracking")
 
@@ -88,7 +88,7 @@ def test_start_status_list_subscribe_stop(client, camera, service):
 def test_boxes_follow_the_target_and_reinit(client, camera):
     info = client.start(camera.key, SCENE.box(0), seq=camera.last_seq, sid="follow")
     try:
-        boxes = client.iter_boxes("follow", timeout=15)
+        boxes = client.iter_boxes("follow", timeout=40)
         first = next(boxes)
         camera.hold.clear()                      # the target starts moving once the session tracks
         later = [b for b in _take(boxes, 25) if camera.index_of(b.seq)]
@@ -101,7 +101,7 @@ def test_boxes_follow_the_target_and_reinit(client, camera):
         truth = SCENE.box(camera.index_of(seq))
         info = client.reinit("follow", truth, seq=seq)
         assert info.sid == "follow" and info.state in ("starting", "tracking")
-        after = [b for b in _take(client.iter_boxes("follow", timeout=10), 10) if b.seq >= seq]
+        after = [b for b in _take(client.iter_boxes("follow", timeout=30), 10) if b.seq >= seq]
         assert after and iou(tuple(after[-1].box), SCENE.box(camera.index_of(after[-1].seq))) > 0.3
     finally:
         client.stop(info.sid)
@@ -118,7 +118,7 @@ def test_results_iterator_latest_only(client, camera):
     client.start(camera.key, SCENE.box(0), sid="latest")
     try:
         with client.results("latest", latest_only=True) as stream:
-            assert _wait(lambda: stream.received >= 3)
+            assert _wait(lambda: stream.received >= 3, timeout=40)
             before = stream.received
             time.sleep(1.0)                          # a slow reader: older boxes are replaced, not queued
             items = []
