@@ -71,6 +71,9 @@ class TrackerConfig:
     scale_lambda: float = 1e-4
     scale_model_max_area: float = 512.0
 
+    # Engineering: grow the filter grid to a fast FFT size (a few per cent more search area).
+    fast_fft: bool = True
+
     # Output: the target counts as lost when the PME of the fused response falls under this floor.
     lost_pme: float = 4.0
 

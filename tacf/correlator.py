@@ -131,5 +131,5 @@ class CorrelatorBank:
         if channel_weights is None:
             summed = hats.sum(axis=0)
         else:
-            summed = np.tensordot(channel_weights.astype(hats.real.dtype), hats, axes=1)
+            summed = (channel_weights.astype(hats.real.dtype)[:, None, None] * hats).sum(axis=0)
         return self._ifft(summed)

@@ -94,9 +94,11 @@ class Tracker:
         image_hw = frame.shape[:2]
         self.padding = search_padding(self.target_hw, cfg.fixed_area)
         self.areas = self._areas_around(self.target_hw)
-        self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size)
+        self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size, cfg.fast_fft)
         grid_hw = self.grid.filter_hw
         self.cosine_window = np.outer(hann(grid_hw[0], sym=True), hann(grid_hw[1], sym=True)).astype(np.float32)
+        # The paper's spatial attention windows the response with hann alone, centred on zero displacement.
+        self.response_window = to_response_origin(self.cosine_window)
 
         sigma_base = math.sqrt(float(np.prod(self.grid.target_hw))) / cfg.cell_size
         self.banks = {"hog": CorrelatorBank(GaussianKernel(cfg.hog_kernel_sigma),
@@ -156,7 +158,7 @@ class Tracker:
                                   self.config.inner_padding)
 
     def _sample(self, frame: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area)
+        return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area * self.grid.sample_growth)
 
     def _features(self, patch: np.ndarray, names) -> dict[str, np.ndarray]:
         extractors = {"hog": lambda p: fhog(p.astype(np.float32) / 255.0, self.config.cell_size),
@@ -178,7 +180,7 @@ class Tracker:
             if cfg.spatiotemporal_attention:
                 motion = self.displacement if self.frame_number >= 3 else None
                 response = response * self.spatiotemporal[name].update(
-                    response, to_response_origin(window), motion, self.target_hw)
+                    response, self.response_window, motion, self.target_hw)
             cropped[name] = crop_centre(response, self.grid.crop_cells)
         if cfg.context_attention and self.frame_number > 1 and self.contextual.is_context_frame(self.frame_number):
             self._update_context_penalties(frame, cropped["hog"])
@@ -211,7 +213,7 @@ class Tracker:
                 self.dimensional[name].update(bank.fresh_self_responses())
         if cfg.colour_window:
             if self.colour is None:
-                self.colour = ColourModel(patch, self.areas.bg_area * self.areas.resize_factor,
+                self.colour = ColourModel(patch, self.grid.patch_hw,
                                           self.areas.fg_area * self.areas.resize_factor,
                                           self.target_hw * self.areas.resize_factor,
                                           cfg.hist_bins, cfg.hist_learning_rate, cfg.likelihood_floor)
