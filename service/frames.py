@@ -27,6 +27,12 @@ class StoredFrame:
     height: int
     payload: bytes          # the Frame's msgpack bytes as received
 
+    @classmethod
+    def from_payload(cls, payload: bytes) -> "StoredFrame":
+        """Parse a Frame payload (DecodeError if it is not one)."""
+        frame = decode(payload, Frame)
+        return cls(frame.seq, frame.width, frame.height, payload)
+
 
 class _KeyHistory:
     def __init__(self, depth: int) -> None:
@@ -77,14 +83,12 @@ class FrameHistory:
 
     def _on_sample(self, key: str, sample) -> None:
         try:
-            payload = sample.payload.to_bytes()
-            frame = decode(payload, Frame)
+            stored = StoredFrame.from_payload(sample.payload.to_bytes())
         except DecodeError:
             return                  # the workers count rejected frames
         except Exception:           # never let a callback raise into zenoh
             log.exception("frame history callback failed on %s", key)
             return
-        stored = StoredFrame(frame.seq, frame.width, frame.height, payload)
         with self._cond:
             history = self._keys.get(key)
             if history is not None:
@@ -104,6 +108,11 @@ class FrameHistory:
                 if frame.seq == seq:
                     return frames[i:]
         return frames[-1:]
+
+    def frame(self, key: str, seq: int) -> StoredFrame | None:
+        """The kept frame of `key` with `seq`, if any."""
+        frames = self.frames_from(key, seq)
+        return frames[0] if frames and frames[0].seq == seq else None
 
     def frames_after(self, key: str, last: StoredFrame) -> list[StoredFrame]:
         """Frames of `key` that arrived after `last` (all kept frames if `last` has left the ring)."""

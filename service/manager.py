@@ -16,7 +16,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-from tacf_schemas import (Health, ReinitRequest, SessionInfo, SessionList, StartRequest, decode, encode,
+from tacf_schemas import (DecodeError, Health, ReinitRequest, SessionInfo, SessionList, StartRequest, decode, encode,
                           health_key)
 from tacf_schemas import Health as HealthModel
 from tacf_schemas.keys import InvalidKeyError, validate_image_key
@@ -78,6 +78,7 @@ class Session:
     init_released: bool = False         # start validation is over: the pending init may go out
     gave_up: bool = False               # failed for good (bad box or config, crash loop): no restart
     stopping: bool = False
+    saved_frame_seq: int | None = None  # the seq of the frame stored with the persisted table
     restart_at: float | None = None
     crashes: deque = field(default_factory=deque)
 
@@ -144,11 +145,25 @@ class SessionManager:
                 self._sessions[session.sid] = session
             self._history.acquire(session.image_key)
             self._queue_init(session, session.box, saved.last_seq, released=True)
+            last_frame = self._saved_frame(saved)
+            if last_frame is not None:          # the frame the last box belongs to: init there, then catch up
+                session.init_frames, session.saved_frame_seq = [last_frame], last_frame.seq
             self._spawn(session)
             restored += 1
         if restored:
             log.info("restored %d session(s) from %s", restored, self._store.path)
         return restored
+
+    def _saved_frame(self, saved: PersistedSession) -> StoredFrame | None:
+        payload = self._store.load_frame(saved.sid) if self._store else None
+        if payload is None or saved.last_seq is None:
+            return None
+        try:
+            frame = StoredFrame.from_payload(payload)
+        except DecodeError as exc:
+            log.warning("ignoring the saved frame of session %s: %s", saved.sid, exc)
+            return None
+        return frame if frame.seq == saved.last_seq else None
 
     def shutdown(self, timeout: float = 1.5) -> None:
         """Stop every worker (stop command, then SIGTERM, then SIGKILL) within `timeout`; keep the table saved
@@ -178,6 +193,7 @@ class SessionManager:
     def start(self, request: StartRequest) -> SessionInfo:
         try:
             image_key = validate_image_key(request.image_key)
+            _zenoh_key(image_key)
         except InvalidKeyError as exc:
             raise ServiceError("invalid_key", str(exc)) from None
         profile = request.profile or default_profile()
@@ -531,13 +547,31 @@ class SessionManager:
         if not force and now - getattr(self, "_saved_at", 0.0) < SAVE_PERIOD_S:
             return
         with self._lock:
-            table = [s.persisted() for s in self._sessions.values()]
+            sessions = list(self._sessions.values())
+            table = [s.persisted() for s in sessions]
             self._dirty = False
         self._saved_at = now
         try:
+            for session, entry in zip(sessions, table):
+                if entry.last_seq is None or entry.last_seq == session.saved_frame_seq:
+                    continue
+                frame = self._history.frame(session.image_key, entry.last_seq)
+                if frame is not None:
+                    self._store.save_frame(session.sid, frame.payload)
+                    session.saved_frame_seq = entry.last_seq
             self._store.save(table)
+            self._store.prune_frames({s.sid for s in sessions})
         except OSError as exc:
             log.error("cannot save the session table to %s: %s", self._store.path, exc)
+
+
+def _zenoh_key(key: str) -> None:
+    """Zenoh's own validation on top of the whitelist (raises InvalidKeyError)."""
+    import zenoh
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        raise InvalidKeyError(f"invalid image key {key!r}: {exc}") from None
 
 
 def _new_sid() -> str:

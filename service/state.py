@@ -1,5 +1,9 @@
 """StateStore: the session table persisted as a small JSON file, written atomically (tmp + fsync + rename).
 
+Next to it, <file>.frames/<sid>.msgpack holds the Frame each session's last box was computed on, so that a
+restored session re-initialises its tracker on the very frame its box belongs to, then catches up on the live
+feed, instead of applying a stale box to a frame where the target has moved.
+
 A missing file is an empty table; a corrupt one is logged, kept aside as <file>.corrupt and treated as empty,
 so a bad file never stops the service from starting.
 """
@@ -66,22 +70,51 @@ class StateStore:
     def save(self, sessions: list[PersistedSession]) -> None:
         doc = {"version": STATE_VERSION, "sessions": [s.model_dump(mode="json") for s in sessions]}
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp", dir=self.path.parent)
+        _atomic_write(self.path, json.dumps(doc, indent=1).encode())
+
+    @property
+    def frames_dir(self) -> Path:
+        return self.path.with_name(self.path.name + ".frames")
+
+    def save_frame(self, sid: str, payload: bytes) -> None:
+        """Atomically store the Frame (msgpack bytes) a session's last box belongs to."""
+        self.frames_dir.mkdir(parents=True, exist_ok=True)
+        _atomic_write(self.frames_dir / f"{sid}.msgpack", payload)
+
+    def load_frame(self, sid: str) -> bytes | None:
         try:
-            with os.fdopen(fd, "w") as fh:
-                json.dump(doc, fh, indent=1)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, self.path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
+            return (self.frames_dir / f"{sid}.msgpack").read_bytes()
+        except OSError:
+            return None
+
+    def prune_frames(self, keep: set[str]) -> None:
+        if not self.frames_dir.is_dir():
+            return
+        for path in self.frames_dir.glob("*.msgpack"):
+            if path.stem not in keep:
+                try:
+                    path.unlink()
+                except OSError:
+                    pass
 
     def _set_aside(self) -> None:
         try:
             os.replace(self.path, self.path.with_name(self.path.name + ".corrupt"))
         except OSError:
             pass
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise

@@ -1,0 +1,207 @@
+"""`tacf serve` as a subprocess: loopback defaults, SIGKILL + restart with --state, SIGTERM / SIGINT shutdown
+in under 2 s with no child process left, and the state file's robustness."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from tacf_schemas import StartRequest, service_liveliness_key
+from tacf_service.config import ZenohOptions, service_config, worker_endpoints
+from tacf_service.loopback import FramePublisher, free_port, peer_config
+from tacf_service.probe import call
+from tacf_service.scene import MovingTargetScene, iou
+from tacf_service.state import PersistedSession, StateStore
+
+from test_service import Collector, wait_until
+
+NODE = "proc-test"
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+def descendants(pid: int) -> set[int]:
+    """Every live descendant of pid (from /proc), zombies excluded."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] != "Z":
+            children.setdefault(int(fields[1]), []).append(int(entry.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            if child not in found:
+                found.add(child)
+                todo.append(child)
+    return found
+
+
+def alive(pids: set[int]) -> set[int]:
+    still = set()
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        if state[state.rindex(")") + 2] != "Z":
+            still.add(pid)
+    return still
+
+
+class Serve:
+    """A `tacf serve` subprocess with its log in a file."""
+
+    def __init__(self, tmp_path: Path, endpoint: str, *extra: str) -> None:
+        self.log_path = tmp_path / f"serve-{time.monotonic_ns()}.log"
+        self._log = open(self.log_path, "w")
+        cmd = [sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE, *extra]
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT)
+
+    def log(self) -> str:
+        return self.log_path.read_text()
+
+    def signal_and_wait(self, sig: int, timeout: float = 5.0) -> tuple[int, float]:
+        started = time.monotonic()
+        self.proc.send_signal(sig)
+        code = self.proc.wait(timeout=timeout)
+        return code, time.monotonic() - started
+
+    def cleanup(self) -> None:
+        for pid in descendants(self.proc.pid):
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=5)
+        self._log.close()
+
+
+def service_alive(session) -> bool:
+    replies = session.liveliness().get(service_liveliness_key(NODE), timeout=1.0)
+    return any(r.ok is not None for r in replies)
+
+
+@pytest.fixture
+def endpoint():
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def client(endpoint):
+    conf = peer_config(listen=[f"tcp/127.0.0.1:{free_port()}"], connect=[endpoint])
+    conf.insert_json5("connect/retry", '{"period_init_ms": 100, "period_max_ms": 200, "period_increase_factor": 2}')
+    session = zenoh.open(conf)
+    yield session
+    session.close()
+
+
+# ---------------------------------------------------------------------------------------------- tests
+
+def test_default_zenoh_config_is_loopback_only():
+    conf = service_config(ZenohOptions())
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(conf.get_json("connect/endpoints")) == []
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("mode")) == "peer"
+    assert worker_endpoints(ZenohOptions()) == ["tcp/127.0.0.1:7447"]
+    assert worker_endpoints(ZenohOptions(listen=("tcp/0.0.0.0:9000",))) == ["tcp/127.0.0.1:9000"]
+    assert worker_endpoints(ZenohOptions(connect=("tcp/10.0.0.1:7447",))) == ["tcp/10.0.0.1:7447"]
+    with pytest.raises(ValueError):
+        worker_endpoints(ZenohOptions(listen=("tcp/127.0.0.1:0",)))
+
+
+def test_serve_rejects_a_bad_node_id():
+    out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--node", "bad/id"], capture_output=True,
+                         text=True, timeout=30)
+    assert out.returncode == 2 and "invalid node id" in out.stderr
+
+
+def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, client):
+    """SIGKILL the service: its workers exit by themselves. Restart with the same --state: the session comes
+    back and continues from its last box. SIGTERM and SIGINT then stop everything in under 2 s."""
+    state = tmp_path / "sessions.json"
+    scene = MovingTargetScene(640, 360, speed=0.5)
+    serve = Serve(tmp_path, endpoint, "--state", str(state))
+    try:
+        with FramePublisher(client, "proc/cam", scene, fps=10) as feed:
+            assert wait_until(lambda: service_alive(client), 30), serve.log()
+            box = feed.truth[feed.seq]
+            info = call(client, NODE, "start", StartRequest(image_key=feed.key, box=box, seq=feed.seq, sid="keep",
+                                                            profile="kcc"), timeout=10)
+            assert info.sid == "keep"
+            results = Collector(client, NODE, "keep")
+            assert wait_until(lambda: len(results.results()) >= 5, 60), serve.log()
+            time.sleep(1.2)                                   # the table is saved about once a second
+            saved = {s.sid: s for s in StateStore(state).load()}
+            assert saved["keep"].last_seq is not None and saved["keep"].box != box
+
+            workers = descendants(serve.proc.pid)
+            assert workers                                     # the session's worker and a warm spare
+            serve.proc.kill()
+            serve.proc.wait(timeout=5)
+            assert wait_until(lambda: not alive(workers), 15), f"orphans: {alive(workers)}"
+            assert wait_until(lambda: not service_alive(client), 5)
+
+            serve = Serve(tmp_path, endpoint, "--state", str(state))
+            assert wait_until(lambda: service_alive(client), 30), serve.log()
+            sessions = call(client, NODE, "list").sessions
+            assert [s.sid for s in sessions] == ["keep"]
+            marker = len(results.results())
+            assert wait_until(lambda: len(results.results()) >= marker + 8, 60), serve.log()
+            resumed = results.results()[marker:]
+            assert statistics.fmean(iou(r.box, feed.truth[r.seq]) for r in resumed) > 0.5
+
+            workers = descendants(serve.proc.pid)
+            code, took = serve.signal_and_wait(signal.SIGTERM)
+            assert code == 0 and took < 2.0, (code, took, serve.log()[-2000:])
+            assert not alive(workers), alive(workers)
+            assert wait_until(lambda: not service_alive(client), 5)
+            assert [s.sid for s in StateStore(state).load()] == ["keep"]   # a clean stop keeps the sessions
+
+            serve = Serve(tmp_path, endpoint, "--state", str(state))
+            assert wait_until(lambda: service_alive(client), 30), serve.log()
+            assert wait_until(lambda: call(client, NODE, "status", _status("keep")).state == "tracking", 60)
+            workers = descendants(serve.proc.pid)
+            code, took = serve.signal_and_wait(signal.SIGINT)
+            assert code == 0 and took < 2.0, (code, took, serve.log()[-2000:])
+            assert not alive(workers), alive(workers)
+            results.close()
+    finally:
+        serve.cleanup()
+
+
+def _status(sid: str):
+    from tacf_schemas import StatusRequest
+    return StatusRequest(sid=sid)
+
+
+def test_state_file_is_atomic_and_survives_corruption(tmp_path):
+    path = tmp_path / "state.json"
+    store = StateStore(path)
+    assert store.load() == []
+    entry = PersistedSession(sid="a", image_key="cam", profile="kcc", box=(1.0, 2.0, 3.0, 4.0), created_ns=1)
+    store.save([entry])
+    assert store.load() == [entry]
+    assert [p.name for p in tmp_path.iterdir()] == ["state.json"]      # no temporary file left behind
+    path.write_text("{not json")
+    assert store.load() == []
+    assert (tmp_path / "state.json.corrupt").exists()
+    path.write_text(json.dumps({"version": 1, "sessions": [entry.model_dump(mode="json"), {"sid": "bad/"}]}))
+    assert [s.sid for s in store.load()] == ["a"]
