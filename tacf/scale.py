@@ -20,11 +20,13 @@ import scipy.fft
 from scipy.signal.windows import hann
 
 from tacf.config import TrackerConfig
-from tacf.features import fhog
+from tacf.features import fhog_batch
 from tacf.geometry import crop_replicate, resize_auto
 
 FeatureFn = Callable[[np.ndarray, int], np.ndarray]
 """features(patch float32 HxW or HxWxC with raw 0-255 values, cell_size) -> (C, H // cell, W // cell)."""
+BatchFeatureFn = Callable[[np.ndarray, int], np.ndarray]
+"""The same for N patches of one size at once: (N, H, W[, C]) -> (N, C, H // cell, W // cell)."""
 
 SCALE_FEATURE_CHANNELS = 31  # fHOG channels kept (section 11, step 2)
 
@@ -94,8 +96,9 @@ def scale_response(num: np.ndarray, den: np.ndarray, sample_hat: np.ndarray, reg
 class ScaleFilter:
     """The DSST scale filter of one sequence (section 11).
 
-    `features` is the per-patch feature function; it defaults to the project's fHOG and exists so tests can
-    inject a cheap stand-in with the same signature (see FeatureFn).
+    `features` is the per-patch feature function; it exists so tests can inject a cheap stand-in (see FeatureFn).
+    By default all scale patches of a sample go through the project's fHOG in one batch call (`fhog_batch`),
+    which gives the same values as one `fhog` call per patch at a fraction of the per-call overhead.
     """
 
     def __init__(self, cfg: TrackerConfig, image_hw, base_target_sz, norm_target_sz, bg_area,
@@ -105,7 +108,7 @@ class ScaleFilter:
         self._lambda = cfg.scale_lambda
         self._num_scales = cfg.num_scales
         self._base_target_sz = np.asarray(base_target_sz, dtype=np.float64)
-        self._features = features if features is not None else fhog
+        self._batch_features = fhog_batch if features is None else _one_by_one(features)
 
         self._factors = scale_factors(cfg.num_scales, cfg.scale_step)
         self._window = scale_window(cfg.num_scales)
@@ -161,14 +164,21 @@ class ScaleFilter:
     def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
         top_left, sizes = scale_patch_rects(pos, self._base_target_sz, scale_factor, self._factors)
-        vectors = np.stack([self._patch_features(crop_replicate(image, top_left[i], sizes[i]))
+        patches = np.stack([resize_auto(crop_replicate(image, top_left[i], sizes[i]), self._model_sz)
                             for i in self._sampled])
+        vectors = self._patch_features(patches)
         sample = np.zeros((self._num_scales, vectors.shape[1]), dtype=np.float64)
         sample[self._sampled] = vectors * self._window[self._sampled, None]
         return sample
 
-    def _patch_features(self, patch: np.ndarray) -> np.ndarray:
-        """fHOG of the patch resized to scale_model_sz, raw 0-255 values, flattened column-major (section 11)."""
-        resized = resize_auto(patch, self._model_sz).astype(np.float32)
-        feature_map = self._features(resized, self._cell_size)[:SCALE_FEATURE_CHANNELS]
-        return feature_map.transpose(0, 2, 1).ravel()  # (C, W, H) C-order == (H, W, C) column-major
+    def _patch_features(self, patches: np.ndarray) -> np.ndarray:
+        """fHOG of patches already resized to scale_model_sz, (N, H, W[, C]) raw 0-255 values, one batch call;
+        row n is patch n's feature map flattened column-major (section 11)."""
+        feature_maps = self._batch_features(patches.astype(np.float32), self._cell_size)
+        feature_maps = feature_maps[:, :SCALE_FEATURE_CHANNELS].transpose(0, 1, 3, 2)
+        return feature_maps.reshape(len(patches), -1)  # (C, W, H) C-order == (H, W, C) column-major
+
+
+def _one_by_one(features: FeatureFn) -> BatchFeatureFn:
+    """A batch feature function that calls the per-patch `features` on each patch in turn."""
+    return lambda patches, cell_size: np.stack([features(patch, cell_size) for patch in patches])

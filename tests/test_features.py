@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tacf.features import color_names, fhog
+from tacf.features import color_names, fhog, fhog_batch
 
 SEQUENCES = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
 TEXTURE = 0.2357
@@ -250,6 +250,53 @@ def test_fhog_input_scale_changes_only_the_epsilon():
 def test_fhog_accepts_uint8_and_float64():
     image = (random_image((24, 24, 3)) * 255).astype(np.uint8)
     np.testing.assert_array_equal(fhog(image), fhog(image.astype(np.float64)))
+
+
+# --------------------------------------------------------------------------------------------------------
+# fHOG of a batch of same-sized images
+# --------------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("shape", [
+    (30, 17, 3), (17, 30), (12, 16, 1), (21, 22, 2),  # colour, gray, one and two channels
+    (4, 40), (7, 40, 3), (40, 5), (6, 7, 3), (4, 4),  # thin grids one cell high or wide, and a single cell
+])
+@pytest.mark.parametrize("n_images", [1, 3, 31])
+def test_fhog_batch_equals_one_call_per_image(shape, n_images):
+    images = 255 * random_image((n_images, *shape), seed=n_images)
+    batch = fhog_batch(images)
+    assert batch.shape == (n_images, 31, shape[0] // 4, shape[1] // 4)
+    assert batch.dtype == np.float32 and batch.flags.c_contiguous
+    for image, features in zip(images, batch):
+        np.testing.assert_array_equal(features, fhog(image))
+
+
+def test_fhog_batch_does_not_mix_images_at_their_borders():
+    # Neighbours with very different content: any gradient or cell bleeding across them would show.
+    rng = np.random.default_rng(12)
+    images = np.stack([np.zeros((13, 10, 3)), np.full((13, 10, 3), 255.0), rng.integers(0, 3, (13, 10, 3)),
+                       np.tile(np.arange(10.0), (13, 1))[:, :, None].repeat(3, axis=2)]).astype(np.float32)
+    batch = fhog_batch(images)
+    assert not batch[0].any() and not batch[1].any()  # flat images stay exactly zero
+    for image, features in zip(images, batch):
+        np.testing.assert_array_equal(features, fhog(image))
+
+
+def test_fhog_batch_other_cell_size_clip_and_input_types():
+    images = (255 * random_image((5, 14, 19, 3), seed=13)).astype(np.uint8)
+    batch = fhog_batch(images, cell_size=3, clip=0.3)
+    for image, features in zip(images, batch):
+        np.testing.assert_array_equal(features, fhog(image, cell_size=3, clip=0.3))
+        np.testing.assert_allclose(features, reference_fhog(image.astype(np.float32), cell=3, clip=0.3),
+                                   rtol=1e-5, atol=1e-6)
+
+
+def test_fhog_batch_rejects_too_small_and_bad_rank():
+    with pytest.raises(ValueError):
+        fhog_batch(random_image((2, 3, 40)))
+    with pytest.raises(ValueError):
+        fhog_batch(random_image((8, 8)))
+    with pytest.raises(ValueError):
+        fhog_batch(random_image((2, 8, 8, 3, 1)))
 
 
 # --------------------------------------------------------------------------------------------------------

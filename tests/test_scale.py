@@ -222,6 +222,23 @@ def test_target_partly_or_wholly_outside_the_image_does_not_crash(pos):
     assert np.isfinite(new_factor) and sf.min_scale <= new_factor <= sf.max_scale
 
 
+@pytest.mark.parametrize("channels", [3, 1])
+def test_default_batched_fhog_equals_fhog_patch_by_patch(channels):
+    """The default filter computes all scale patches in one fhog_batch call; the values are those of one fhog
+    call per patch, also for patches crossing the image border and for a thin, one-cell-high model."""
+    image = textured_image((240, 320), seed=7, channels=channels)
+    cases = [([38, 11], None, (118.4, 161.6), 1.0), ([40, 50], None, (3.0, 300.0), 1.3),
+             ([9, 60], [6, 80], (200.0, 100.0), 0.9)]  # the last one forces a 6x80 model: 1x20 cells
+    for target_sz, norm_target_sz, pos, scale_factor in cases:
+        bg_area, default_norm_sz = sequence_geometry(target_sz, image.shape[:2])
+        norm_target_sz = default_norm_sz if norm_target_sz is None else norm_target_sz
+        batched, by_patch = (ScaleFilter(CFG, image.shape[:2], np.asarray(target_sz, float), norm_target_sz,
+                                         bg_area, features=features) for features in (None, fhog))
+        np.testing.assert_array_equal(batched._sample(image, np.array(pos), scale_factor),
+                                      by_patch._sample(image, np.array(pos), scale_factor))
+    assert np.array_equal(batched.model_size, [6, 80])
+
+
 def within_one_step(estimated, expected):
     return abs(np.log(estimated / expected) / np.log(STEP)) <= 1 + 1e-9
 

@@ -4,8 +4,12 @@ Settings are those TACF uses: 18 contrast-sensitive orientations (nOrients 9, fu
 binning (softBin -1), bilinear spatial binning with the 8/7 boundary-cell factor, 2x2 block normalisation,
 truncation at ``clip`` and no border crop. The all-zero 32nd channel of the original is dropped.
 
-Everything is vectorised. Constants that depend only on the image size (each pixel's four target cells and
-bilinear weights) or on nothing (the orientation lookup table) are computed once and cached.
+Everything is vectorised, over a batch of same-sized images as well: ``fhog_batch`` computes N images in one
+pass (the DSST scale filter needs 31 small patches per sample, where the fixed per-call cost dominates), and
+``fhog`` is its N = 1 case. Images never mix: gradients stop at each image's border and every image has its own
+histogram bins, so each image's result is bit for bit what ``fhog`` gives for it alone. Constants that depend
+only on the image size (each pixel's four target cells and bilinear weights) or on nothing (the orientation
+lookup table) are computed once and cached.
 
 Orientation binning follows the C code step by step: cos(theta) is truncated to the 10000-step acos table,
 pi is added for gy < 0, and the bin is floor(theta * 18 / (2 pi) + 0.5) in float32. All of this is folded
@@ -26,7 +30,6 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import cv2
 import numpy as np
 
 N_ORIENTS = 9  # contrast-insensitive orientations; the sensitive ones are twice as many
@@ -49,64 +52,79 @@ def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray
     full cells are binned. A grid only one cell high or wide (possible for thin DSST scale patches) is
     normalised as if that cell row or column were duplicated; the C code reads raw energies there instead.
     """
-    image = _as_hwc_float32(image)
-    rows, cols = image.shape[0] // cell_size, image.shape[1] // cell_size
+    image = np.asarray(image)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"expected an HxW or HxWxC image, got shape {image.shape}")
+    return fhog_batch(image[None], cell_size, clip)[0]
+
+
+def fhog_batch(images: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray:
+    """fHOG of N same-sized images at once, float32 ``(N, 31, H // cell_size, W // cell_size)``, C-contiguous.
+
+    ``images`` is NxHxW or NxHxWxC. Each image is computed on its own, exactly as ``fhog`` would (gradients
+    stop at each image's border, cells and normalisers never mix images), so ``fhog_batch(images)[i]`` equals
+    ``fhog(images[i])`` bit for bit; one call replaces N small calls and their fixed per-call cost.
+    """
+    images = _as_nhwc_float32(images)
+    rows, cols = images.shape[1] // cell_size, images.shape[2] // cell_size
     if rows < 1 or cols < 1:
-        raise ValueError(f"image {image.shape[:2]} is smaller than one {cell_size}x{cell_size} cell")
-    gx, gy, squared = _max_channel_gradients(image)
-    used = (slice(0, rows * cell_size), slice(0, cols * cell_size))
+        raise ValueError(f"images {images.shape[1:3]} are smaller than one {cell_size}x{cell_size} cell")
+    gx, gy, squared = _max_channel_gradients(images)
+    used = (slice(None), slice(0, rows * cell_size), slice(0, cols * cell_size))
     magnitude, table_index = _magnitude_and_table_index(gx[used], gy[used], squared[used])
     sensitive = _spatial_histograms(magnitude, table_index, cell_size, rows, cols)
     return _normalise_and_truncate(sensitive, cell_size, np.float32(clip))
 
 
-def _as_hwc_float32(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image, dtype=np.float32)
-    if image.ndim == 2:
-        return image[:, :, None]
-    if image.ndim != 3:
-        raise ValueError(f"expected an HxW or HxWxC image, got shape {image.shape}")
-    return image
+def _as_nhwc_float32(images: np.ndarray) -> np.ndarray:
+    images = np.asarray(images, dtype=np.float32)
+    if images.ndim == 3:
+        return images[..., None]
+    if images.ndim != 4:
+        raise ValueError(f"expected NxHxW or NxHxWxC images, got shape {images.shape}")
+    return images
 
 
-def _gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-channel (gx, gy): central difference x0.5 inside, plain one-sided difference on the borders.
+def _gradients(images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel (gx, gy) of NxHxWxC images: central difference x0.5 inside, one-sided on each image's border.
 
     Plain numpy on purpose: OpenCV's filters are multi-threaded, which costs more than it saves on a
     patch this small when the cores are shared.
     """
-    return _axis_gradient(image.swapaxes(0, 1)).swapaxes(0, 1), _axis_gradient(image)
+    gx = _axis_gradient(images.swapaxes(0, 2)).swapaxes(0, 2)
+    gy = _axis_gradient(images.swapaxes(0, 1)).swapaxes(0, 1)
+    return gx, gy
 
 
-def _axis_gradient(image: np.ndarray) -> np.ndarray:
-    """Gradient along axis 0 (rows), computed in float32 as (next - previous) * 0.5."""
-    grad = np.empty_like(image)
-    np.subtract(image[2:], image[:-2], out=grad[1:-1])
+def _axis_gradient(array: np.ndarray) -> np.ndarray:
+    """Gradient along axis 0, computed in float32 as (next - previous) * 0.5; other axes are independent."""
+    grad = np.empty_like(array)
+    np.subtract(array[2:], array[:-2], out=grad[1:-1])
     grad[1:-1] *= np.float32(0.5)
-    np.subtract(image[1], image[0], out=grad[0])
-    np.subtract(image[-1], image[-2], out=grad[-1])
+    np.subtract(array[1], array[0], out=grad[0])
+    np.subtract(array[-1], array[-2], out=grad[-1])
     return grad
 
 
-def _max_channel_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(gx, gy, gx^2 + gy^2) of the colour channel with the largest squared magnitude.
+def _max_channel_gradients(images: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(gx, gy, gx^2 + gy^2), each NxHxW, of the colour channel with the largest squared magnitude.
 
     Squares are float32 as in the C code, since they decide ties; on a tie the first channel wins.
     """
-    gx, gy = _gradients(image)
+    gx, gy = _gradients(images)
     squared = gx * gx
     squared += gy * gy
-    if image.shape[2] == 1:
-        return gx[:, :, 0], gy[:, :, 0], squared[:, :, 0]
-    best_squared = squared[:, :, 0].copy()
-    for c in range(1, image.shape[2]):
-        np.maximum(best_squared, squared[:, :, c], out=best_squared)
+    if images.shape[3] == 1:
+        return gx[..., 0], gy[..., 0], squared[..., 0]
+    best_squared = squared[..., 0].copy()
+    for c in range(1, images.shape[3]):
+        np.maximum(best_squared, squared[..., c], out=best_squared)
     # Index of the first channel reaching the maximum (uint8 arithmetic is the cheapest here),
     # then one flat gather per gradient.
     channel = np.zeros(best_squared.shape, dtype=np.uint8)
     undecided = np.ones(best_squared.shape, dtype=np.uint8)
-    for c in range(image.shape[2] - 1):
-        undecided &= (squared[:, :, c] != best_squared).view(np.uint8)
+    for c in range(images.shape[3] - 1):
+        undecided &= (squared[..., c] != best_squared).view(np.uint8)
         channel += undecided
     flat = _pixel_starts(gx.shape) + channel.ravel()
     return (gx.ravel().take(flat).reshape(best_squared.shape),
@@ -114,9 +132,9 @@ def _max_channel_gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, n
 
 
 @lru_cache(maxsize=16)
-def _pixel_starts(shape: tuple[int, int, int]) -> np.ndarray:
-    """Flat index of channel 0 of every pixel of an HxWxC array."""
-    return _read_only(np.arange(0, shape[0] * shape[1] * shape[2], shape[2]))
+def _pixel_starts(shape: tuple[int, ...]) -> np.ndarray:
+    """Flat index of channel 0 of every pixel of a C-ordered array of ``shape`` (channels last)."""
+    return _read_only(np.arange(0, int(np.prod(shape)), shape[-1]))
 
 
 @lru_cache(maxsize=1)
@@ -209,44 +227,69 @@ def _axis_cells(n_cells: int, cell_size: int) -> tuple[list[np.ndarray], list[np
 
 def _spatial_histograms(magnitude: np.ndarray, table_index: np.ndarray, cell_size: int,
                         rows: int, cols: int) -> np.ndarray:
-    """Contrast-sensitive histograms R1, float32 (18, rows, cols): bilinear in space, hard in orientation."""
+    """Contrast-sensitive histograms R1, float32 (N, 18, rows, cols): bilinear in space, hard in orientation.
+
+    One bincount for the whole batch: image n owns the flat bins n * 18 * rows * cols onwards. Each bin sums
+    its contributions in the same order as for a batch of one, so the batch changes no rounding.
+    """
     cell_index, cell_weight = _bilinear_layout(cell_size, rows, cols)
-    n_cells = rows * cols
-    target = cell_index + _bin_offsets(n_cells).take(table_index, mode="clip")  # broadcast over 4 cells
-    histogram = np.bincount(target.ravel(), (cell_weight * magnitude).ravel(), minlength=N_SENSITIVE * n_cells)
-    return histogram.reshape(N_SENSITIVE, rows, cols).astype(np.float32)
+    n_images, n_cells = magnitude.shape[0], rows * cols
+    bin_start = _bin_offsets(n_cells).take(table_index, mode="clip")
+    bin_start += _image_offsets(n_images, N_SENSITIVE * n_cells)
+    target = cell_index[:, None] + bin_start  # (4, N, h, w): each pixel's 4 cells
+    histogram = np.bincount(target.ravel(), (cell_weight[:, None] * magnitude).ravel(),
+                            minlength=n_images * N_SENSITIVE * n_cells)
+    return histogram.reshape(n_images, N_SENSITIVE, rows, cols).astype(np.float32)
+
+
+@lru_cache(maxsize=16)
+def _image_offsets(n_images: int, bins_per_image: int) -> np.ndarray:
+    """The first flat histogram bin of each image of the batch, shaped (N, 1, 1) to broadcast over pixels."""
+    return _read_only(np.arange(n_images).reshape(n_images, 1, 1) * bins_per_image)
 
 
 def _block_normalisers(insensitive: np.ndarray, cell_size: int) -> np.ndarray:
-    """The 4 block normalisers of every cell, float32 (4, rows, cols).
+    """The 4 block normalisers of every cell, float32 (N, 4, rows, cols).
 
     n = 1 / sqrt(energy of a 2x2 block + eps); the (rows-1)x(cols-1) block grid is edge-padded so every
     cell sees 4 blocks. Order k = 0..3 as in the C code: the blocks whose top-left cell is at offset
     (0, 0), (-1, 0), (0, -1), (-1, -1) from the cell.
     """
-    rows, cols = insensitive.shape[1:]
-    energy = np.einsum("orc,orc->rc", insensitive, insensitive)
+    rows, cols = insensitive.shape[2:]
+    energy = insensitive[:, 0] * insensitive[:, 0]  # summed orientation by orientation, in a fixed order
+    for o in range(1, N_ORIENTS):
+        energy += insensitive[:, o] * insensitive[:, o]
     if rows == 1 or cols == 1:  # degenerate grid: duplicate the single cell row / column (see fhog)
-        energy = np.pad(energy, ((0, rows == 1), (0, cols == 1)), mode="edge")
+        energy = np.pad(energy, ((0, 0), (0, rows == 1), (0, cols == 1)), mode="edge")
     eps = np.float32(1e-4 / 4 / cell_size**4)
-    block = energy[:-1, :-1] + energy[1:, :-1] + energy[:-1, 1:] + energy[1:, 1:] + eps
-    padded = cv2.copyMakeBorder(np.float32(1.0) / np.sqrt(block), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
-    blocks = (padded[1:, 1:], padded[:-1, 1:], padded[1:, :-1], padded[:-1, :-1])
-    return np.stack([normaliser[:rows, :cols] for normaliser in blocks])
+    block = energy[:, :-1, :-1] + energy[:, 1:, :-1] + energy[:, :-1, 1:] + energy[:, 1:, 1:] + eps
+    block_rows, block_cols = _neighbour_blocks(rows, cols)
+    return (np.float32(1.0) / np.sqrt(block))[:, block_rows, block_cols]
+
+
+@lru_cache(maxsize=16)
+def _neighbour_blocks(rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row (4, rows, 1) and column (4, 1, cols) block indices of each cell's 4 blocks, clamped to the grid."""
+    row_offsets, col_offsets = np.array([0, 1, 0, 1]), np.array([0, 0, 1, 1])
+    block_rows = np.clip(np.arange(rows) - row_offsets[:, None], 0, max(rows - 2, 0))
+    block_cols = np.clip(np.arange(cols) - col_offsets[:, None], 0, max(cols - 2, 0))
+    return _read_only(block_rows[:, :, None]), _read_only(block_cols[:, None, :])
 
 
 def _normalise_and_truncate(sensitive: np.ndarray, cell_size: int, clip: np.float32) -> np.ndarray:
-    """The 31 output channels: 0.5 * sum_k min(R n_k, clip) for R1 and R2, and the 4 texture channels."""
-    insensitive = sensitive[:N_ORIENTS] + sensitive[N_ORIENTS:]
-    histograms = np.concatenate([sensitive, insensitive])  # the 27 orientation channels, R1 then R2
-    out = np.zeros((N_CHANNELS,) + sensitive.shape[1:], dtype=np.float32)
-    orientation_out, texture_out = out[: N_SENSITIVE + N_ORIENTS], out[N_SENSITIVE + N_ORIENTS:]
+    """The 31 output channels, (N, 31, rows, cols): 0.5 * sum_k min(R n_k, clip) for R1 and R2, and the
+    4 texture channels."""
+    insensitive = sensitive[:, :N_ORIENTS] + sensitive[:, N_ORIENTS:]
+    histograms = np.concatenate([sensitive, insensitive], axis=1)  # the 27 orientation channels, R1 then R2
+    out = np.zeros(sensitive.shape[:1] + (N_CHANNELS,) + sensitive.shape[2:], dtype=np.float32)
+    orientation_out, texture_out = out[:, : N_SENSITIVE + N_ORIENTS], out[:, N_SENSITIVE + N_ORIENTS:]
     truncated = np.empty_like(histograms)
     clip_array = np.full_like(histograms, clip)  # numpy's minimum is several times faster array-to-array
-    for k, normaliser in enumerate(_block_normalisers(insensitive, cell_size)):
-        np.minimum(np.multiply(histograms, normaliser, out=truncated), clip_array, out=truncated)
+    normalisers = _block_normalisers(insensitive, cell_size)
+    for k in range(normalisers.shape[1]):
+        np.minimum(np.multiply(histograms, normalisers[:, k, None], out=truncated), clip_array, out=truncated)
         orientation_out += truncated
-        np.sum(truncated[:N_SENSITIVE], axis=0, out=texture_out[k])
+        np.sum(truncated[:, :N_SENSITIVE], axis=1, out=texture_out[:, k])
     orientation_out *= np.float32(0.5)
     texture_out *= TEXTURE_FACTOR
     return out
