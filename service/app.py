@@ -85,6 +85,8 @@ class TrackingService:
         if self._token is not None:
             _quietly(self._token.undeclare)
             self._token = None
+        if self.manager is not None:
+            self.manager.begin_shutdown()
         if self._control is not None:
             self._control.close(timeout=0.5)
             self._control = None

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 from tacf_schemas import (CONTROL_OPS, CONTROL_REQUESTS, MSGPACK_ENCODING, DecodeError, Error, ListRequest,
                           ReinitRequest, StartRequest, StatusRequest, StopRequest, control_key, decode, encode)
@@ -36,13 +37,14 @@ class ControlServer:
             thread.start()
 
     def close(self, timeout: float = 1.0) -> None:
-        """Undeclare the queryable (ends the serving loops) and join the threads."""
+        """Undeclare the queryable (ends the serving loops) and join the threads within `timeout` in total."""
         try:
             self._queryable.undeclare()
         except Exception:
             pass
+        deadline = time.monotonic() + timeout
         for thread in self._threads:
-            thread.join(timeout=timeout)
+            thread.join(timeout=max(0.0, deadline - time.monotonic()))
 
     def _serve(self) -> None:
         import zenoh

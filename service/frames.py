@@ -74,6 +74,11 @@ class FrameHistory:
                 del self._keys[key]
                 _undeclare(history.subscriber)
 
+    def wake_all(self) -> None:
+        """Wake every wait_for (they re-check their cancel event)."""
+        with self._cond:
+            self._cond.notify_all()
+
     def close(self) -> None:
         with self._cond:
             for history in self._keys.values():

@@ -154,6 +154,11 @@ class SessionManager:
             log.info("restored %d session(s) from %s", restored, self._store.path)
         return restored
 
+    def begin_shutdown(self) -> None:
+        """Refuse new work and wake any start waiting for a frame (call before closing the control server)."""
+        self._closing.set()
+        self._history.wake_all()
+
     def _saved_frame(self, saved: PersistedSession) -> StoredFrame | None:
         payload = self._store.load_frame(saved.sid) if self._store else None
         if payload is None or saved.last_seq is None:

@@ -130,6 +130,7 @@ class Worker:
         self._state = "starting"
         self._message: str | None = None
         self._stats = None
+        self._serving = False               # True once tracking a session (SIGTERM then stops gracefully)
         self.job: Assignment | None = None
         self._assigned = _Flag()
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used

@@ -14,6 +14,8 @@ import time
 
 import msgpack
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 zenoh = pytest.importorskip("zenoh")
 
@@ -262,6 +264,28 @@ def test_bad_control_requests_get_typed_errors(service, client, op, payload, cod
     with pytest.raises(ControlError) as err:
         call(client, NODE, op, payload)
     assert err.value.code == code, err.value.message
+
+
+_values = st.recursive(st.none() | st.booleans() | st.integers(-2**63, 2**63 - 1) | st.floats() | st.text(max_size=12)
+                       | st.binary(max_size=12), lambda c: st.lists(c, max_size=5) | st.dictionaries(
+                           st.text(max_size=10), c, max_size=5), max_leaves=10)
+_fields = st.dictionaries(st.sampled_from(["v", "image_key", "box", "seq", "sid", "profile", "overrides", "x"]),
+                          _values, max_size=6)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(op=st.sampled_from(["start", "stop", "reinit", "status", "list"]),
+       payload=st.one_of(st.binary(max_size=64), _fields.map(lambda d: msgpack.packb(d, use_bin_type=True))))
+def test_control_fuzz_gets_a_reply_or_a_typed_error(service, client, op, payload):
+    """Random payloads: every query is answered (reply or typed Error), the service keeps serving."""
+    from tacf_schemas import ERROR_CODES
+    try:
+        reply = call(client, NODE, op, payload, timeout=5)
+    except ControlError as err:
+        assert err.code in ERROR_CODES, err
+    else:
+        if op == "start":       # a random payload that happens to be a valid start: clean it up
+            call(client, NODE, "stop", StopRequest(sid=reply.sid))
 
 
 def test_unknown_op_and_wildcard_op(service, client):
