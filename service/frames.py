@@ -39,6 +39,7 @@ class _KeyHistory:
         self.frames: deque[StoredFrame] = deque(maxlen=depth)
         self.users = 0
         self.subscriber = None
+        self.pump: threading.Thread | None = None
 
     def add(self, frame: StoredFrame) -> None:
         self.frames.append(frame)
@@ -47,7 +48,9 @@ class _KeyHistory:
 
 
 class FrameHistory:
-    """Per-key frame rings fed by callback subscribers on the service's session (parsing only)."""
+    """Per-key frame rings, fed from RingChannel subscribers on the service's session by one pump thread per
+    key (parsing only). A ring never blocks Zenoh's receive path, even when this process is starved of CPU,
+    so the frames the service routes to its workers never wait behind this history."""
 
     def __init__(self, session, depth: int = DEFAULT_DEPTH) -> None:
         self._session = session
@@ -60,8 +63,12 @@ class FrameHistory:
         with self._cond:
             history = self._keys.get(key)
             if history is None:
+                import zenoh
                 history = self._keys[key] = _KeyHistory(self._depth)
-                history.subscriber = self._session.declare_subscriber(key, lambda s, k=key: self._on_sample(k, s))
+                history.subscriber = self._session.declare_subscriber(key, zenoh.handlers.RingChannel(self._depth))
+                history.pump = threading.Thread(target=self._pump, args=(key, history.subscriber.handler),
+                                                name=f"history-{key}", daemon=True)
+                history.pump.start()
             history.users += 1
 
     def release(self, key: str) -> None:
@@ -70,9 +77,11 @@ class FrameHistory:
             if history is None:
                 return
             history.users -= 1
-            if history.users <= 0:
-                del self._keys[key]
-                _undeclare(history.subscriber)
+            if history.users > 0:
+                return
+            del self._keys[key]
+            _undeclare(history.subscriber)
+        history.pump.join(timeout=0.5)
 
     def wake_all(self) -> None:
         """Wake every wait_for (they re-check their cancel event)."""
@@ -81,24 +90,30 @@ class FrameHistory:
 
     def close(self) -> None:
         with self._cond:
-            for history in self._keys.values():
-                _undeclare(history.subscriber)
+            histories = list(self._keys.values())
+            for history in histories:
+                _undeclare(history.subscriber)          # ends the pump's recv()
             self._keys.clear()
             self._cond.notify_all()
+        for history in histories:
+            history.pump.join(timeout=0.5)
 
-    def _on_sample(self, key: str, sample) -> None:
-        try:
-            stored = StoredFrame.from_payload(sample.payload.to_bytes())
-        except DecodeError:
-            return                  # the workers count rejected frames
-        except Exception:           # never let a callback raise into zenoh
-            log.exception("frame history callback failed on %s", key)
-            return
-        with self._cond:
-            history = self._keys.get(key)
-            if history is not None:
-                history.add(stored)
-                self._cond.notify_all()
+    def _pump(self, key: str, ring) -> None:
+        import zenoh
+        while True:
+            try:
+                sample = ring.recv()
+            except zenoh.ZError:
+                return                      # undeclared or session closed
+            try:
+                stored = StoredFrame.from_payload(sample.payload.to_bytes())
+            except DecodeError:
+                continue                    # the workers count rejected frames
+            with self._cond:
+                history = self._keys.get(key)
+                if history is not None:
+                    history.add(stored)
+                    self._cond.notify_all()
 
     def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
         """The frame with `seq` and every newer one kept (in arrival order); with seq None or not kept,

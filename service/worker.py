@@ -5,9 +5,11 @@ so that N cores serve N feeds at full speed. The worker opens its own Zenoh sess
 subscribes to the image key latest-only, runs the tracker on its main thread, and publishes a BoxResult per
 processed frame and Health about once a second itself: frames never pass through the service process.
 
-Latest-only: the subscriber callback only stores the newest payload in a one-slot LatestFrame (the
-RingChannel(1) behaviour) and counts every arrival and every overwritten frame, so `frames_dropped` is exact;
-the tracker never runs inside a Zenoh callback.
+Latest-only: the subscriber is a RingChannel(1): Zenoh itself overwrites a frame nobody has taken yet, without
+needing the GIL, so a starved worker never builds a backlog (a callback subscriber would: its 256-deep FIFO
+fills while Python is busy, and frames come out seconds late). A small pump thread moves the ring's frame into
+a one-slot LatestFrame that the tracking loop waits on together with commands. Frames lost in the ring are
+counted from seq gaps, frames overwritten in the slot directly. The tracker never runs in a Zenoh callback.
 
 Workers are started ahead of need (warm spares: interpreter, numpy, OpenCV, the tracker's modules and the
 Zenoh session are ready), so a start request gets a tracking worker in milliseconds instead of seconds.
@@ -136,6 +138,7 @@ class Worker:
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
         self._extra_received = 0        # catch-up frames handed over by the service
         self._skipped = 0               # frames not used: duplicates, or no box to track yet
+        self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
     def on_sigterm(self, *_) -> None:
         """Stop gracefully when serving; while still starting up (imports, session), just leave."""
@@ -186,7 +189,9 @@ class Worker:
         token = session.liveliness().declare_token(session_liveliness_key(node, sid))
         self._box_pub = session.declare_publisher(box_key(node, sid), encoding=encoding, express=True)
         self._health_pub = session.declare_publisher(health_key(node, sid), encoding=encoding)
-        frames = session.declare_subscriber(self.job.image_key, self._on_frame)
+        frames = session.declare_subscriber(self.job.image_key, zenoh.handlers.RingChannel(1))
+        pump = threading.Thread(target=self._pump_frames, args=(frames.handler,), name="frames", daemon=True)
+        pump.start()
         self._send(("ready",))
         next_health = time.monotonic()
         while not self._stop.is_set():
@@ -199,15 +204,26 @@ class Worker:
                 next_health = time.monotonic() + HEALTH_PERIOD_S
         self._state = "stopped"
         self._publish_health()
-        frames.undeclare()
+        frames.undeclare()                  # ends the pump's recv()
         token.undeclare()
+        pump.join(timeout=1.0)
 
-    def _on_frame(self, sample) -> None:
-        """Zenoh callback: keep the newest payload only. Never tracks, never blocks."""
-        try:
-            self._slot.put(sample.payload.to_bytes())
-        except Exception:
-            log.exception("frame callback failed")
+    def _pump_frames(self, ring) -> None:
+        """Move frames from the RingChannel(1) into the slot; count frames the ring dropped from seq gaps."""
+        import zenoh
+        last_seq = None
+        while True:
+            try:
+                sample = ring.recv()
+            except zenoh.ZError:
+                return                      # undeclared or session closed
+            payload = sample.payload.to_bytes()
+            seq = _peek_seq(payload)
+            if seq is not None and last_seq is not None and seq > last_seq + 1:
+                self._ring_dropped += seq - last_seq - 1
+            if seq is not None:
+                last_seq = seq
+            self._slot.put(payload)
 
     # ------------------------------------------------------------------ commands from the service
 
@@ -327,8 +343,8 @@ class Worker:
     def _publish_health(self) -> None:
         from tacf_schemas import encode
         stats = self._stats
-        stats.frames_received = self._slot.received + self._extra_received
-        stats.frames_dropped = self._slot.overwritten + self._skipped
+        stats.frames_received = self._slot.received + self._ring_dropped + self._extra_received
+        stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped
         health = stats.snapshot(self.spec.node, self.job.sid, self._state, self.job.restarts, self._message)
         payload = encode(health)
         try:
@@ -336,6 +352,25 @@ class Worker:
         except Exception as exc:     # session closing
             log.debug("health put failed: %s", exc)
         self._send(("health", payload))
+
+
+def _peek_seq(payload: bytes) -> int | None:
+    """A Frame's seq without validating the whole message (None if there is no integer seq)."""
+    import msgpack
+    try:
+        unpacker = msgpack.Unpacker(max_buffer_size=len(payload) + 1, max_bin_len=0, max_str_len=64,
+                                    max_array_len=0, max_map_len=16)
+        unpacker.feed(payload[:256])
+        n = unpacker.read_map_header()
+        for _ in range(n):
+            key = unpacker.unpack()
+            if key == "seq":
+                value = unpacker.unpack()
+                return value if isinstance(value, int) and not isinstance(value, bool) else None
+            unpacker.skip()
+    except Exception:
+        return None
+    return None
 
 
 class _Flag:
