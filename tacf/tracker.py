@@ -22,7 +22,7 @@ from tacf.attention.spatiotemporal import to_response_origin
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
 from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
-from tacf.features import color_names, fhog
+from tacf.features import color_names, fhog, fhog_batch
 from tacf.geometry import NormalisedGrid, TargetAreas, round_half_up, search_padding, subwindow
 from tacf.response import crop_centre, fuse, peak_offset, upsample
 from tacf.scale import ScaleFilter
@@ -188,8 +188,8 @@ class Tracker:
 
     def _context_features(self, frame: np.ndarray) -> np.ndarray:
         """Windowed fHOG of the four context patches around the current position: (4, 31, H, W)."""
-        patches = [self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)]
-        return np.stack([self._features(p, ("hog",))["hog"] * self.cosine_window for p in patches])
+        patches = np.stack([self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)])
+        return fhog_batch(patches.astype(np.float32) / 255.0, self.config.cell_size) * self.cosine_window
 
     def _update_context_penalties(self, frame: np.ndarray, object_response: np.ndarray) -> None:
         """Challenge factors: how strongly the HOG filter answers each context patch, relative to the target."""
