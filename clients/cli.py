@@ -1,4 +1,4 @@
-"""`tacf publish | start | stop | reinit | list | status | watch | demo`: the client side from the shell.
+"""`tacf publish | start | stop | reinit | list | status | watch | demo | dashboard`: the client side from the shell.
 
 Only argparse-level things are imported here; each command imports what it needs when it runs, so that
 `tacf --help` stays fast and nothing here ever loads the tracker.
@@ -90,6 +90,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--every", type=int, default=None, metavar="N",
                    help="print every Nth box (default: about 3 lines a second)")
     p.set_defaults(func=cmd_demo)
+
+    p = subparsers.add_parser("dashboard", help="ground-station web page: live frames, boxes, charts, start/stop",
+                              description="Serve the ground-station dashboard on http://HOST:PORT/ (fully offline: "
+                                          "no CDN): the live frame of each session with its box, PME and FPS "
+                                          "charts, the session list; draw a box on a live frame to start a "
+                                          "session. Also /metrics (Prometheus) and /healthz.")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default 127.0.0.1; 0.0.0.0 exposes start/stop to the network)")
+    p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 = any free port)")
+    p.add_argument("--key", "-k", dest="keys", action="append", default=[], metavar="IMAGE_KEY",
+                   help="image key to show from the start, repeatable (the keys of running sessions are added "
+                        "by themselves, and more can be added on the page)")
+    p.add_argument("--node", help="only this service (default: every service on the network)")
+    p.add_argument("--history", type=_positive_float, default=5.0, metavar="MINUTES",
+                   help="minutes of chart history per session (default 5)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_dashboard)
 
 
 def _common(p: argparse.ArgumentParser, add_zenoh_arguments) -> None:
@@ -269,3 +286,22 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                       encoding=args.encoding, profile=args.profile, every=args.every),
                           stop=stop)
     return 0 if report.ok else 1
+
+
+def cmd_dashboard(args: argparse.Namespace) -> int:
+    from tacf_clients.dashboard_http import serve
+    from tacf_clients.zconfig import options_from_args
+
+    def ready(url: str) -> None:
+        print(f"tacf dashboard: open {url} in a browser (Ctrl-C to stop)", flush=True)
+
+    with stop_on_signals() as stop:
+        try:
+            return serve(options_from_args(args), host=args.host, port=args.port, image_keys=args.keys,
+                         node=args.node, history_s=args.history * 60, stop=stop, on_ready=ready)
+        except OSError as exc:
+            print(f"tacf dashboard: cannot serve on {args.host}:{args.port}: {exc}", file=sys.stderr)
+            return 2
+        except ValueError as exc:
+            print(f"tacf dashboard: {exc}", file=sys.stderr)
+            return 2

@@ -1,0 +1,477 @@
+"""`tacf dashboard`, the data side: what the ground-station web page shows, gathered from Zenoh.
+
+    with Dashboard(ZenohOptions.loopback(7447), image_keys=["uav1/camera/front"]) as board:
+        board.snapshot()                 # sessions, their latest box and health, chart points, watched keys
+        board.frame("uav1/camera/front") # the newest frame of that key, as JPEG
+
+Everything is latest-only (ZENOH.md §3.4): boxes and health arrive through one latest-only ResultStream and
+overwrite the session's slot; each watched image key has a RingChannel(1) subscriber whose worker keeps only
+the newest frame and reads at most `max_frame_fps` of them. Readers (the HTTP side, dashboard_http.py) copy
+what they need under a lock and never block a Zenoh thread, so a slow browser cannot slow the service.
+
+A poller lists the sessions of every service once a second (a Zenoh query): that gives each session's image
+key, state and node, and drops sessions that a service no longer lists. The dashboard never imports the
+tracker: it only talks to services through TrackingClient.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import zenoh
+
+from tacf_clients.client import TrackingClient
+from tacf_clients.errors import TacfError
+from tacf_clients.stream import ResultStream
+from tacf_clients.zconfig import ZenohOptions, open_session
+from tacf_schemas.codec import DecodeError, decode
+from tacf_schemas.keys import validate_image_key
+from tacf_schemas.models import BoxResult, Frame, Health, SessionInfo
+
+log = logging.getLogger(__name__)
+
+LIST_PERIOD_S = 1.0          # how often the session list is refreshed
+LIST_TIMEOUT_S = 2.0         # reply timeout of that list query
+SILENT_DROP_S = 30.0         # a session of a node that stopped answering is dropped after this long without news
+TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here are ignored for this long
+MAX_IMAGE_KEYS = 32          # watched image keys (each one is a subscriber + a thread)
+
+
+@dataclass
+class ChartPoint:
+    """One sample of a session's charts, taken from each Health (about 1 Hz)."""
+    t_ms: int                       # wall-clock time of the health report, ms since the epoch
+    fps: float
+    pme: float | None
+    processing_ms: float
+    frame_age_ms: float | None
+
+    def to_json(self) -> dict:
+        return {"t": self.t_ms, "fps": self.fps, "pme": self.pme, "proc": self.processing_ms,
+                "age": self.frame_age_ms}
+
+
+@dataclass
+class SessionView:
+    """What the dashboard knows of one session. `version` grows on every change; `points_total` counts every
+    chart point ever added (the ring keeps the last ones), so a reader can ask for the points it has not seen."""
+    node: str
+    sid: str
+    image_key: str | None = None
+    profile: str | None = None
+    state: str = "starting"
+    created_ns: int | None = None
+    box: BoxResult | None = None
+    box_received_ns: int | None = None
+    health: Health | None = None
+    points: deque[ChartPoint] = field(default_factory=deque)
+    points_total: int = 0
+    version: int = 0
+    seen: float = field(default_factory=time.monotonic)   # last list entry, box or health
+
+    @property
+    def id(self) -> str:
+        return f"{self.node}/{self.sid}"
+
+    def to_json(self, now_ns: int) -> dict:
+        """The session as the page and /api/state show it (no chart points)."""
+        box = self.box
+        h = self.health
+        return {
+            "id": self.id, "node": self.node, "sid": self.sid, "image_key": self.image_key,
+            "profile": self.profile, "state": self.state, "version": self.version,
+            "box": None if box is None else {
+                "seq": box.seq, "box": list(box.box), "ok": box.ok, "pme": box.pme, "score": box.score,
+                "scale": box.scale, "processing_ms": box.processing_ms,
+                # capture -> dashboard latency of the newest box, and how long ago it arrived
+                "latency_ms": _ms(self.box_received_ns - box.stamp_ns) if self.box_received_ns else None,
+                "age_ms": _ms(now_ns - self.box_received_ns) if self.box_received_ns else None,
+            },
+            "health": None if h is None else {
+                "fps": h.fps, "processing_ms_mean": h.processing_ms_mean, "processing_ms_p95": h.processing_ms_p95,
+                "frame_age_ms": h.frame_age_ms, "frames_received": h.frames_received,
+                "frames_processed": h.frames_processed, "frames_dropped": h.frames_dropped,
+                "frames_rejected": h.frames_rejected, "pme": h.pme, "last_seq": h.last_seq,
+                "restarts": h.restarts, "message": h.message, "age_ms": _ms(now_ns - h.stamp_ns),
+            },
+        }
+
+
+def _ms(ns: int) -> float:
+    return round(ns / 1e6, 1)
+
+
+@dataclass(frozen=True)
+class FrameSnapshot:
+    key: str
+    seq: int
+    stamp_ns: int
+    width: int
+    height: int
+    jpeg: bytes
+    received_ns: int
+
+
+class FrameWatcher:
+    """The newest Frame of one image key: a RingChannel(1) subscriber drained by one worker thread that reads
+    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). Non-JPEG frames are turned
+    into JPEG when someone asks for them, once per frame."""
+
+    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 15.0):
+        self.key = key
+        self.received = self.rejected = 0
+        self._min_period = 1.0 / max_fps if max_fps > 0 else 0.0
+        self._lock = threading.Lock()
+        self._frame: Frame | None = None
+        self._received_ns = 0
+        self._jpeg: FrameSnapshot | None = None
+        self._closed = threading.Event()
+        self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+        self._thread = threading.Thread(target=self._run, name=f"tacf-dashboard-frames-{key}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            for sample in self._sub:                       # ends when the subscriber is undeclared
+                started = time.monotonic()
+                try:
+                    frame = decode(sample.payload.to_bytes(), Frame)
+                except DecodeError as exc:
+                    self.rejected += 1
+                    log.debug("dropped a malformed frame on %s: %s", self.key, exc)
+                    continue
+                with self._lock:
+                    self._frame, self._received_ns = frame, time.time_ns()
+                    self.received += 1
+                if self._closed.wait(max(0.0, self._min_period - (time.monotonic() - started))):
+                    return
+        except zenoh.ZError:
+            pass                                           # the session closed under us
+
+    @property
+    def last_seq(self) -> int | None:
+        with self._lock:
+            return None if self._frame is None else self._frame.seq
+
+    def snapshot(self) -> FrameSnapshot | None:
+        """The newest frame as JPEG, or None before the first one."""
+        with self._lock:
+            frame, received_ns, cached = self._frame, self._received_ns, self._jpeg
+        if frame is None:
+            return None
+        if cached is not None and cached.seq == frame.seq and cached.received_ns == received_ns:
+            return cached
+        jpeg = frame.data if frame.encoding == "jpeg" else _to_jpeg(frame)
+        snap = FrameSnapshot(self.key, frame.seq, frame.stamp_ns, frame.width, frame.height, jpeg, received_ns)
+        with self._lock:
+            self._jpeg = snap
+        return snap
+
+    def close(self) -> None:
+        self._closed.set()
+        try:
+            self._sub.undeclare()
+        except zenoh.ZError:
+            pass
+        self._thread.join(timeout=5.0)
+
+
+def _to_jpeg(frame: Frame) -> bytes:
+    import cv2
+
+    from tacf_schemas.images import decode_frame
+
+    ok, buf = cv2.imencode(".jpg", decode_frame(frame), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    if not ok:
+        raise ValueError(f"cannot encode frame {frame.seq} as JPEG")
+    return buf.tobytes()
+
+
+class Dashboard:
+    """The dashboard's live state: sessions (from list replies, boxes and health), chart history and the newest
+    frame of each watched image key; control calls go through TrackingClient.
+
+    options / session: how to reach the Zenoh network (a given session is not closed here).
+    image_keys: keys to watch from the start (the keys of listed sessions are watched automatically).
+    node: only this service (None: every service that answers).
+    history_s: how many seconds of chart points each session keeps.
+    """
+
+    def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
+                 image_keys: Iterable[str] = (), node: str | None = None, history_s: float = 300.0,
+                 max_frame_fps: float = 15.0, timeout: float = 5.0):
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(options)
+        self.node = node
+        self.history_s = history_s
+        self.max_frame_fps = max_frame_fps
+        self.client = TrackingClient(session=self.session, node=node, timeout=timeout)
+        self._list_client = TrackingClient(session=self.session, node=node, timeout=LIST_TIMEOUT_S)
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._sessions: dict[str, SessionView] = {}
+        self._tombstones: dict[str, float] = {}
+        self._watchers: dict[str, FrameWatcher] = {}
+        self._nodes: dict[str, int] = {}                  # node -> max_sessions, from the last list round
+        self.list_ok_at: float | None = None              # monotonic time of the last list round that ran
+        self.list_error: str | None = None
+        self.messages = 0                                 # boxes + health received
+        self.closed = threading.Event()
+        self.started = time.monotonic()
+        try:
+            for key in image_keys:
+                self.watch(key)
+            self._stream = self.client.subscribe(on_box=self._on_result, on_health=self._on_result,
+                                                 latest_only=True)
+        except Exception:
+            self.close()
+            raise
+        self._poller = threading.Thread(target=self._poll, name="tacf-dashboard-list", daemon=True)
+        self._poller.start()
+
+    # --- lifetime -------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        if self.closed.is_set():
+            return
+        self.closed.set()
+        with self._changed:
+            self._changed.notify_all()
+        stream: ResultStream | None = getattr(self, "_stream", None)
+        if stream is not None:
+            stream.close()
+        poller = getattr(self, "_poller", None)
+        if poller is not None:
+            poller.join(timeout=LIST_TIMEOUT_S + 3)
+        with self._lock:
+            watchers, self._watchers = list(self._watchers.values()), {}
+        for watcher in watchers:
+            watcher.close()
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> "Dashboard":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- image keys -----------------------------------------------------------------------------------------
+    def watch(self, key: str) -> bool:
+        """Subscribe to the frames of image key `key` (idempotent). True if it is (now) watched; ValueError for
+        an invalid key or when MAX_IMAGE_KEYS are watched already."""
+        key = validate_image_key(key)
+        with self._lock:
+            if key in self._watchers:
+                return True
+            if len(self._watchers) >= MAX_IMAGE_KEYS:
+                raise ValueError(f"already watching {MAX_IMAGE_KEYS} image keys")
+            if self.closed.is_set():
+                return False
+            self._watchers[key] = FrameWatcher(self.session, key, self.max_frame_fps)
+            self._changed.notify_all()
+        log.info("watching frames on %s", key)
+        return True
+
+    def frame(self, key: str) -> FrameSnapshot | None:
+        with self._lock:
+            watcher = self._watchers.get(key)
+        return None if watcher is None else watcher.snapshot()
+
+    def image_keys(self) -> list[str]:
+        with self._lock:
+            return sorted(self._watchers)
+
+    def frame_counts(self) -> dict[str, tuple[int, int]]:
+        """key -> (frames received, frames rejected) by the dashboard's own frame subscribers."""
+        with self._lock:
+            return {key: (w.received, w.rejected) for key, w in self._watchers.items()}
+
+    # --- results (ResultStream worker thread) ------------------------------------------------------------------
+    def _on_result(self, item: BoxResult | Health) -> None:
+        sid_id = f"{item.node}/{item.sid}"
+        with self._changed:
+            self.messages += 1
+            if sid_id in self._tombstones or (isinstance(item, Health) and item.state == "stopped"):
+                return
+            view = self._sessions.get(sid_id)
+            if view is None:
+                view = self._sessions[sid_id] = SessionView(item.node, item.sid)
+            if isinstance(item, BoxResult):
+                if view.box is not None and item.published_ns < view.box.published_ns:
+                    return                                     # reordered: keep the newest
+                view.box, view.box_received_ns = item, time.time_ns()
+            else:
+                view.health, view.state = item, item.state
+                pme = item.pme if item.pme is not None else (view.box.pme if view.box is not None else None)
+                view.points.append(ChartPoint(item.stamp_ns // 1_000_000, item.fps, pme, item.processing_ms_mean,
+                                              item.frame_age_ms))
+                view.points_total += 1
+                horizon_ms = item.stamp_ns // 1_000_000 - self.history_s * 1000
+                while view.points and view.points[0].t_ms < horizon_ms:
+                    view.points.popleft()
+            view.version += 1
+            view.seen = time.monotonic()
+            self._changed.notify_all()
+
+    # --- session list (poller thread) ------------------------------------------------------------------------
+    def _poll(self) -> None:
+        while not self.closed.is_set():
+            started = time.monotonic()
+            try:
+                listings = self._list_client.services()
+                self._apply_listings(listings)
+                self.list_error = None
+            except TacfError as exc:
+                # NoService and timeouts are normal while no service runs: the dashboard keeps serving.
+                self._apply_listings([])
+                self.list_error = f"{type(exc).__name__}: {exc}"
+            except zenoh.ZError as exc:
+                if self.closed.is_set():
+                    return
+                self.list_error = f"zenoh: {exc}"
+            except Exception as exc:  # never let the poller die silently
+                log.exception("session list failed")
+                self.list_error = f"{type(exc).__name__}: {exc}"
+            self.list_ok_at = time.monotonic()
+            self.closed.wait(max(0.05, LIST_PERIOD_S - (time.monotonic() - started)))
+
+    def _apply_listings(self, listings) -> None:
+        now = time.monotonic()
+        answered = {listing.node for listing in listings}
+        listed: dict[str, SessionInfo] = {f"{info.node}/{info.sid}": info
+                                          for listing in listings for info in listing.sessions}
+        to_watch = set()
+        with self._changed:
+            self._nodes = {listing.node: listing.max_sessions for listing in listings}
+            self._tombstones = {k: t for k, t in self._tombstones.items() if now - t < TOMBSTONE_S}
+            for sid_id, info in listed.items():
+                if sid_id in self._tombstones:
+                    continue
+                self._update_from_info(info)
+                to_watch.add(info.image_key)
+            for sid_id, view in list(self._sessions.items()):
+                if sid_id in listed:
+                    continue
+                gone = view.node in answered and now - view.seen > LIST_PERIOD_S   # its service says it is gone
+                silent = now - view.seen > SILENT_DROP_S                            # its service went quiet
+                if gone or silent:
+                    del self._sessions[sid_id]
+            self._changed.notify_all()
+        for key in to_watch:
+            try:
+                self.watch(key)
+            except ValueError as exc:
+                log.debug("not watching %s: %s", key, exc)
+
+    def _update_from_info(self, info: SessionInfo) -> SessionView:
+        """Merge a SessionInfo (list, start, reinit reply) into the views; call with the lock held."""
+        sid_id = f"{info.node}/{info.sid}"
+        view = self._sessions.get(sid_id)
+        if view is None:
+            view = self._sessions[sid_id] = SessionView(info.node, info.sid)
+        changed = (view.image_key, view.profile, view.state) != (info.image_key, info.profile, info.state)
+        view.image_key, view.profile, view.created_ns = info.image_key, info.profile, info.created_ns
+        view.state = info.state
+        if view.health is None and info.health is not None:
+            view.health = info.health
+            changed = True
+        view.seen = time.monotonic()
+        if changed:
+            view.version += 1
+        return view
+
+    # --- control ----------------------------------------------------------------------------------------------
+    def start(self, image_key: str, box: Sequence[float], seq: int | None = None, *, sid: str | None = None,
+              profile: str | None = None, node: str | None = None) -> SessionInfo:
+        info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, node=node)
+        with self._changed:
+            self._tombstones.pop(f"{info.node}/{info.sid}", None)
+            self._update_from_info(info)
+            self._changed.notify_all()
+        self.watch(info.image_key)
+        return info
+
+    def stop(self, sid: str, *, node: str | None = None) -> SessionInfo:
+        info = self.client.stop(sid, node=node)
+        with self._changed:
+            sid_id = f"{info.node}/{info.sid}"
+            self._tombstones[sid_id] = time.monotonic()
+            self._sessions.pop(sid_id, None)
+            self._changed.notify_all()
+        return info
+
+    def reinit(self, sid: str, box: Sequence[float], seq: int | None = None, *,
+               node: str | None = None) -> SessionInfo:
+        info = self.client.reinit(sid, box, seq=seq, node=node)
+        with self._changed:
+            self._update_from_info(info)
+            self._changed.notify_all()
+        return info
+
+    # --- readers ----------------------------------------------------------------------------------------------
+    def wait_changed(self, timeout: float) -> None:
+        """Block until something changes (or `timeout` seconds pass, or the dashboard closes)."""
+        with self._changed:
+            if not self.closed.is_set():
+                self._changed.wait(timeout)
+
+    def versions(self) -> dict[str, tuple[int, int]]:
+        """sid id -> (version, points_total): cheap, for a reader to see what changed since it last looked."""
+        with self._lock:
+            return {k: (v.version, v.points_total) for k, v in self._sessions.items()}
+
+    def sessions_json(self, ids: Iterable[str] | None = None, points_after: dict[str, int] | None = None
+                      ) -> tuple[list[dict], dict[str, list[dict]]]:
+        """(sessions, new chart points by sid id). ids: only these sessions (None: all). points_after: per sid
+        id, the points_total the reader already has (only newer points are returned; absent = all kept)."""
+        now_ns = time.time_ns()
+        points_after = points_after or {}
+        with self._lock:
+            views = [v for k, v in sorted(self._sessions.items()) if ids is None or k in ids]
+            sessions = [v.to_json(now_ns) for v in views]
+            points = {}
+            for v in views:
+                new = v.points_total - points_after.get(v.id, 0)
+                if new > 0:
+                    kept = list(v.points)[-new:] if new < len(v.points) else list(v.points)
+                    points[v.id] = [p.to_json() for p in kept]
+        return sessions, points
+
+    def snapshot(self) -> dict:
+        """Everything the page needs to draw itself from scratch (GET /api/state)."""
+        sessions, points = self.sessions_json()
+        with self._lock:
+            nodes = dict(self._nodes)
+        return {"t": time.time_ns() // 1_000_000, "sessions": sessions, "points": points,
+                "keys": self.image_keys(), "nodes": nodes, "history_s": self.history_s,
+                "list_error": self.list_error}
+
+    def nodes(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._nodes)
+
+    def session_views(self) -> list[SessionView]:
+        """Copies of the session views (for /metrics)."""
+        with self._lock:
+            return [SessionView(v.node, v.sid, v.image_key, v.profile, v.state, v.created_ns, v.box,
+                                v.box_received_ns, v.health, deque(), v.points_total, v.version, v.seen)
+                    for _, v in sorted(self._sessions.items())]
+
+    def healthy(self) -> tuple[bool, str]:
+        """(ok, reason): the Zenoh side is open and the session poller ran within the last few periods."""
+        if self.closed.is_set():
+            return False, "closing"
+        if not self._poller.is_alive():
+            return False, "session poller stopped"
+        if self.list_ok_at is None:
+            if time.monotonic() - self.started > 3 * LIST_PERIOD_S + LIST_TIMEOUT_S:
+                return False, "no session list round yet"
+            return True, "starting"
+        age = time.monotonic() - self.list_ok_at
+        if age > 3 * LIST_PERIOD_S + LIST_TIMEOUT_S:
+            return False, f"session list stalled for {age:.0f} s"
+        return True, "ok"

@@ -1,0 +1,408 @@
+"""`tacf dashboard`, the web side: a stdlib ThreadingHTTPServer serving the page and its live data.
+
+    GET  /                    the page (clients/static/index.html, dashboard.js, dashboard.css: no CDN, no internet)
+    GET  /events              Server-Sent Events: every session's box, health and chart points, one stream
+    GET  /api/state           the same as one JSON snapshot (the page loads it first)
+    GET  /frame/<image key>   the newest frame of a watched key as JPEG (ETag = seq; 304 when unchanged)
+    GET  /mjpeg/<image key>   multipart/x-mixed-replace of the newest frames (a single view, e.g. VLC)
+    POST /api/watch           {"key"}: watch an image key's frames
+    POST /api/start           {"image_key", "box": [x, y, w, h], "seq"?, "sid"?, "profile"?, "node"?}
+    POST /api/stop            {"sid", "node"?}
+    POST /api/reinit          {"sid", "box", "seq"?, "node"?}
+    GET  /metrics             Prometheus text format (dashboard_metrics.py)
+    GET  /healthz             200 {"status": "ok"} while the Zenoh side works, else 503
+
+Latest-only and rate-capped: each /events connection wakes at most `events_hz` times a second and sends only
+what changed since its previous message (newest box and health per session, new chart points), read from the
+Dashboard's slots; nothing is queued per browser. A browser that stops reading only blocks its own handler
+thread until the socket write times out, then the connection is dropped. POSTs need a JSON content type (a
+cross-site form cannot send one), so another web page cannot start or stop sessions through a user's browser.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import mimetypes
+import threading
+import time
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from urllib.parse import unquote, urlsplit
+
+from tacf_clients import dashboard_metrics
+from tacf_clients.dashboard import Dashboard
+from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, DuplicateSession, InvalidRequest, NoService,
+                                 RequestTimeout, ServiceUnavailable, TacfError, TooManySessions, UnknownSession)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 8080
+EVENTS_HZ = 10.0                 # per /events connection, hence at most this rate per session
+KEEPALIVE_S = 15.0               # an SSE comment when nothing changed for this long (proxies, dead peers)
+WRITE_TIMEOUT_S = 10.0           # a browser that does not read for this long is dropped
+MAX_BODY = 64 * 1024
+MJPEG_FPS = 10.0
+
+_ERROR_STATUS = (                # most specific first
+    (UnknownSession, HTTPStatus.NOT_FOUND),
+    (DuplicateSession, HTTPStatus.CONFLICT),
+    (InvalidRequest, HTTPStatus.BAD_REQUEST),
+    ((AmbiguousNode, AmbiguousSession), HTTPStatus.CONFLICT),
+    (TooManySessions, HTTPStatus.TOO_MANY_REQUESTS),
+    ((NoService, ServiceUnavailable), HTTPStatus.SERVICE_UNAVAILABLE),
+    (RequestTimeout, HTTPStatus.GATEWAY_TIMEOUT),
+    (TacfError, HTTPStatus.BAD_GATEWAY),
+)
+
+
+def static_dir() -> Path:
+    """clients/static (installed as tacf_clients/static)."""
+    return Path(str(resources.files("tacf_clients") / "static"))
+
+
+class DashboardServer(ThreadingHTTPServer):
+    """One thread per connection (daemon threads: a hanging browser never blocks shutdown)."""
+
+    daemon_threads = True
+    allow_reuse_address = True
+
+    def __init__(self, address: tuple[str, int], dashboard: Dashboard, *, events_hz: float = EVENTS_HZ):
+        self.dashboard = dashboard
+        self.events_hz = events_hz
+        self.static = static_dir()
+        self.event_clients = 0
+        self._clients_lock = threading.Lock()
+        self.stopping = threading.Event()
+        super().__init__(address, DashboardHandler)
+
+    @property
+    def url(self) -> str:
+        host, port = self.server_address[:2]
+        return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{port}/"
+
+    def count_client(self, delta: int) -> None:
+        with self._clients_lock:
+            self.event_clients += delta
+
+    def stop(self) -> None:
+        """Stop serving (call from another thread than serve_forever's); open streams end within a tick."""
+        self.stopping.set()
+        self.shutdown()
+        self.server_close()
+
+
+class DashboardHandler(BaseHTTPRequestHandler):
+    server: DashboardServer
+    protocol_version = "HTTP/1.1"
+    timeout = WRITE_TIMEOUT_S
+    server_version = "tacf-dashboard"
+
+    def log_message(self, fmt: str, *args) -> None:
+        log.debug("%s %s", self.address_string(), fmt % args)
+
+    # --- routing --------------------------------------------------------------------------------------------
+    def do_GET(self) -> None:
+        path = urlsplit(self.path).path
+        try:
+            if path in ("/", "/index.html"):
+                self._static("index.html")
+            elif path.startswith("/static/"):
+                self._static(path[len("/static/"):])
+            elif path == "/events":
+                self._events()
+            elif path == "/api/state":
+                self._json(HTTPStatus.OK, self.server.dashboard.snapshot())
+            elif path.startswith("/frame/"):
+                self._frame(unquote(path[len("/frame/"):]))
+            elif path.startswith("/mjpeg/"):
+                self._mjpeg(unquote(path[len("/mjpeg/"):]))
+            elif path == "/metrics":
+                self._metrics()
+            elif path == "/healthz":
+                self._healthz()
+            else:
+                self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such page: {path}")
+        except (BrokenPipeError, ConnectionResetError, TimeoutError):
+            self.close_connection = True
+
+    def do_HEAD(self) -> None:
+        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET")
+
+    def do_POST(self) -> None:
+        path = urlsplit(self.path).path
+        actions = {"/api/start": self._start, "/api/stop": self._stop, "/api/reinit": self._reinit,
+                   "/api/watch": self._watch}
+        action = actions.get(path)
+        try:
+            if action is None:
+                self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such action: {path}")
+                return
+            body = self._read_json()
+            if body is None:
+                return
+            self._json(HTTPStatus.OK, action(body))
+        except TacfError as exc:
+            status = next(s for cls, s in _ERROR_STATUS if isinstance(exc, cls))
+            self._error(status, getattr(exc, "code", type(exc).__name__), str(exc))
+        except (ValueError, TypeError, KeyError) as exc:
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", str(exc) or type(exc).__name__)
+        except (BrokenPipeError, ConnectionResetError, TimeoutError):
+            self.close_connection = True
+
+    # --- actions ----------------------------------------------------------------------------------------------
+    def _start(self, body: dict) -> dict:
+        info = self.server.dashboard.start(_str(body, "image_key"), _box(body), _seq(body),
+                                           sid=_opt_str(body, "sid"), profile=_opt_str(body, "profile"),
+                                           node=_opt_str(body, "node"))
+        return json.loads(info.model_dump_json())
+
+    def _stop(self, body: dict) -> dict:
+        info = self.server.dashboard.stop(_str(body, "sid"), node=_opt_str(body, "node"))
+        return json.loads(info.model_dump_json())
+
+    def _reinit(self, body: dict) -> dict:
+        info = self.server.dashboard.reinit(_str(body, "sid"), _box(body), _seq(body), node=_opt_str(body, "node"))
+        return json.loads(info.model_dump_json())
+
+    def _watch(self, body: dict) -> dict:
+        key = _str(body, "key")
+        self.server.dashboard.watch(key)
+        return {"key": key, "keys": self.server.dashboard.image_keys()}
+
+    # --- pages ------------------------------------------------------------------------------------------------
+    def _static(self, name: str) -> None:
+        root = self.server.static.resolve()
+        target = (root / unquote(name)).resolve()
+        if root not in target.parents or not target.is_file():
+            self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such file: {name}")
+            return
+        body = target.read_bytes()
+        ctype = mimetypes.guess_type(target.name)[0] or "application/octet-stream"
+        if ctype.startswith("text/") or ctype in ("application/javascript", "text/javascript"):
+            ctype += "; charset=utf-8"
+        self._send(HTTPStatus.OK, body, ctype, {"Cache-Control": "no-cache"})
+
+    def _frame(self, key: str) -> None:
+        snap = self.server.dashboard.frame(key)
+        if snap is None:
+            watched = key in self.server.dashboard.image_keys()
+            self._error(HTTPStatus.NOT_FOUND, "no_frame",
+                        f"no frame yet on {key!r}" if watched else f"{key!r} is not watched: POST /api/watch")
+            return
+        etag = f'"{snap.seq}-{snap.received_ns}"'
+        headers = {"ETag": etag, "Cache-Control": "no-cache", "X-Seq": str(snap.seq),
+                   "X-Stamp-Ns": str(snap.stamp_ns), "X-Width": str(snap.width), "X-Height": str(snap.height)}
+        if self.headers.get("If-None-Match") == etag:
+            self._send(HTTPStatus.NOT_MODIFIED, b"", None, headers)
+            return
+        self._send(HTTPStatus.OK, snap.jpeg, "image/jpeg", headers)
+
+    def _mjpeg(self, key: str) -> None:
+        dashboard = self.server.dashboard
+        if key not in dashboard.image_keys():
+            self._error(HTTPStatus.NOT_FOUND, "not_watched", f"{key!r} is not watched: POST /api/watch")
+            return
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=tacfframe")
+        self.send_header("Cache-Control", "no-cache")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        self.close_connection = True
+        last = None
+        while not self._ending():
+            snap = dashboard.frame(key)
+            if snap is not None and (snap.seq, snap.received_ns) != last:
+                last = (snap.seq, snap.received_ns)
+                self.wfile.write(b"--tacfframe\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                                 + str(len(snap.jpeg)).encode() + b"\r\nX-Seq: " + str(snap.seq).encode()
+                                 + b"\r\n\r\n" + snap.jpeg + b"\r\n")
+                self.wfile.flush()
+            time.sleep(1.0 / MJPEG_FPS)
+
+    def _events(self) -> None:
+        """One SSE stream per browser: `state` once, then `update` events with what changed, at most
+        events_hz a second; a comment line as keep-alive."""
+        dashboard = self.server.dashboard
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "text/event-stream; charset=utf-8")
+        self.send_header("Cache-Control", "no-cache")
+        self.send_header("Connection", "close")
+        self.send_header("X-Accel-Buffering", "no")
+        self.end_headers()
+        self.close_connection = True
+        self.server.count_client(+1)
+        try:
+            period = 1.0 / self.server.events_hz
+            sent = dashboard.versions()        # before the snapshot: a change in between is sent twice, never lost
+            snapshot = dashboard.snapshot()
+            sent_keys = snapshot["keys"]
+            self._sse("state", snapshot, retry_ms=2000)
+            last_write = time.monotonic()
+            next_tick = time.monotonic() + period
+            while not self._ending():
+                dashboard.wait_changed(timeout=min(1.0, KEEPALIVE_S))
+                delay = next_tick - time.monotonic()
+                if delay > 0 and self.server.stopping.wait(delay):        # the rate cap
+                    break
+                next_tick = time.monotonic() + period
+                versions = dashboard.versions()
+                changed = [k for k, v in versions.items() if sent.get(k) != v]
+                removed = [k for k in sent if k not in versions]
+                keys = dashboard.image_keys()
+                if changed or removed or keys != sent_keys:
+                    sessions, points = dashboard.sessions_json(
+                        changed, {k: sent[k][1] for k in changed if k in sent})
+                    self._sse("update", {"t": time.time_ns() // 1_000_000, "sessions": sessions,
+                                         "points": points, "removed": removed, "keys": keys,
+                                         "nodes": dashboard.nodes()})
+                    sent, sent_keys, last_write = versions, keys, time.monotonic()
+                elif time.monotonic() - last_write > KEEPALIVE_S:
+                    self.wfile.write(b": keep-alive\n\n")
+                    self.wfile.flush()
+                    last_write = time.monotonic()
+        finally:
+            self.server.count_client(-1)
+
+    def _ending(self) -> bool:
+        return self.server.stopping.is_set() or self.server.dashboard.closed.is_set()
+
+    def _sse(self, event: str, data: dict, retry_ms: int | None = None) -> None:
+        text = (f"retry: {retry_ms}\n" if retry_ms else "") + f"event: {event}\ndata: {json.dumps(data)}\n\n"
+        self.wfile.write(text.encode())
+        self.wfile.flush()
+
+    def _metrics(self) -> None:
+        dashboard = self.server.dashboard
+        ok, _ = dashboard.healthy()
+        body = dashboard_metrics.render(dashboard.session_views(), frame_counts=dashboard.frame_counts(),
+                                        nodes=dashboard.nodes(), event_clients=self.server.event_clients, up=ok)
+        self._send(HTTPStatus.OK, body.encode(), dashboard_metrics.CONTENT_TYPE, {"Cache-Control": "no-cache"})
+
+    def _healthz(self) -> None:
+        dashboard = self.server.dashboard
+        ok, reason = dashboard.healthy()
+        body = {"status": "ok" if ok else "unavailable", "reason": reason, "services": sorted(dashboard.nodes()),
+                "sessions": len(dashboard.versions()), "image_keys": dashboard.image_keys(),
+                "list_error": dashboard.list_error}
+        self._json(HTTPStatus.OK if ok else HTTPStatus.SERVICE_UNAVAILABLE, body)
+
+    # --- plumbing ---------------------------------------------------------------------------------------------
+    def _read_json(self) -> dict | None:
+        ctype = (self.headers.get("Content-Type") or "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            self._error(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "invalid_request", "send Content-Type: application/json")
+            return None
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if not 0 < length <= MAX_BODY:
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"a JSON body of 1 to {MAX_BODY} bytes is needed")
+            return None
+        try:
+            body = json.loads(self.rfile.read(length))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"not JSON: {exc}")
+            return None
+        if not isinstance(body, dict):
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", "expected a JSON object")
+            return None
+        return body
+
+    def _json(self, status: HTTPStatus, body: dict) -> None:
+        self._send(status, json.dumps(body).encode(), "application/json", {"Cache-Control": "no-cache"})
+
+    def _error(self, status: HTTPStatus, code: str, message: str) -> None:
+        self._json(status, {"error": code, "message": message})
+
+    def _send(self, status: HTTPStatus, body: bytes, ctype: str | None, headers: dict[str, str]) -> None:
+        self.send_response(status)
+        if ctype:
+            self.send_header("Content-Type", ctype)
+        for name, value in headers.items():
+            self.send_header(name, value)
+        self.send_header("X-Content-Type-Options", "nosniff")
+        if status != HTTPStatus.NOT_MODIFIED:
+            self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        if body:
+            self.wfile.write(body)
+
+
+# --- request fields ------------------------------------------------------------------------------------------------
+def _str(body: dict, name: str) -> str:
+    value = body.get(name)
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{name!r}: a non-empty string is needed")
+    return value
+
+
+def _opt_str(body: dict, name: str) -> str | None:
+    value = body.get(name)
+    if value in (None, ""):
+        return None
+    if not isinstance(value, str):
+        raise ValueError(f"{name!r}: expected a string")
+    return value
+
+
+def _box(body: dict) -> tuple[float, float, float, float]:
+    box = body.get("box")
+    if not isinstance(box, list) or len(box) != 4 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                             for v in box):
+        raise ValueError("'box': expected [x, y, w, h] numbers")
+    return tuple(float(v) for v in box)  # type: ignore[return-value]
+
+
+def _seq(body: dict) -> int | None:
+    seq = body.get("seq")
+    if seq is None:
+        return None
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+        raise ValueError("'seq': expected a frame seq (integer >= 0)")
+    return seq
+
+
+# --- running it ----------------------------------------------------------------------------------------------------
+class DashboardApp:
+    """A Dashboard plus its HTTP server on a thread: `with DashboardApp(options, port=0) as app: app.url`."""
+
+    def __init__(self, options=None, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, session=None,
+                 image_keys=(), node: str | None = None, history_s: float = 300.0, events_hz: float = EVENTS_HZ):
+        self.dashboard = Dashboard(options, session=session, image_keys=image_keys, node=node, history_s=history_s)
+        try:
+            self.server = DashboardServer((host, port), self.dashboard, events_hz=events_hz)
+        except Exception:
+            self.dashboard.close()
+            raise
+        self._thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.2},
+                                        name="tacf-dashboard-http", daemon=True)
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        return self.server.url
+
+    def close(self) -> None:
+        self.server.stop()
+        self._thread.join(timeout=5)
+        self.dashboard.close()
+
+    def __enter__(self) -> "DashboardApp":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def serve(options=None, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, image_keys=(), node: str | None = None,
+          history_s: float = 300.0, stop: threading.Event, on_ready=None) -> int:
+    """Run the dashboard until `stop` is set (tacf dashboard). on_ready(url) is called once it serves."""
+    with DashboardApp(options, host=host, port=port, image_keys=image_keys, node=node, history_s=history_s) as app:
+        if on_ready is not None:
+            on_ready(app.url)
+        while not stop.wait(0.5):
+            pass
+    return 0

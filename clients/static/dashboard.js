@@ -1,0 +1,431 @@
+// TACF ground station page. Plain JavaScript, no library, no network access beyond this dashboard's own server:
+// - one EventSource on /events brings every session's newest box, health and chart points (latest-only, capped);
+// - one frame feed per image key polls /frame/<key> with at most one request in flight and at most FRAME_HZ,
+//   so a slow browser simply shows fewer frames;
+// - charts are drawn on <canvas> by hand (drawChart).
+// window.tacf exposes the page's state for end-to-end tests.
+"use strict";
+
+const FRAME_HZ = 10;
+const CHART_REDRAW_MS = 1000;
+const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f7", fps: "#ffb74d",
+                  grid: "#2c3644", text: "#8a96a8" };
+
+const state = {
+  sessions: new Map(),     // id -> session JSON (see Dashboard.to_json)
+  points: new Map(),       // id -> [{t, fps, pme, proc, age}]
+  keys: [],                // watched image keys
+  nodes: {},               // node -> max_sessions
+  historyMs: 300000,
+  feeds: new Map(),        // image key -> FrameFeed
+  cards: new Map(),        // id -> card elements
+  drawn: {},               // id -> what the last frame draw showed (tests read it)
+  charts: {},              // id -> {points, redraws}
+  reinit: null,            // id of the session being re-initialised by drawing
+  events: 0,
+  connected: false,
+};
+window.tacf = state;
+
+// ------------------------------------------------------------------------------------------------ helpers
+const $ = (sel, root = document) => root.querySelector(sel);
+const fmt = (v, digits = 1) => (v === null || v === undefined || Number.isNaN(v)) ? "–" : Number(v).toFixed(digits);
+
+function toast(message) {
+  const el = $("#toast");
+  el.textContent = message;
+  el.hidden = false;
+  clearTimeout(toast.timer);
+  toast.timer = setTimeout(() => { el.hidden = true; }, 6000);
+}
+
+async function post(path, body) {
+  const response = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" },
+                                       body: JSON.stringify(body) });
+  const data = await response.json().catch(() => ({}));
+  if (!response.ok) throw new Error(`${data.error || response.status}: ${data.message || response.statusText}`);
+  return data;
+}
+
+// ------------------------------------------------------------------------------------------------ frames
+class FrameFeed {
+  // The newest frame of one image key: polls /frame/<key> (ETag: 304 when nothing new), one request at a time.
+  constructor(key) {
+    this.key = key; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0;
+    this.etag = null; this.frames = 0; this.users = 0; this.stopped = false;
+    this.loop();
+  }
+  async loop() {
+    while (!this.stopped) {
+      const started = performance.now();
+      try {
+        const headers = this.etag ? { "If-None-Match": this.etag } : {};
+        const response = await fetch("/frame/" + encodeURI(this.key), { headers, cache: "no-store" });
+        if (response.status === 200) {
+          const blob = await response.blob();
+          const bitmap = await createImageBitmap(blob);
+          // no bitmap.close(): a drawing in progress may still hold the previous frame
+          this.bitmap = bitmap;
+          this.etag = response.headers.get("ETag");
+          this.seq = Number(response.headers.get("X-Seq"));
+          this.width = bitmap.width; this.height = bitmap.height;
+          this.frames += 1;
+          scheduleDraw();
+        }
+      } catch (err) { /* server restarting or frame not decodable: try again */ }
+      const wait = Math.max(1000 / FRAME_HZ - (performance.now() - started), document.hidden ? 1000 : 0);
+      await new Promise((resolve) => setTimeout(resolve, wait));
+    }
+  }
+}
+
+function feedFor(key) {
+  if (!key) return null;
+  let feed = state.feeds.get(key);
+  if (!feed) { feed = new FrameFeed(key); state.feeds.set(key, feed); }
+  return feed;
+}
+
+// Canvas pixels are image pixels: the canvas is resized to the frame, CSS scales it to the card.
+function paintFrame(canvas, feed) {
+  const ctx = canvas.getContext("2d");
+  if (!feed || !feed.bitmap) {
+    ctx.fillStyle = "#000"; ctx.fillRect(0, 0, canvas.width, canvas.height);
+    ctx.fillStyle = COLOURS.text; ctx.font = "16px sans-serif";
+    ctx.fillText(feed ? `waiting for frames on ${feed.key}` : "no image key", 16, 28);
+    return false;
+  }
+  if (canvas.width !== feed.width || canvas.height !== feed.height) {
+    canvas.width = feed.width; canvas.height = feed.height;
+  }
+  ctx.drawImage(feed.bitmap, 0, 0);
+  return true;
+}
+
+function strokeBox(ctx, box, colour, label, dashed = false) {
+  const [x, y, w, h] = box;
+  ctx.save();
+  ctx.lineWidth = 3; ctx.strokeStyle = colour;
+  if (dashed) ctx.setLineDash([8, 5]);
+  ctx.strokeRect(x, y, w, h);
+  if (label) {
+    ctx.font = "bold 14px sans-serif";
+    const width = ctx.measureText(label).width + 8;
+    const top = y >= 20 ? y - 20 : y + h + 2;
+    ctx.fillStyle = "rgba(0,0,0,0.6)"; ctx.fillRect(x - 1.5, top, width, 18);
+    ctx.fillStyle = colour; ctx.fillText(label, x + 2.5, top + 14);
+  }
+  ctx.restore();
+}
+
+// ------------------------------------------------------------------------------------------------ drawing a box
+const drafts = new WeakMap();   // canvas -> {x0, y0, x1, y1, feed snapshot}
+
+function canvasPoint(canvas, event) {
+  const rect = canvas.getBoundingClientRect();
+  return [(event.clientX - rect.left) * canvas.width / rect.width,
+          (event.clientY - rect.top) * canvas.height / rect.height];
+}
+
+function enableDrawing(canvas, feedOf, onBox) {
+  canvas.addEventListener("mousedown", (event) => {
+    const feed = feedOf();
+    if (!feed || !feed.bitmap || event.button !== 0 || !canvas.classList.contains("drawable")) return;
+    const [x, y] = canvasPoint(canvas, event);
+    // Hold the frame the operator draws on: the box is sent with its seq.
+    drafts.set(canvas, { x0: x, y0: y, x1: x, y1: y, bitmap: feed.bitmap, seq: feed.seq });
+    event.preventDefault();
+  });
+  canvas.addEventListener("mousemove", (event) => {
+    const draft = drafts.get(canvas);
+    if (!draft) return;
+    [draft.x1, draft.y1] = canvasPoint(canvas, event);
+    scheduleDraw();
+  });
+  const finish = (event) => {
+    const draft = drafts.get(canvas);
+    if (!draft) return;
+    drafts.delete(canvas);
+    if (event) [draft.x1, draft.y1] = canvasPoint(canvas, event);
+    const clamp = (v, max) => Math.min(Math.max(v, 0), max);
+    const x0 = clamp(Math.min(draft.x0, draft.x1), canvas.width), x1 = clamp(Math.max(draft.x0, draft.x1), canvas.width);
+    const y0 = clamp(Math.min(draft.y0, draft.y1), canvas.height), y1 = clamp(Math.max(draft.y0, draft.y1), canvas.height);
+    scheduleDraw();
+    if (x1 - x0 < 4 || y1 - y0 < 4) return;          // a click, not a box
+    onBox([Math.round(x0), Math.round(y0), Math.round(x1 - x0), Math.round(y1 - y0)], draft.seq);
+  };
+  canvas.addEventListener("mouseup", finish);
+  canvas.addEventListener("mouseleave", () => { if (drafts.get(canvas)) finish(null); });
+}
+
+function paintDraft(canvas) {
+  const draft = drafts.get(canvas);
+  if (!draft) return false;
+  canvas.getContext("2d").drawImage(draft.bitmap, 0, 0);
+  const x = Math.min(draft.x0, draft.x1), y = Math.min(draft.y0, draft.y1);
+  strokeBox(canvas.getContext("2d"), [x, y, Math.abs(draft.x1 - draft.x0), Math.abs(draft.y1 - draft.y0)],
+            COLOURS.draft, "new box", true);
+  return true;
+}
+
+// ------------------------------------------------------------------------------------------------ charts
+function drawChart(canvas, points, field, colour, now) {
+  const dpr = window.devicePixelRatio || 1;
+  const cssW = canvas.clientWidth || 300, cssH = canvas.clientHeight || 110;
+  if (canvas.width !== Math.round(cssW * dpr)) { canvas.width = Math.round(cssW * dpr); canvas.height = Math.round(cssH * dpr); }
+  const ctx = canvas.getContext("2d");
+  ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+  ctx.clearRect(0, 0, cssW, cssH);
+  const left = 34, right = 6, top = 6, bottom = 16;
+  const w = cssW - left - right, h = cssH - top - bottom;
+  const t0 = now - state.historyMs;
+  const values = points.filter((p) => p.t >= t0 && p[field] !== null && p[field] !== undefined);
+  let max = Math.max(1, ...values.map((p) => p[field]));
+  const magnitude = Math.pow(10, Math.floor(Math.log10(max)));
+  max = Math.ceil(max * 1.1 / magnitude) * magnitude;
+  ctx.font = "10px sans-serif"; ctx.fillStyle = COLOURS.text; ctx.strokeStyle = COLOURS.grid; ctx.lineWidth = 1;
+  for (let i = 0; i <= 2; i++) {                                   // horizontal grid: 0, max/2, max
+    const y = top + h - (h * i) / 2;
+    ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + w, y); ctx.stroke();
+    ctx.fillText(fmt((max * i) / 2, max >= 10 ? 0 : 1), 2, y + 3);
+  }
+  const minutes = state.historyMs / 60000;
+  for (let m = 0; m <= minutes; m++) {                             // a tick a minute, labelled back from now
+    const x = left + w * (1 - m / minutes);
+    ctx.beginPath(); ctx.moveTo(x, top + h); ctx.lineTo(x, top + h + 3); ctx.stroke();
+    ctx.fillText(m === 0 ? "now" : `-${m}m`, Math.min(x - 8, left + w - 18), cssH - 3);
+  }
+  if (values.length) {
+    ctx.strokeStyle = colour; ctx.lineWidth = 1.5; ctx.beginPath();
+    values.forEach((p, i) => {
+      const x = left + (w * (p.t - t0)) / state.historyMs, y = top + h - (h * p[field]) / max;
+      if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y);
+    });
+    ctx.stroke();
+    const last = values[values.length - 1];
+    ctx.fillStyle = colour; ctx.font = "bold 12px sans-serif";
+    ctx.fillText(fmt(last[field]), left + w - 40, top + 12);
+  }
+}
+
+// ------------------------------------------------------------------------------------------------ session cards
+function cardFor(session) {
+  let card = state.cards.get(session.id);
+  if (card) return card;
+  const root = $("#card-template").content.firstElementChild.cloneNode(true);
+  root.dataset.id = session.id;
+  root.id = "card-" + session.id.replace(/[^A-Za-z0-9_-]/g, "_");
+  card = { root, frame: $("canvas.frame", root), pme: $("canvas.pme", root), fps: $("canvas.fps", root) };
+  $(".sid", root).textContent = session.sid;
+  $(".node", root).textContent = "on " + session.node;
+  enableDrawing(card.frame, () => feedFor(state.sessions.get(session.id)?.image_key), async (box, seq) => {
+    const s = state.sessions.get(session.id);
+    setReinit(null);
+    try {
+      await post("/api/reinit", { sid: s.sid, node: s.node, box, seq });
+    } catch (err) { toast(`re-init ${s.sid}: ${err.message}`); }
+  });
+  state.cards.set(session.id, card);
+  $("#cards").appendChild(root);
+  return card;
+}
+
+function setReinit(id) {
+  state.reinit = id;
+  for (const [cid, card] of state.cards) {
+    const on = cid === id;
+    card.root.classList.toggle("reinit", on);
+    card.frame.classList.toggle("drawable", on);
+    $(".reinit-hint", card.root).hidden = !on;
+  }
+}
+document.addEventListener("keydown", (event) => { if (event.key === "Escape") setReinit(null); });
+
+function paintCard(id) {
+  const session = state.sessions.get(id), card = state.cards.get(id);
+  if (!session || !card) return;
+  if (paintDraft(card.frame)) return;
+  const feed = feedFor(session.image_key);
+  const painted = paintFrame(card.frame, feed);
+  const badge = $(".state", card.root);
+  badge.textContent = session.state; badge.className = `state badge state-${session.state}`;
+  if (painted && session.box) {
+    const ok = session.box.ok;
+    strokeBox(card.frame.getContext("2d"), session.box.box, ok ? COLOURS.ok : COLOURS.lost,
+              `${session.sid}  PME ${fmt(session.box.pme)}${ok ? "" : "  LOST"}`);
+    const drawn = state.drawn[id] || { count: 0 };
+    state.drawn[id] = { count: drawn.count + 1, box: session.box.box, boxSeq: session.box.seq, frameSeq: feed.seq,
+                        colour: ok ? COLOURS.ok : COLOURS.lost };
+  }
+}
+
+function paintCharts(now) {
+  for (const [id, card] of state.cards) {
+    const points = state.points.get(id) || [];
+    drawChart(card.pme, points, "pme", COLOURS.pme, now);
+    drawChart(card.fps, points, "fps", COLOURS.fps, now);
+    const chart = state.charts[id] || { redraws: 0 };
+    state.charts[id] = { points: points.length, redraws: chart.redraws + 1, last: points.length ? points[points.length - 1] : null };
+  }
+}
+
+// ------------------------------------------------------------------------------------------------ session table
+// Rows are kept and updated in place (never rebuilt), so that a click on a button is never lost to a refresh.
+const rowsById = new Map();
+
+function makeRow(s) {
+  const tr = document.createElement("tr");
+  tr.dataset.id = s.id; tr.dataset.sid = s.sid;
+  for (let i = 0; i < 9; i++) tr.appendChild(document.createElement("td"));
+  const badge = document.createElement("span");
+  tr.cells[3].appendChild(badge); tr.cells[3].className = "state";
+  for (let i = 4; i < 9; i++) tr.cells[i].className = "num";
+  const actions = document.createElement("td");
+  const reinit = document.createElement("button");
+  reinit.textContent = "re-init"; reinit.className = "reinit";
+  reinit.title = "draw a new box on this session's frame";
+  reinit.onclick = () => {
+    setReinit(state.reinit === s.id ? null : s.id);
+    state.cards.get(s.id)?.root.scrollIntoView({ block: "nearest" });
+  };
+  const stop = document.createElement("button");
+  stop.textContent = "stop"; stop.className = "stop danger";
+  stop.onclick = async () => {
+    stop.disabled = true;
+    try { await post("/api/stop", { sid: s.sid, node: s.node }); removeSession(s.id); }
+    catch (err) { toast(`stop ${s.sid}: ${err.message}`); stop.disabled = false; }
+  };
+  actions.append(reinit, " ", stop);
+  tr.appendChild(actions);
+  return tr;
+}
+
+function renderTable() {
+  const body = $("#sessions tbody");
+  const rows = [...state.sessions.values()].sort((a, b) => a.id.localeCompare(b.id));
+  $("#no-sessions").hidden = rows.length > 0;
+  for (const [id, tr] of rowsById) if (!state.sessions.has(id)) { tr.remove(); rowsById.delete(id); }
+  rows.forEach((s, index) => {
+    let tr = rowsById.get(s.id);
+    if (!tr) { tr = makeRow(s); rowsById.set(s.id, tr); }
+    if (body.children[index] !== tr) body.insertBefore(tr, body.children[index] || null);
+    const h = s.health || {};
+    const texts = [s.sid, s.node, s.image_key || "–", null, fmt(h.fps), fmt(s.box ? s.box.pme : h.pme),
+                   h.frame_age_ms == null ? "–" : `${fmt(h.frame_age_ms, 0)} ms`,
+                   s.box && s.box.latency_ms != null ? `${fmt(s.box.latency_ms, 0)} ms` : "–",
+                   h.frames_dropped == null ? "–" : String(h.frames_dropped)];
+    texts.forEach((text, i) => { if (text !== null && tr.cells[i].textContent !== text) tr.cells[i].textContent = text; });
+    const badge = tr.cells[3].firstChild;
+    badge.className = `badge state-${s.state}`; badge.textContent = s.state; badge.title = h.message || "";
+  });
+  const nodes = Object.entries(state.nodes);
+  $("#services").textContent = nodes.length
+    ? "services: " + nodes.map(([node, max]) => `${node} (${rows.filter((s) => s.node === node).length}/${max})`).join(", ")
+    : "no service answered";
+}
+
+function renderKeys() {
+  const select = $("#key-select");
+  const current = select.value;
+  const keys = [...state.keys];
+  if (keys.join("\n") === [...select.options].map((o) => o.value).join("\n")) return;
+  select.replaceChildren(...keys.map((k) => { const o = document.createElement("option"); o.value = o.textContent = k; return o; }));
+  if (keys.includes(current)) select.value = current;
+  scheduleDraw();
+}
+
+// ------------------------------------------------------------------------------------------------ state updates
+function mergeSessions(sessions) {
+  for (const s of sessions) {
+    state.sessions.set(s.id, s);
+    cardFor(s);
+  }
+}
+
+function mergePoints(points) {
+  for (const [id, list] of Object.entries(points || {})) {
+    const mine = state.points.get(id) || [];
+    const lastT = mine.length ? mine[mine.length - 1].t : -Infinity;
+    for (const p of list) if (p.t > lastT) mine.push(p);            // a reconnect may resend points
+    const horizon = Date.now() - state.historyMs - 60000;
+    while (mine.length && mine[0].t < horizon) mine.shift();
+    state.points.set(id, mine);
+  }
+}
+
+function removeSession(id) {
+  state.sessions.delete(id); state.points.delete(id); delete state.drawn[id];
+  const card = state.cards.get(id);
+  if (card) { card.root.remove(); state.cards.delete(id); }
+  if (state.reinit === id) setReinit(null);
+}
+
+function applyState(data) {
+  for (const id of [...state.sessions.keys()]) removeSession(id);
+  state.historyMs = (data.history_s || 300) * 1000;
+  mergeSessions(data.sessions);
+  mergePoints(data.points);
+  state.keys = data.keys; state.nodes = data.nodes || {};
+  refresh();
+}
+
+function applyUpdate(data) {
+  mergeSessions(data.sessions);
+  mergePoints(data.points);
+  (data.removed || []).forEach(removeSession);
+  state.keys = data.keys; state.nodes = data.nodes || state.nodes;
+  refresh(Object.keys(data.points || {}).length > 0);
+}
+
+function refresh(newPoints = true) {
+  renderTable(); renderKeys(); scheduleDraw();
+  if (newPoints) paintCharts(Date.now());
+}
+
+// ------------------------------------------------------------------------------------------------ the loop
+let drawQueued = false;
+function scheduleDraw() {
+  if (drawQueued) return;
+  drawQueued = true;
+  requestAnimationFrame(() => {
+    drawQueued = false;
+    for (const id of state.cards.keys()) paintCard(id);
+    const canvas = $("#new-canvas");
+    if (!paintDraft(canvas)) paintFrame(canvas, feedFor($("#key-select").value));
+  });
+}
+setInterval(() => paintCharts(Date.now()), CHART_REDRAW_MS);   // the time axis scrolls even without news
+
+function connect() {
+  const source = new EventSource("/events");
+  const conn = $("#conn");
+  source.addEventListener("open", () => { state.connected = true; conn.textContent = "live"; conn.className = "conn up"; });
+  source.addEventListener("error", () => { state.connected = false; conn.textContent = "reconnecting…"; conn.className = "conn down"; });
+  source.addEventListener("state", (e) => { state.events += 1; applyState(JSON.parse(e.data)); });
+  source.addEventListener("update", (e) => { state.events += 1; applyUpdate(JSON.parse(e.data)); });
+}
+
+// ------------------------------------------------------------------------------------------------ new session panel
+$("#watch-form").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const key = $("#key-input").value.trim();
+  if (!key) return;
+  try {
+    const reply = await post("/api/watch", { key });
+    state.keys = reply.keys; renderKeys(); $("#key-select").value = key; $("#key-input").value = "";
+    scheduleDraw();
+  } catch (err) { toast(`watch ${key}: ${err.message}`); }
+});
+$("#key-select").addEventListener("change", scheduleDraw);
+enableDrawing($("#new-canvas"), () => feedFor($("#key-select").value), async (box, seq) => {
+  const key = $("#key-select").value, sid = $("#sid-input").value.trim();
+  const status = $("#new-status");
+  status.textContent = `starting a session on ${key} at (${box.join(", ")}) of frame ${seq}…`;
+  try {
+    const info = await post("/api/start", { image_key: key, box, seq, sid: sid || undefined });
+    status.textContent = `session ${info.sid} started on ${info.node} (${info.state})`;
+    $("#sid-input").value = "";
+  } catch (err) { status.textContent = `start failed: ${err.message}`; toast(`start: ${err.message}`); }
+});
+
+connect();

@@ -1,0 +1,360 @@
+"""`tacf dashboard` as a user sees it: a real `tacf serve`, a camera publishing the generated scene, the
+dashboard on a free port, plain HTTP (/healthz, /metrics, the API, the event stream) and a real headless
+Chromium (Debian's chromium + chromedriver, driven by selenium) that sees a box drawn and charts moving,
+draws a box to start a session and stops it.
+
+Set TACF_DASHBOARD_SCREENSHOT=docs/dashboard.png to keep the browser's screenshot.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from tacf_clients import dashboard_metrics
+from tacf_clients.client import TrackingClient
+from tacf_clients.dashboard_http import DashboardApp, static_dir
+from tacf_clients.demo import HoldingPublisher
+from tacf_clients.local_service import LocalService, free_port
+from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.zconfig import ZenohOptions, make_config
+
+pytestmark = pytest.mark.zenoh
+
+SCENE = Scene.from_spec("scene:320x240")
+KEY = "test/dashboard/cam"
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--disable-dev-shm-usage", "--window-size=1280,1000")
+
+
+# ------------------------------------------------------------------------------------------------ fixtures
+
+@pytest.fixture(scope="module")
+def stack():
+    """A service, a camera (moving scene at 20 fps) and a dashboard; session 'pre' tracks from the start."""
+    with LocalService(node=f"dash{free_port()}") as service:
+        with zenoh.open(make_config(service.options)) as session:
+            service.wait_ready(session)
+            camera = HoldingPublisher(session, SceneSource(SCENE), KEY, 20, "jpeg")
+            camera.hold.clear()
+            camera.start()
+            assert _wait(lambda: camera.last_seq >= 0)
+            client = TrackingClient(session=session, node=service.node, timeout=10.0)
+            with DashboardApp(service.options, port=0, image_keys=[KEY]) as app:
+                seq = camera.last_seq
+                client.start(KEY, SCENE.box(camera.index_of(seq)), seq=seq, sid="pre")
+                try:
+                    yield app, client, camera, service
+                finally:
+                    for info in client.list():
+                        client.stop(info.sid)
+            camera.close()
+
+
+def _wait(predicate, timeout: float = 20.0, step: float = 0.1):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(step)
+    return None
+
+
+def _get(url: str, headers: dict | None = None) -> tuple[int, dict, bytes]:
+    request = urllib.request.Request(url, headers=headers or {})
+    try:
+        with urllib.request.urlopen(request, timeout=10) as response:
+            return response.status, dict(response.headers), response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+def _post(url: str, body, content_type: str = "application/json") -> tuple[int, dict]:
+    data = body if isinstance(body, bytes) else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, method="POST", headers={"Content-Type": content_type})
+    try:
+        with urllib.request.urlopen(request, timeout=20) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read() or b"{}")
+
+
+def _metrics(text: str) -> dict[tuple[str, frozenset], float]:
+    """Parse the text format strictly enough to catch a malformed line."""
+    samples = {}
+    line_re = re.compile(r'^([a-zA-Z_:][a-zA-Z0-9_:]*)(?:\{((?:[a-zA-Z_][a-zA-Z0-9_]*="(?:[^"\\\n]|\\.)*",?)*)\})? '
+                         r'(-?[0-9.e+-]+|NaN|[+-]Inf)$')
+    for line in text.splitlines():
+        if not line or line.startswith("# HELP ") or line.startswith("# TYPE "):
+            continue
+        match = line_re.match(line)
+        assert match, f"malformed metrics line: {line!r}"
+        labels = frozenset(re.findall(r'([a-zA-Z_][a-zA-Z0-9_]*)="((?:[^"\\]|\\.)*)"', match.group(2) or ""))
+        samples[(match.group(1), labels)] = float(match.group(3))
+    return samples
+
+
+# ------------------------------------------------------------------------------------------------ plain HTTP
+
+def test_healthz_metrics_and_state(stack):
+    app, client, camera, service = stack
+    base = app.url.rstrip("/")
+    assert _wait(lambda: (s := client.status("pre")).health is not None and s.health.fps > 0, timeout=40)
+
+    status, headers, body = _get(base + "/healthz")
+    health = json.loads(body)
+    assert status == 200 and health["status"] == "ok", health
+    assert health["services"] == [service.node] and KEY in health["image_keys"]
+
+    def session_metrics():
+        status, headers, body = _get(base + "/metrics")
+        assert status == 200 and headers["Content-Type"].startswith("text/plain; version=0.0.4")
+        return _metrics(body.decode())
+
+    labels = frozenset({("node", service.node), ("sid", "pre"), ("image_key", KEY)})
+    samples = _wait(lambda: (m := session_metrics()).get(("tacf_session_fps", labels)) and m, timeout=20)
+    assert samples, "a per-session fps sample"
+    assert samples[("tacf_session_fps", labels)] > 1
+    for name in ("tacf_session_processing_ms_mean", "tacf_session_processing_ms_p95", "tacf_session_frame_age_ms",
+                 "tacf_session_box_latency_ms", "tacf_session_frames_dropped_total", "tacf_session_pme",
+                 "tacf_session_frames_processed_total"):
+        assert (name, labels) in samples, name
+    assert samples[("tacf_session_state", labels | {("state", "tracking")})] == 1
+    assert samples[("tacf_session_state", labels | {("state", "lost")})] == 0
+    assert samples[("tacf_dashboard_up", frozenset())] == 1
+    assert samples[("tacf_dashboard_frames_received_total", frozenset({("image_key", KEY)}))] > 0
+
+    status, _, body = _get(base + "/api/state")
+    state = json.loads(body)
+    [pre] = [s for s in state["sessions"] if s["sid"] == "pre"]
+    assert pre["image_key"] == KEY and pre["box"] is not None and pre["health"]["fps"] > 0
+    assert state["points"][pre["id"]], "chart points"
+
+    status, headers, jpeg = _get(base + "/frame/" + KEY)
+    assert status == 200 and headers["Content-Type"] == "image/jpeg" and jpeg[:2] == b"\xff\xd8"
+    assert int(headers["X-Width"]) == SCENE.width and int(headers["X-Seq"]) >= 0
+    status, _, _ = _get(base + "/frame/" + KEY, {"If-None-Match": headers["ETag"]})
+    assert status in (200, 304)                      # 304 unless a newer frame arrived in between
+    assert _get(base + "/frame/not/watched")[0] == 404
+    assert _get(base + "/static/../dashboard.py")[0] == 404
+
+
+def test_api_validates_and_reports_service_errors(stack):
+    app, client, camera, service = stack
+    base = app.url.rstrip("/")
+    status, body = _post(base + "/api/start", b"image_key=x", "application/x-www-form-urlencoded")
+    assert status == 415, "a cross-site form cannot start sessions"
+    assert _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 3]})[0] == 400
+    assert _post(base + "/api/start", {"image_key": "bad key*", "box": [1, 2, 3, 4]})[0] == 400
+    status, body = _post(base + "/api/stop", {"sid": "nosuchsession"})
+    assert status == 404 and body["error"] == "unknown_session", body
+    assert _post(base + "/api/watch", {"key": "tacf/x"})[0] == 400
+
+    seq = camera.last_seq
+    status, body = _post(base + "/api/reinit", {"sid": "pre", "box": list(SCENE.box(camera.index_of(seq))),
+                                                "seq": seq})
+    assert status == 200 and body["sid"] == "pre", body
+
+
+def test_event_stream_is_latest_only_and_rate_capped(stack):
+    """Boxes arrive at ~20 Hz; a browser gets at most ~10 messages a second, each session once per message."""
+    app, client, camera, service = stack
+    assert _wait(lambda: client.status("pre").health is not None, timeout=40)
+    events = []
+    with urllib.request.urlopen(app.url + "events", timeout=10) as stream:
+        assert stream.headers["Content-Type"].startswith("text/event-stream")
+        started = time.monotonic()
+        event = None
+        while time.monotonic() - started < 2.0:
+            line = stream.readline().decode().rstrip("\n")
+            if line.startswith("event: "):
+                event = line[7:]
+            elif line.startswith("data: "):
+                events.append((event, json.loads(line[6:])))
+        seconds = time.monotonic() - started
+    assert events[0][0] == "state"
+    updates = [data for kind, data in events if kind == "update"]
+    assert updates, "updates while boxes arrive"
+    assert len(updates) <= 10 * seconds + 2, f"{len(updates)} updates in {seconds:.1f} s"
+    for data in updates:
+        ids = [s["id"] for s in data["sessions"]]
+        assert len(ids) == len(set(ids))
+    seqs = [s["box"]["seq"] for data in updates for s in data["sessions"] if s["sid"] == "pre" and s["box"]]
+    assert seqs == sorted(seqs) and len(set(seqs)) > 3, seqs
+
+
+def test_healthz_without_any_service():
+    """The dashboard serves (and says no service answered) before any service runs; start fails with 503."""
+    options = ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
+    with DashboardApp(options, port=0) as app:
+        base = app.url.rstrip("/")
+        health = _wait(lambda: (h := json.loads(_get(base + "/healthz")[2])) and h["reason"] == "ok" and h)
+        assert health["services"] == [] and health["status"] == "ok"
+        status, body = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]})
+        assert status == 503 and body["error"] == "no_service", body
+        status, _, text = _get(base + "/metrics")
+        assert status == 200 and "tacf_dashboard_up 1" in text.decode()
+
+
+def test_metrics_text_escapes_labels():
+    class View:
+        node, sid, image_key, state, box, box_received_ns, health = "n", "s", 'cam/"a"\\b\nc', "lost", None, None, None
+
+    text = dashboard_metrics.render([View()])
+    assert 'image_key="cam/\\"a\\"\\\\b\\nc"' in text
+    assert _metrics(text)[("tacf_session_state", frozenset({("node", "n"), ("sid", "s"), ("state", "lost"),
+                                                            ("image_key", 'cam/\\"a\\"\\\\b\\nc')}))] == 1
+
+
+def test_page_is_offline_and_the_dashboard_never_loads_the_tracker():
+    for path in static_dir().rglob("*"):
+        if path.is_file() and path.suffix in (".html", ".js", ".css"):
+            text = path.read_text()
+            assert not re.search(r"(src|href)\s*=\s*[\"']?(https?:)?//", text), f"{path.name} loads from elsewhere"
+            assert not re.search(r"fetch\(\s*[\"']https?:|EventSource\(\s*[\"']https?:", text), path.name
+    code = ("import sys\nimport tacf_clients.dashboard_http, tacf_clients.dashboard\n"
+            "heavy = [m for m in sys.modules if m.startswith(('tacf.tracker', 'tacf.features', 'tacf_service'))]\n"
+            "assert not heavy, heavy\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+
+
+# ------------------------------------------------------------------------------------------------ real browser
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    chromedriver = shutil.which("chromedriver")
+    if not chromium or not chromedriver:
+        pytest.skip("Debian's chromium and chromium-driver are not installed (.ci/run installs them as root: "
+                    "apt-get install chromium chromium-driver)")
+    try:
+        from selenium import webdriver
+        from selenium.webdriver.chrome.service import Service
+    except ImportError:
+        pytest.skip("selenium is not installed (pip install -e '.[test]')")
+    os.environ.setdefault("SE_OFFLINE", "true")          # selenium must never download a driver or a browser
+    options = webdriver.ChromeOptions()
+    options.binary_location = chromium
+    for flag in CHROMIUM_FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
+    driver = webdriver.Chrome(options=options, service=Service(executable_path=chromedriver))
+    driver.set_page_load_timeout(30)
+    driver.set_script_timeout(10)
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def _canvas_state(driver, sid_id: str) -> dict | None:
+    """What the page drew last for session `sid_id`: the box, its colour and the canvas pixel on its top edge."""
+    return driver.execute_script("""
+        const id = arguments[0], drawn = window.tacf.drawn[id], card = window.tacf.cards.get(id);
+        if (!drawn || !card) return null;
+        const [x, y, w, h] = drawn.box;
+        const px = Math.round(Math.min(Math.max(x + w / 2, 0), card.frame.width - 1));
+        const py = Math.round(Math.min(Math.max(y, 0), card.frame.height - 1));
+        const pixel = Array.from(card.frame.getContext('2d').getImageData(px, py, 1, 1).data);
+        return {count: drawn.count, box: drawn.box, colour: drawn.colour, pixel: pixel,
+                width: card.frame.width, height: card.frame.height};
+    """, sid_id)
+
+
+def _chart_state(driver, sid_id: str) -> dict | None:
+    return driver.execute_script("""
+        const id = arguments[0], card = window.tacf.cards.get(id), chart = window.tacf.charts[id];
+        if (!card || !chart) return null;
+        return {points: chart.points, last: chart.last, pme: card.pme.toDataURL(), fps: card.fps.toDataURL()};
+    """, sid_id)
+
+
+def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, browser, tmp_path):
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    app, client, camera, service = stack
+    pre = f"{service.node}/pre"
+    browser.get(app.url)
+    assert _wait(lambda: browser.execute_script("return window.tacf && window.tacf.connected"), timeout=20), \
+        "the event stream connects"
+
+    # The live frame with the session's box drawn on it (green: tracking).
+    drawn = _wait(lambda: (c := _canvas_state(browser, pre)) and c["pixel"][3] == 255 and c, timeout=30)
+    assert drawn, "the page draws the session's frame and box"
+    assert (drawn["width"], drawn["height"]) == (SCENE.width, SCENE.height)
+    r, g, b, _ = drawn["pixel"]
+    expected = (0x00, 0xE6, 0x76) if drawn["colour"] == "#00e676" else (0xFF, 0x52, 0x52)
+    assert max(abs(r - expected[0]), abs(g - expected[1]), abs(b - expected[2])) < 40, drawn
+    row = _wait(lambda: (t := browser.find_element(By.CSS_SELECTOR, 'tr[data-sid="pre"]').text)
+                and re.search(r"tracking|lost", t) and t, timeout=20)
+    assert row and service.node in row and KEY in row and " ms" in row, row
+
+    # The charts move: new points arrive (health ~1 Hz) and the pictures change.
+    before = _wait(lambda: (c := _chart_state(browser, pre)) and c["points"] >= 1 and c, timeout=20)
+    after = _wait(lambda: (c := _chart_state(browser, pre)) and c["points"] >= before["points"] + 2 and c,
+                  timeout=20)
+    assert after, "chart points keep arriving"
+    assert after["pme"] != before["pme"] and after["fps"] != before["fps"]
+    assert after["last"]["fps"] > 0
+
+    # Draw a box around the target on the live frame of the chosen key: it starts a session.
+    browser.find_element(By.ID, "sid-input").send_keys("drawn")
+    camera.hold.set()                                   # a still camera, so that the target is where we draw
+    canvas = browser.find_element(By.ID, "new-canvas")
+    browser.execute_script("arguments[0].scrollIntoView({block: 'center'})", canvas)
+    seq = _wait(lambda: (s := browser.execute_script(
+        "const f = window.tacf.feeds.get(arguments[0]); return f && f.bitmap ? f.seq : null;", KEY)) is not None
+        and camera.index_of(s) is not None and s >= camera.last_seq - 2 and s, timeout=10)
+    assert seq is not None, "the new-session view shows the live frame"
+    target = SCENE.box(camera.index_of(seq))
+    rect = browser.execute_script("const r = arguments[0].getBoundingClientRect();"
+                                  "return [r.width, r.height, arguments[0].width, arguments[0].height];", canvas)
+    sx, sy = rect[0] / rect[2], rect[1] / rect[3]
+
+    def offset(x, y):                                   # selenium offsets are from the element's centre
+        return round(x * sx - rect[0] / 2), round(y * sy - rect[1] / 2)
+
+    x0, y0 = offset(target[0], target[1])
+    x1, y1 = offset(target[0] + target[2], target[1] + target[3])
+    ActionChains(browser).move_to_element_with_offset(canvas, x0, y0).click_and_hold() \
+        .move_by_offset((x1 - x0) // 2, (y1 - y0) // 2).move_by_offset(x1 - x0 - (x1 - x0) // 2,
+                                                                        y1 - y0 - (y1 - y0) // 2) \
+        .release().perform()
+    status = _wait(lambda: (t := browser.find_element(By.ID, "new-status").text) and "started" in t and t,
+                   timeout=30)
+    assert status and "drawn" in status, browser.find_element(By.ID, "new-status").text
+    info = client.status("drawn")
+    assert info.image_key == KEY
+    first = next(client.iter_boxes("drawn", timeout=40))
+    assert iou(tuple(first.box), target) > 0.5, (first.box, target)
+    camera.hold.clear()
+    assert _wait(lambda: browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="drawn"]'), timeout=10)
+    assert _wait(lambda: (c := _canvas_state(browser, f"{service.node}/drawn")) and c["count"] > 2, timeout=20)
+
+    shot = Path(os.environ.get("TACF_DASHBOARD_SCREENSHOT") or tmp_path / "dashboard.png")
+    _wait(lambda: (c := _chart_state(browser, f"{service.node}/drawn")) and c["points"] >= 3, timeout=10)
+    browser.set_window_size(1280, browser.execute_script("return document.body.scrollHeight") + 140)
+    time.sleep(0.5)
+    assert browser.save_screenshot(str(shot)) and shot.stat().st_size > 10_000
+
+    # Stop it from the session list.
+    browser.find_element(By.CSS_SELECTOR, 'tr[data-sid="drawn"] button.stop').click()
+    assert _wait(lambda: not browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="drawn"]'), timeout=20)
+    assert "drawn" not in {s.sid for s in client.list()}
+    assert browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="pre"]'), "the other session stays"
+    errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"] if hasattr(browser, "get_log") else []
+    assert not errors, errors
