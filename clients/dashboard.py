@@ -5,8 +5,8 @@
         board.frame("uav1/camera/front") # the newest frame of that key, as JPEG
 
 Everything is latest-only (ZENOH.md §3.4): boxes and health arrive through one latest-only ResultStream and
-overwrite the session's slot; each watched image key has a RingChannel(1) subscriber whose worker keeps only
-the newest frame and reads at most `max_frame_fps` of them. Readers (the HTTP side, dashboard_http.py) copy
+overwrite the session's slot; each watched image key has a RingChannel(1) subscriber whose worker reads at most
+`max_frame_fps` frames a second and keeps the last few (so that a box is drawn on its own frame). Readers (the HTTP side, dashboard_http.py) copy
 what they need under a lock and never block a Zenoh thread, so a slow browser cannot slow the service.
 
 A poller lists the sessions of every service once a second (a Zenoh query): that gives each session's image
@@ -117,18 +117,18 @@ class FrameSnapshot:
 
 
 class FrameWatcher:
-    """The newest Frame of one image key: a RingChannel(1) subscriber drained by one worker thread that reads
-    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). Non-JPEG frames are turned
-    into JPEG when someone asks for them, once per frame."""
+    """The newest frames of one image key: a RingChannel(1) subscriber drained by one worker thread that reads
+    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). The last `keep` frames stay,
+    so that a box can be drawn on the very frame it was computed on. Non-JPEG frames are turned into JPEG when
+    someone asks for them."""
 
-    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 15.0):
+    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 30.0, keep: int = 32):
         self.key = key
         self.received = self.rejected = 0
         self._min_period = 1.0 / max_fps if max_fps > 0 else 0.0
         self._lock = threading.Lock()
-        self._frame: Frame | None = None
-        self._received_ns = 0
-        self._jpeg: FrameSnapshot | None = None
+        self._frames: deque[tuple[Frame, int]] = deque(maxlen=max(1, keep))   # (frame, received_ns), oldest first
+        self._jpeg: FrameSnapshot | None = None          # the last non-JPEG frame converted
         self._closed = threading.Event()
         self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
         self._thread = threading.Thread(target=self._run, name=f"tacf-dashboard-frames-{key}", daemon=True)
@@ -145,7 +145,9 @@ class FrameWatcher:
                     log.debug("dropped a malformed frame on %s: %s", self.key, exc)
                     continue
                 with self._lock:
-                    self._frame, self._received_ns = frame, time.time_ns()
+                    if self._frames and frame.seq < self._frames[-1][0].seq:
+                        self._frames.clear()               # the camera restarted its seq
+                    self._frames.append((frame, time.time_ns()))
                     self.received += 1
                 if self._closed.wait(max(0.0, self._min_period - (time.monotonic() - started))):
                     return
@@ -155,20 +157,28 @@ class FrameWatcher:
     @property
     def last_seq(self) -> int | None:
         with self._lock:
-            return None if self._frame is None else self._frame.seq
+            return self._frames[-1][0].seq if self._frames else None
 
-    def snapshot(self) -> FrameSnapshot | None:
-        """The newest frame as JPEG, or None before the first one."""
+    def snapshot(self, seq: int | None = None) -> FrameSnapshot | None:
+        """The newest frame (with seq <= `seq` when given, else the oldest kept) as JPEG; None before the first."""
         with self._lock:
-            frame, received_ns, cached = self._frame, self._received_ns, self._jpeg
-        if frame is None:
-            return None
-        if cached is not None and cached.seq == frame.seq and cached.received_ns == received_ns:
+            if not self._frames:
+                return None
+            frame, received_ns = self._frames[-1]
+            if seq is not None:
+                frame, received_ns = next(((f, r) for f, r in reversed(self._frames) if f.seq <= seq),
+                                          self._frames[0])
+            cached = self._jpeg
+        if frame.encoding == "jpeg":
+            jpeg = frame.data
+        elif cached is not None and cached.seq == frame.seq and cached.received_ns == received_ns:
             return cached
-        jpeg = frame.data if frame.encoding == "jpeg" else _to_jpeg(frame)
+        else:
+            jpeg = _to_jpeg(frame)
         snap = FrameSnapshot(self.key, frame.seq, frame.stamp_ns, frame.width, frame.height, jpeg, received_ns)
-        with self._lock:
-            self._jpeg = snap
+        if frame.encoding != "jpeg":
+            with self._lock:
+                self._jpeg = snap
         return snap
 
     def close(self) -> None:
@@ -203,7 +213,7 @@ class Dashboard:
 
     def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
                  image_keys: Iterable[str] = (), node: str | None = None, history_s: float = 300.0,
-                 max_frame_fps: float = 15.0, timeout: float = 5.0):
+                 max_frame_fps: float = 30.0, timeout: float = 5.0):
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         self.node = node
@@ -276,10 +286,11 @@ class Dashboard:
         log.info("watching frames on %s", key)
         return True
 
-    def frame(self, key: str) -> FrameSnapshot | None:
+    def frame(self, key: str, seq: int | None = None) -> FrameSnapshot | None:
+        """The newest frame of `key` (the newest with seq <= `seq`, when given: the frame a box belongs to)."""
         with self._lock:
             watcher = self._watchers.get(key)
-        return None if watcher is None else watcher.snapshot()
+        return None if watcher is None else watcher.snapshot(seq)
 
     def image_keys(self) -> list[str]:
         with self._lock:

@@ -3,7 +3,8 @@
     GET  /                    the page (clients/static/index.html, dashboard.js, dashboard.css: no CDN, no internet)
     GET  /events              Server-Sent Events: every session's box, health and chart points, one stream
     GET  /api/state           the same as one JSON snapshot (the page loads it first)
-    GET  /frame/<image key>   the newest frame of a watched key as JPEG (ETag = seq; 304 when unchanged)
+    GET  /frame/<image key>   the newest frame of a watched key as JPEG (ETag = seq; 304 when unchanged);
+                              ?seq=N: the newest kept frame with seq <= N (the frame a box was computed on)
     GET  /mjpeg/<image key>   multipart/x-mixed-replace of the newest frames (a single view, e.g. VLC)
     POST /api/watch           {"key"}: watch an image key's frames
     POST /api/start           {"image_key", "box": [x, y, w, h], "seq"?, "sid"?, "profile"?, "node"?}
@@ -29,7 +30,7 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
-from urllib.parse import unquote, urlsplit
+from urllib.parse import parse_qs, unquote, urlsplit
 
 from tacf_clients import dashboard_metrics
 from tacf_clients.dashboard import Dashboard
@@ -115,7 +116,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
             elif path == "/api/state":
                 self._json(HTTPStatus.OK, self.server.dashboard.snapshot())
             elif path.startswith("/frame/"):
-                self._frame(unquote(path[len("/frame/"):]))
+                self._frame(unquote(path[len("/frame/"):]), parse_qs(urlsplit(self.path).query))
             elif path.startswith("/mjpeg/"):
                 self._mjpeg(unquote(path[len("/mjpeg/"):]))
             elif path == "/metrics":
@@ -184,8 +185,12 @@ class DashboardHandler(BaseHTTPRequestHandler):
             ctype += "; charset=utf-8"
         self._send(HTTPStatus.OK, body, ctype, {"Cache-Control": "no-cache"})
 
-    def _frame(self, key: str) -> None:
-        snap = self.server.dashboard.frame(key)
+    def _frame(self, key: str, query: dict[str, list[str]]) -> None:
+        seq = query.get("seq", [None])[0]
+        if seq is not None and not seq.isdigit():
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", "seq: expected a frame seq")
+            return
+        snap = self.server.dashboard.frame(key, None if seq is None else int(seq))
         if snap is None:
             watched = key in self.server.dashboard.image_keys()
             self._error(HTTPStatus.NOT_FOUND, "no_frame",

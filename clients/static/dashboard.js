@@ -22,6 +22,7 @@ const state = {
   drawn: {},               // id -> what the last frame draw showed (tests read it)
   charts: {},              // id -> {points, redraws}
   reinit: null,            // id of the session being re-initialised by drawing
+  clockOffsetMs: 0,        // server clock - this browser's clock (chart times are the service's)
   events: 0,
   connected: false,
 };
@@ -29,6 +30,7 @@ window.tacf = state;
 
 // ------------------------------------------------------------------------------------------------ helpers
 const $ = (sel, root = document) => root.querySelector(sel);
+const serverNow = () => Date.now() + state.clockOffsetMs;
 const fmt = (v, digits = 1) => (v === null || v === undefined || Number.isNaN(v)) ? "–" : Number(v).toFixed(digits);
 
 function toast(message) {
@@ -50,9 +52,10 @@ async function post(path, body) {
 // ------------------------------------------------------------------------------------------------ frames
 class FrameFeed {
   // The newest frame of one image key: polls /frame/<key> (ETag: 304 when nothing new), one request at a time.
-  constructor(key) {
-    this.key = key; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0;
-    this.etag = null; this.frames = 0; this.users = 0; this.stopped = false;
+  // seqOf(): a frame seq to show instead of the newest (the frame a session's box was computed on), or null.
+  constructor(key, seqOf = () => null) {
+    this.key = key; this.seqOf = seqOf; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0;
+    this.etag = null; this.frames = 0; this.stopped = false;
     this.loop();
   }
   async loop() {
@@ -60,7 +63,9 @@ class FrameFeed {
       const started = performance.now();
       try {
         const headers = this.etag ? { "If-None-Match": this.etag } : {};
-        const response = await fetch("/frame/" + encodeURI(this.key), { headers, cache: "no-store" });
+        const seq = this.seqOf();
+        const url = "/frame/" + encodeURI(this.key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
+        const response = await fetch(url, { headers, cache: "no-store" });
         if (response.status === 200) {
           const blob = await response.blob();
           const bitmap = await createImageBitmap(blob);
@@ -86,6 +91,24 @@ function feedFor(key) {
   return feed;
 }
 
+// A session's card shows the frame its newest box was computed on (so box and picture match), or the newest
+// frame when boxes stopped coming.
+function sessionFeed(id) {
+  const session = state.sessions.get(id);
+  if (!session || !session.image_key) return null;
+  const name = `${session.image_key}#${id}`;
+  let feed = state.feeds.get(name);
+  if (!feed || feed.key !== session.image_key) {
+    if (feed) feed.stopped = true;
+    feed = new FrameFeed(session.image_key, () => {
+      const s = state.sessions.get(id);
+      return s && s.box && Date.now() - (s.boxAt || 0) < 1500 ? s.box.seq : null;
+    });
+    state.feeds.set(name, feed);
+  }
+  return feed;
+}
+
 // Canvas pixels are image pixels: the canvas is resized to the frame, CSS scales it to the card.
 function paintFrame(canvas, feed) {
   const ctx = canvas.getContext("2d");
@@ -103,17 +126,20 @@ function paintFrame(canvas, feed) {
 }
 
 function strokeBox(ctx, box, colour, label, dashed = false) {
+  // Sizes in screen pixels: the canvas holds image pixels and CSS scales it.
   const [x, y, w, h] = box;
+  const k = ctx.canvas.width / (ctx.canvas.clientWidth || ctx.canvas.width);
   ctx.save();
-  ctx.lineWidth = 3; ctx.strokeStyle = colour;
-  if (dashed) ctx.setLineDash([8, 5]);
+  ctx.lineWidth = Math.max(2, 2.5 * k); ctx.strokeStyle = colour;
+  if (dashed) ctx.setLineDash([8 * k, 5 * k]);
   ctx.strokeRect(x, y, w, h);
   if (label) {
-    ctx.font = "bold 14px sans-serif";
-    const width = ctx.measureText(label).width + 8;
-    const top = y >= 20 ? y - 20 : y + h + 2;
-    ctx.fillStyle = "rgba(0,0,0,0.6)"; ctx.fillRect(x - 1.5, top, width, 18);
-    ctx.fillStyle = colour; ctx.fillText(label, x + 2.5, top + 14);
+    const size = 12 * k;
+    ctx.font = `bold ${size}px sans-serif`;
+    const width = ctx.measureText(label).width + 6 * k;
+    const top = y >= size * 1.5 ? y - size * 1.5 : y + h + 2 * k;
+    ctx.fillStyle = "rgba(0,0,0,0.6)"; ctx.fillRect(x - ctx.lineWidth / 2, top, width, size * 1.35);
+    ctx.fillStyle = colour; ctx.fillText(label, x + 2 * k, top + size * 1.05);
   }
   ctx.restore();
 }
@@ -178,7 +204,10 @@ function drawChart(canvas, points, field, colour, now) {
   ctx.clearRect(0, 0, cssW, cssH);
   const left = 34, right = 6, top = 6, bottom = 16;
   const w = cssW - left - right, h = cssH - top - bottom;
-  const t0 = now - state.historyMs;
+  // The window grows with the data, a minute at a time, up to the history the dashboard keeps.
+  const span = points.length ? now - points[0].t : 0;
+  const windowMs = Math.min(state.historyMs, Math.max(60000, Math.ceil(span / 60000) * 60000));
+  const t0 = now - windowMs;
   const values = points.filter((p) => p.t >= t0 && p[field] !== null && p[field] !== undefined);
   let max = Math.max(1, ...values.map((p) => p[field]));
   const magnitude = Math.pow(10, Math.floor(Math.log10(max)));
@@ -189,16 +218,17 @@ function drawChart(canvas, points, field, colour, now) {
     ctx.beginPath(); ctx.moveTo(left, y); ctx.lineTo(left + w, y); ctx.stroke();
     ctx.fillText(fmt((max * i) / 2, max >= 10 ? 0 : 1), 2, y + 3);
   }
-  const minutes = state.historyMs / 60000;
-  for (let m = 0; m <= minutes; m++) {                             // a tick a minute, labelled back from now
-    const x = left + w * (1 - m / minutes);
+  const tickMs = windowMs <= 60000 ? 10000 : 60000;                // ticks back from now: 10 s or 1 min
+  for (let k = 0; k * tickMs <= windowMs; k++) {
+    const x = left + w * (1 - (k * tickMs) / windowMs);
     ctx.beginPath(); ctx.moveTo(x, top + h); ctx.lineTo(x, top + h + 3); ctx.stroke();
-    ctx.fillText(m === 0 ? "now" : `-${m}m`, Math.min(x - 8, left + w - 18), cssH - 3);
+    const label = k === 0 ? "now" : tickMs < 60000 ? `-${k * 10}s` : `-${k}m`;
+    ctx.fillText(label, Math.min(x - 8, left + w - 18), cssH - 3);
   }
   if (values.length) {
     ctx.strokeStyle = colour; ctx.lineWidth = 1.5; ctx.beginPath();
     values.forEach((p, i) => {
-      const x = left + (w * (p.t - t0)) / state.historyMs, y = top + h - (h * p[field]) / max;
+      const x = left + (w * (p.t - t0)) / windowMs, y = top + h - (h * p[field]) / max;
       if (i === 0) ctx.moveTo(x, y); else ctx.lineTo(x, y);
     });
     ctx.stroke();
@@ -218,7 +248,7 @@ function cardFor(session) {
   card = { root, frame: $("canvas.frame", root), pme: $("canvas.pme", root), fps: $("canvas.fps", root) };
   $(".sid", root).textContent = session.sid;
   $(".node", root).textContent = "on " + session.node;
-  enableDrawing(card.frame, () => feedFor(state.sessions.get(session.id)?.image_key), async (box, seq) => {
+  enableDrawing(card.frame, () => sessionFeed(session.id), async (box, seq) => {
     const s = state.sessions.get(session.id);
     setReinit(null);
     try {
@@ -245,7 +275,7 @@ function paintCard(id) {
   const session = state.sessions.get(id), card = state.cards.get(id);
   if (!session || !card) return;
   if (paintDraft(card.frame)) return;
-  const feed = feedFor(session.image_key);
+  const feed = sessionFeed(id);
   const painted = paintFrame(card.frame, feed);
   const badge = $(".state", card.root);
   badge.textContent = session.state; badge.className = `state badge state-${session.state}`;
@@ -337,6 +367,9 @@ function renderKeys() {
 // ------------------------------------------------------------------------------------------------ state updates
 function mergeSessions(sessions) {
   for (const s of sessions) {
+    const old = state.sessions.get(s.id);
+    s.boxAt = s.box && old && old.box && old.box.seq === s.box.seq ? old.boxAt
+            : s.box ? Date.now() - (s.box.age_ms || 0) : 0;
     state.sessions.set(s.id, s);
     cardFor(s);
   }
@@ -347,13 +380,18 @@ function mergePoints(points) {
     const mine = state.points.get(id) || [];
     const lastT = mine.length ? mine[mine.length - 1].t : -Infinity;
     for (const p of list) if (p.t > lastT) mine.push(p);            // a reconnect may resend points
-    const horizon = Date.now() - state.historyMs - 60000;
+    const horizon = serverNow() - state.historyMs - 60000;
     while (mine.length && mine[0].t < horizon) mine.shift();
     state.points.set(id, mine);
   }
 }
 
 function removeSession(id) {
+  const session = state.sessions.get(id);
+  if (session && state.feeds.has(`${session.image_key}#${id}`)) {
+    state.feeds.get(`${session.image_key}#${id}`).stopped = true;
+    state.feeds.delete(`${session.image_key}#${id}`);
+  }
   state.sessions.delete(id); state.points.delete(id); delete state.drawn[id];
   const card = state.cards.get(id);
   if (card) { card.root.remove(); state.cards.delete(id); }
@@ -379,7 +417,7 @@ function applyUpdate(data) {
 
 function refresh(newPoints = true) {
   renderTable(); renderKeys(); scheduleDraw();
-  if (newPoints) paintCharts(Date.now());
+  if (newPoints) paintCharts(serverNow());
 }
 
 // ------------------------------------------------------------------------------------------------ the loop
@@ -394,15 +432,20 @@ function scheduleDraw() {
     if (!paintDraft(canvas)) paintFrame(canvas, feedFor($("#key-select").value));
   });
 }
-setInterval(() => paintCharts(Date.now()), CHART_REDRAW_MS);   // the time axis scrolls even without news
+setInterval(() => paintCharts(serverNow()), CHART_REDRAW_MS);   // the time axis scrolls even without news
 
 function connect() {
   const source = new EventSource("/events");
   const conn = $("#conn");
   source.addEventListener("open", () => { state.connected = true; conn.textContent = "live"; conn.className = "conn up"; });
   source.addEventListener("error", () => { state.connected = false; conn.textContent = "reconnecting…"; conn.className = "conn down"; });
-  source.addEventListener("state", (e) => { state.events += 1; applyState(JSON.parse(e.data)); });
-  source.addEventListener("update", (e) => { state.events += 1; applyUpdate(JSON.parse(e.data)); });
+  const received = (handler) => (e) => {
+    const data = JSON.parse(e.data);
+    state.events += 1; state.clockOffsetMs = data.t - Date.now();
+    handler(data);
+  };
+  source.addEventListener("state", received(applyState));
+  source.addEventListener("update", received(applyUpdate));
 }
 
 // ------------------------------------------------------------------------------------------------ new session panel
