@@ -25,7 +25,7 @@ from .trackers import DEFAULT_FACTORY
 
 log = logging.getLogger(__name__)
 
-SHUTDOWN_BUDGET_S = 1.5     # workers get this long in total; the whole exit stays under 2 s
+SHUTDOWN_BUDGET_S = 1.3     # workers get this long in total; the whole exit stays under 2 s
 
 
 def default_node_id() -> str:

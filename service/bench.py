@@ -111,6 +111,9 @@ def run_config(feeds: int, seconds: float, width: int, height: int, fps: float, 
 
     processing = [r.processing_ms for _, r in results]
     end_to_end = [(t - r.stamp_ns) / 1e6 for t, r in results]
+    to_publish = [(r.published_ns - r.stamp_ns) / 1e6 for _, r in results]     # frame put -> box put
+    delivery = [(t - r.published_ns) / 1e6 for t, r in results]                 # box put -> box received
+    waiting = [a - r.processing_ms for a, (_, r) in zip(to_publish, results)]    # in transit + latest slot
     published = int(seconds * fps * feeds)
     dropped = sum(after[s].frames_dropped - before.get(s, after[s]).frames_dropped for s in after)
     processed = sum(after[s].frames_processed - before.get(s, after[s]).frames_processed for s in after)
@@ -122,6 +125,8 @@ def run_config(feeds: int, seconds: float, width: int, height: int, fps: float, 
                           "p50": _percentile(processing, 0.5), "p95": _percentile(processing, 0.95)},
         "end_to_end_ms": {"p50": _percentile(end_to_end, 0.5), "p95": _percentile(end_to_end, 0.95),
                           "max": _percentile(end_to_end, 1.0)},
+        "breakdown_ms_p50_p95": {"frame_wait": [_percentile(waiting, 0.5), _percentile(waiting, 0.95)],
+                                 "box_delivery": [_percentile(delivery, 0.5), _percentile(delivery, 0.95)]},
         "rss_mb": {"workers": rss_workers, "service_process_incl_publishers": rss_service},
         "load_average": os.getloadavg(),
     }

@@ -13,7 +13,7 @@ import socket
 import threading
 import time
 
-from tacf_schemas import encode
+from tacf_schemas import BoxResult, Health, box_key, decode, encode, health_key
 
 log = logging.getLogger(__name__)
 
@@ -102,3 +102,54 @@ class FramePublisher:
                 self._stop.wait(delay)
             else:
                 next_at = time.monotonic()
+
+
+def wait_until(predicate, timeout: float, period: float = 0.05):
+    """Poll `predicate` until it returns something truthy or `timeout` s pass; return its last value."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(period)
+    return predicate()
+
+
+class SessionResults:
+    """Subscribes to one session's boxes and health; keeps them (boxes with their arrival time, ns)."""
+
+    def __init__(self, session, node: str, sid: str) -> None:
+        self.boxes: list[tuple[int, BoxResult]] = []
+        self.health: list[Health] = []
+        self._lock = threading.Lock()
+        self._subs = [session.declare_subscriber(box_key(node, sid), self._on_box),
+                      session.declare_subscriber(health_key(node, sid), self._on_health)]
+
+    def _on_box(self, sample) -> None:
+        result = decode(sample.payload.to_bytes(), BoxResult)
+        with self._lock:
+            self.boxes.append((time.time_ns(), result))
+
+    def _on_health(self, sample) -> None:
+        health = decode(sample.payload.to_bytes(), Health)
+        with self._lock:
+            self.health.append(health)
+
+    def results(self) -> list[BoxResult]:
+        with self._lock:
+            return [b for _, b in self.boxes]
+
+    def timed_results(self) -> list[tuple[int, BoxResult]]:
+        with self._lock:
+            return list(self.boxes)
+
+    def last_health(self) -> Health | None:
+        with self._lock:
+            return self.health[-1] if self.health else None
+
+    def close(self) -> None:
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except Exception:
+                pass

@@ -173,7 +173,7 @@ class SessionManager:
     def shutdown(self, timeout: float = 1.5) -> None:
         """Stop every worker (stop command, then SIGTERM, then SIGKILL) within `timeout`; keep the table saved
         so that the sessions come back on the next start."""
-        deadline = time.monotonic() + max(0.1, timeout - 0.4)     # then SIGTERM, then SIGKILL
+        deadline = time.monotonic() + max(0.1, timeout - 0.7)     # then SIGTERM, then SIGKILL
         self._closing.set()
         with self._lock:
             sessions = list(self._sessions.values())

@@ -132,7 +132,7 @@ class Worker:
         self._state = "starting"
         self._message: str | None = None
         self._stats = None
-        self._serving = False               # True once tracking a session (SIGTERM then stops gracefully)
+        self._pump: threading.Thread | None = None
         self.job: Assignment | None = None
         self._assigned = _Flag()
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
@@ -141,10 +141,11 @@ class Worker:
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
     def on_sigterm(self, *_) -> None:
-        """Stop gracefully when serving; while still starting up (imports, session), just leave."""
+        """The service asked politely first (a stop command); SIGTERM means now: leave at once, even from
+        inside a tracker update. Leaving the `with zenoh.open(...)` block still closes the session, which
+        withdraws the session's liveliness token."""
         self.request_stop()
-        if not self._serving:
-            raise SystemExit(0)
+        raise SystemExit(0)
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -164,17 +165,23 @@ class Worker:
         commands = threading.Thread(target=self._read_commands, name="commands", daemon=True)
         commands.start()
         conf = worker_config(self.spec.zenoh, list(self.spec.endpoints))
-        with zenoh.open(conf) as session:
-            self._send(("idle",))
-            if self._assigned.wait_until(self._stop):
-                try:
-                    self._tracker = load_factory(self.spec.tracker_factory)(self.job.profile, self.job.overrides)
-                except (ValueError, TypeError) as exc:
-                    self._state = "failed"
-                    self._send(("failed", f"tracker config: {exc}"))
-                else:
-                    self._serve(session, zenoh)
-        commands.join(timeout=1.0)
+        try:
+            with zenoh.open(conf) as session:
+                self._send(("idle",))
+                if self._assigned.wait_until(self._stop):
+                    try:
+                        self._tracker = load_factory(self.spec.tracker_factory)(self.job.profile,
+                                                                                self.job.overrides)
+                    except (ValueError, TypeError) as exc:
+                        self._state = "failed"
+                        self._send(("failed", f"tracker config: {exc}"))
+                    else:
+                        self._serve(session, zenoh)
+        finally:
+            # the session is closed: the pump's recv() has ended; join so no thread is inside zenoh at exit
+            if self._pump is not None:
+                self._pump.join(timeout=0.5)
+            commands.join(timeout=0.5)
 
     def _serve(self, session, zenoh) -> None:
         """Track the assigned session until stopped."""
@@ -182,7 +189,6 @@ class Worker:
 
         from .health import HealthStats
 
-        self._serving = True
         self._stats = HealthStats()
         encoding = zenoh.Encoding(MSGPACK_ENCODING)
         node, sid = self.spec.node, self.job.sid
@@ -190,8 +196,8 @@ class Worker:
         self._box_pub = session.declare_publisher(box_key(node, sid), encoding=encoding, express=True)
         self._health_pub = session.declare_publisher(health_key(node, sid), encoding=encoding)
         frames = session.declare_subscriber(self.job.image_key, zenoh.handlers.RingChannel(1))
-        pump = threading.Thread(target=self._pump_frames, args=(frames.handler,), name="frames", daemon=True)
-        pump.start()
+        self._pump = threading.Thread(target=self._pump_frames, args=(frames.handler,), name="frames", daemon=True)
+        self._pump.start()
         self._send(("ready",))
         next_health = time.monotonic()
         while not self._stop.is_set():
@@ -206,7 +212,6 @@ class Worker:
         self._publish_health()
         frames.undeclare()                  # ends the pump's recv()
         token.undeclare()
-        pump.join(timeout=1.0)
 
     def _pump_frames(self, ring) -> None:
         """Move frames from the RingChannel(1) into the slot; count frames the ring dropped from seq gaps."""

@@ -9,7 +9,6 @@ from __future__ import annotations
 import os
 import signal
 import statistics
-import threading
 import time
 
 import msgpack
@@ -19,12 +18,12 @@ from hypothesis import strategies as st
 
 zenoh = pytest.importorskip("zenoh")
 
-from tacf_schemas import (BoxResult, Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
-                          box_key, control_key, encode, health_key, session_liveliness_key)
+from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
+                          control_key, encode, session_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
-from tacf_service.loopback import FramePublisher, free_port, peer_config
+from tacf_service.loopback import FramePublisher, SessionResults as Collector, free_port, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene, iou
 
@@ -32,49 +31,6 @@ pytestmark = pytest.mark.zenoh
 
 NODE = "edge-test"
 PROFILE = "kcc"         # the real TACF tracker, attentions off: the fastest profile, plenty for a synthetic scene
-
-
-def wait_until(predicate, timeout: float, period: float = 0.05):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(period)
-    return predicate()
-
-
-class Collector:
-    """Subscribes to a session's boxes and health; keeps them with their arrival time."""
-
-    def __init__(self, session, node: str, sid: str) -> None:
-        self.boxes: list[tuple[int, BoxResult]] = []
-        self.health: list[Health] = []
-        self._lock = threading.Lock()
-        self._subs = [session.declare_subscriber(box_key(node, sid), self._on_box),
-                      session.declare_subscriber(health_key(node, sid), self._on_health)]
-
-    def _on_box(self, sample) -> None:
-        from tacf_schemas import decode
-        with self._lock:
-            self.boxes.append((time.time_ns(), decode(sample.payload.to_bytes(), BoxResult)))
-
-    def _on_health(self, sample) -> None:
-        from tacf_schemas import decode
-        with self._lock:
-            self.health.append(decode(sample.payload.to_bytes(), Health))
-
-    def results(self) -> list[BoxResult]:
-        with self._lock:
-            return [b for _, b in self.boxes]
-
-    def last_health(self) -> Health | None:
-        with self._lock:
-            return self.health[-1] if self.health else None
-
-    def close(self) -> None:
-        for sub in self._subs:
-            sub.undeclare()
 
 
 @pytest.fixture(scope="module")
@@ -221,8 +177,7 @@ def test_latest_only_under_a_fast_publisher(service, client):
             health = results.last_health()
             assert health is not None and health.frames_dropped > 0
             assert health.frames_received > health.frames_processed
-            with results._lock:
-                latency_ms = [(t - b.stamp_ns) / 1e6 for t, b in results.boxes]
+            latency_ms = [(t - b.stamp_ns) / 1e6 for t, b in results.timed_results()]
             p95_processing = sorted(b.processing_ms for b in results.results())[int(0.95 * len(latency_ms))]
             later = latency_ms[len(latency_ms) // 2:]
             # latest-only: each result is at most ~2 processing times behind the newest frame, never a backlog

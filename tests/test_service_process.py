@@ -17,12 +17,10 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf_schemas import StartRequest, service_liveliness_key
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
-from tacf_service.loopback import FramePublisher, free_port, peer_config
+from tacf_service.loopback import FramePublisher, SessionResults as Collector, free_port, peer_config, wait_until
 from tacf_service.probe import call
 from tacf_service.scene import MovingTargetScene, iou
 from tacf_service.state import PersistedSession, StateStore
-
-from test_service import Collector, wait_until
 
 NODE = "proc-test"
 
