@@ -219,3 +219,26 @@ def test_state_file_is_atomic_and_survives_corruption(tmp_path):
     assert (tmp_path / "state.json.corrupt").exists()
     path.write_text(json.dumps({"version": 1, "sessions": [entry.model_dump(mode="json"), {"sid": "bad/"}]}))
     assert [s.sid for s in store.load()] == ["a"]
+
+
+def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
+    port = free_port()
+    path = tmp_path / "zenoh.json5"
+    path.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": [f"tcp/0.0.0.0:{port}"]},
+                                "scouting": {"multicast": {"enabled": False}}}))
+    options = ZenohOptions(config_file=str(path))
+    assert json.loads(service_config(options).get_json("listen/endpoints")) == [f"tcp/0.0.0.0:{port}"]
+    assert worker_endpoints(options) == [f"tcp/127.0.0.1:{port}"]
+    cli = ZenohOptions(config_file=str(path), listen=("tcp/127.0.0.1:1234",))
+    assert json.loads(service_config(cli).get_json("listen/endpoints")) == ["tcp/127.0.0.1:1234"]
+
+
+def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
+    import socket
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        endpoint = f"tcp/127.0.0.1:{busy.getsockname()[1]}"
+        out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE],
+                             capture_output=True, text=True, timeout=30)
+    assert out.returncode == 1 and "cannot start the service" in out.stderr
