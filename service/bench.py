@@ -39,6 +39,17 @@ def _rss_mb(pid: int) -> float | None:
     return None
 
 
+def _pss_mb(pid: int) -> float | None:
+    """Proportional set size: shared library pages divided among the processes that map them."""
+    try:
+        for line in open(f"/proc/{pid}/smaps_rollup"):
+            if line.startswith("Pss:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        return None
+    return None
+
+
 def run_config(feeds: int, seconds: float, width: int, height: int, fps: float, profile: str,
                warmup: float = 3.0) -> dict:
     import zenoh
@@ -98,6 +109,7 @@ def run_config(feeds: int, seconds: float, width: int, height: int, fps: float, 
         with lock:
             results, after = list(received), dict(health)
         rss_workers = {sid: _rss_mb(pid) for sid, pid in service.manager.worker_pids().items()}
+        pss_workers = {sid: _pss_mb(pid) for sid, pid in service.manager.worker_pids().items()}
         rss_service = _rss_mb(os.getpid())
         for i in range(feeds):
             call(client, "bench", "stop", StopRequest(sid=f"feed{i}"), timeout=5)
@@ -128,6 +140,7 @@ def run_config(feeds: int, seconds: float, width: int, height: int, fps: float, 
         "breakdown_ms_p50_p95": {"frame_wait": [_percentile(waiting, 0.5), _percentile(waiting, 0.95)],
                                  "box_delivery": [_percentile(delivery, 0.5), _percentile(delivery, 0.95)]},
         "rss_mb": {"workers": rss_workers, "service_process_incl_publishers": rss_service},
+        "pss_mb": {"workers": pss_workers},
         "load_average": os.getloadavg(),
     }
 
