@@ -11,6 +11,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -47,14 +48,14 @@ def stack():
         with zenoh.open(make_config(service.options)) as session:
             service.wait_ready(session)
             camera = HoldingPublisher(session, SceneSource(SCENE), KEY, 20, "jpeg")
-            camera.hold.clear()
-            camera.start()
+            camera.start()                          # holds its first frame until 'pre' tracks, as in tacf demo
             assert _wait(lambda: camera.last_seq >= 0)
             client = TrackingClient(session=session, node=service.node, timeout=10.0)
             with DashboardApp(service.options, port=0, image_keys=[KEY]) as app:
-                seq = camera.last_seq
-                client.start(KEY, SCENE.box(camera.index_of(seq)), seq=seq, sid="pre")
+                client.start(KEY, SCENE.box(0), seq=camera.last_seq, sid="pre")
                 try:
+                    assert next(client.iter_boxes("pre", timeout=60), None), "session 'pre' tracks"
+                    camera.hold.clear()
                     yield app, client, camera, service
                 finally:
                     for info in client.list():
@@ -148,6 +149,9 @@ def test_healthz_metrics_and_state(stack):
     status, _, _ = _get(base + "/frame/" + KEY, {"If-None-Match": headers["ETag"]})
     assert status in (200, 304)                      # 304 unless a newer frame arrived in between
     assert _get(base + "/frame/not/watched")[0] == 404
+    with urllib.request.urlopen(app.url + "mjpeg/" + KEY, timeout=10) as mjpeg:     # a single-view stream
+        assert mjpeg.headers["Content-Type"] == "multipart/x-mixed-replace; boundary=tacfframe"
+        assert mjpeg.readline() == b"--tacfframe\r\n" and mjpeg.readline() == b"Content-Type: image/jpeg\r\n"
     assert _get(base + "/static/../dashboard.py")[0] == 404
 
 
@@ -173,7 +177,11 @@ def test_event_stream_is_latest_only_and_rate_capped(stack):
     app, client, camera, service = stack
     assert _wait(lambda: client.status("pre").health is not None, timeout=40)
     events = []
-    with urllib.request.urlopen(app.url + "events", timeout=10) as stream:
+    stalled = socket.socket()                       # a browser that asks for the stream and never reads it
+    stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+    stalled.connect(app.server.server_address[:2])
+    stalled.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+    with stalled, urllib.request.urlopen(app.url + "events", timeout=10) as stream:
         assert stream.headers["Content-Type"].startswith("text/event-stream")
         started = time.monotonic()
         event = None
@@ -184,6 +192,8 @@ def test_event_stream_is_latest_only_and_rate_capped(stack):
             elif line.startswith("data: "):
                 events.append((event, json.loads(line[6:])))
         seconds = time.monotonic() - started
+        clients = _metrics(_get(app.url + "metrics")[2].decode())[("tacf_dashboard_event_clients", frozenset())]
+        assert clients == 2
     assert events[0][0] == "state"
     updates = [data for kind, data in events if kind == "update"]
     assert updates, "updates while boxes arrive"
