@@ -102,12 +102,14 @@ def run_config(feeds: int, seconds: float, width: int, height: int, fps: float, 
         time.sleep(warmup)
         with lock:
             before = {sid: h.model_copy() for sid, h in health.items()}
+        first_seq = {f"feed{i}": publisher.seq + 1 for i, publisher in enumerate(publishers)}
         measuring.set()
         time.sleep(seconds)
         measuring.clear()
         time.sleep(1.2)                  # one more health report
-        with lock:
-            results, after = list(received), dict(health)
+        with lock:      # only frames published inside the window (no catch-up of older frames)
+            results = [(t, r) for t, r in received if r.seq >= first_seq[r.sid]]
+            after = dict(health)
         rss_workers = {sid: _rss_mb(pid) for sid, pid in service.manager.worker_pids().items()}
         pss_workers = {sid: _pss_mb(pid) for sid, pid in service.manager.worker_pids().items()}
         rss_service = _rss_mb(os.getpid())

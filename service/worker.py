@@ -42,6 +42,7 @@ from .trackers import DEFAULT_FACTORY
 log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 1.0
+CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
 COMMAND_POLL_S = 0.1
 
 
@@ -269,9 +270,17 @@ class Worker:
         box, payloads = pending
         self._init_box, self._image_shape = box, None
         self._state, self._message = "starting", None
-        for payload in payloads:         # init on the first decodable one, then catch up through the rest
+        # init on the first decodable payload, then catch up through the newer ones while the budget lasts
+        # (a slow tracker would otherwise spend seconds on stale frames); the live feed takes over after
+        budget_ends = None
+        for payload in payloads:
             self._extra_received += 1
+            if budget_ends is not None and time.monotonic() > budget_ends:
+                self._skipped += 1
+                continue
             self._process(payload)
+            if budget_ends is None and self._image_shape is not None:
+                budget_ends = time.monotonic() + CATCH_UP_BUDGET_S
 
     def _process(self, payload: bytes) -> None:
         from tacf_schemas import DecodeError, Frame, decode
