@@ -285,8 +285,7 @@ def browser(tmp_path_factory):
         from selenium.webdriver.chrome.service import Service
     except ImportError:
         pytest.skip("selenium is not installed (pip install -e '.[test]')")
-    os.environ.setdefault("SE_OFFLINE", "true")          # selenium must never download a driver or a browser
-    options = webdriver.ChromeOptions()
+    options = webdriver.ChromeOptions()            # explicit paths: selenium never fetches a driver or a browser
     options.binary_location = chromium
     for flag in CHROMIUM_FLAGS:
         options.add_argument(flag)
@@ -307,7 +306,8 @@ def _canvas_state(driver, sid_id: str) -> dict | None:
         if (!drawn || !card) return null;
         const [x, y, w, h] = drawn.box;
         const px = Math.round(Math.min(Math.max(x + w / 2, 0), card.frame.width - 1));
-        const py = Math.round(Math.min(Math.max(y, 0), card.frame.height - 1));
+        // the stroke (>= 2 image pixels wide, centred on the edge) fully covers the pixel row floor(y)
+        const py = Math.floor(Math.min(Math.max(y, 0), card.frame.height - 1));
         const pixel = Array.from(card.frame.getContext('2d').getImageData(px, py, 1, 1).data);
         return {count: drawn.count, box: drawn.box, colour: drawn.colour, pixel: pixel,
                 boxSeq: drawn.boxSeq, frameSeq: drawn.frameSeq,
