@@ -76,6 +76,7 @@ class Session:
     init_box: tuple | None = None
     init_frames: list = field(default_factory=list)   # frames pinned for the init: the init frame, then newer
     init_released: bool = False         # start validation is over: the pending init may go out
+    awaiting_init: bool = False         # results older than the pending init are ignored until "initialised"
     gave_up: bool = False               # failed for good (bad box or config, crash loop): no restart
     stopping: bool = False
     saved_frame_seq: int | None = None  # the seq of the frame stored with the persisted table
@@ -262,14 +263,15 @@ class SessionManager:
             session.state, session.message = "starting", None
             self._queue_init(session, session.box, request.seq, released=True)
             needs_worker = session.process is None or session.process.exitcode is not None
+            reply = session.info(self.node)
         if needs_worker:
             _close_conn(session)
             self._spawn(session)
         else:
             self._flush_init(session)
         self._mark_dirty(save_now=True)
-        log.info("re-initialised session %s with box %s (seq %s)", session.sid, session.box, request.seq)
-        return session.info(self.node)
+        log.info("re-initialised session %s with box %s (seq %s)", session.sid, request.box, request.seq)
+        return reply
 
     def list(self) -> SessionList:
         with self._lock:
@@ -392,6 +394,7 @@ class SessionManager:
         session.init_box, session.init_frames = tuple(box), frames
         session.init_seq = frames[0].seq if frames else seq
         session.init_pending, session.init_released = True, released
+        session.awaiting_init = True
 
     def _release_init(self, session: Session) -> None:
         session.init_released = True
@@ -466,6 +469,8 @@ class SessionManager:
         if kind == "result":
             _, seq, box, ok, _pme = message
             with self._lock:
+                if session.awaiting_init:
+                    return              # computed before the new init reached the worker: stale
                 session.last_seq, session.box = seq, tuple(box)
                 if not session.gave_up:
                     session.state = "tracking" if ok else "lost"
@@ -484,6 +489,7 @@ class SessionManager:
             self._flush_init(session)
         elif kind == "initialised":
             with self._lock:
+                session.awaiting_init = False
                 session.init_seq = message[1]
                 session.state, session.message = "tracking", None
         elif kind == "failed":
