@@ -1,0 +1,60 @@
+"""Accuracy on the real UAV sequences of ../shared/data/sequences: mean IoU floors that the tracker reaches.
+
+The floors sit a little under what the default profile measured (README "Accuracy"), so that a regression in
+any module shows up as a failing sequence. Skipped when the data is absent.
+"""
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tacf import Tracker, TrackerConfig
+
+SEQUENCES = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
+
+# sequence: mean IoU floor for the default profile (measured values in the README)
+DEFAULT_PROFILE_FLOORS = {
+    "UAV123_10fps/boat5": 0.45,
+    "UAV123_10fps/building5": 0.70,
+    "UAV123_10fps/car16_1": 0.40,
+    "UAV123_10fps/person12_1": 0.65,
+    "UAV123_10fps/wakeboard10": 0.40,
+    "UAV123_10fps/wakeboard7": 0.45,
+    "DTB70/MountainBike6": 0.45,
+    "DTB70/Surfing06": 0.28,
+    "UAVDT/S0601": 0.22,
+}
+
+
+def _load(name: str):
+    folder = SEQUENCES / name
+    if not folder.is_dir():
+        pytest.skip(f"{folder} is absent")
+    frames = [cv2.imread(str(p)) for p in sorted((folder / "img").glob("*.jpg"))]
+    truth = np.loadtxt(folder / "groundtruth.txt", delimiter=",")
+    truth[:, :2] -= 1  # the benchmark files are 1-based
+    return frames, truth
+
+
+def _mean_iou(boxes: np.ndarray, truth: np.ndarray) -> float:
+    valid = ~np.isnan(truth).any(axis=1)
+    a, b = boxes[valid], truth[valid]
+    width = np.clip(np.minimum(a[:, 0] + a[:, 2], b[:, 0] + b[:, 2]) - np.maximum(a[:, 0], b[:, 0]), 0, None)
+    height = np.clip(np.minimum(a[:, 1] + a[:, 3], b[:, 1] + b[:, 3]) - np.maximum(a[:, 1], b[:, 1]), 0, None)
+    inter = width * height
+    return float(np.mean(inter / (a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter)))
+
+
+def _track(config: TrackerConfig, frames, first_box) -> np.ndarray:
+    tracker = Tracker(config)
+    tracker.init(frames[0], first_box)
+    return np.array([first_box] + [tracker.update(frame).box for frame in frames[1:]])
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name", sorted(DEFAULT_PROFILE_FLOORS))
+def test_default_profile_reaches_its_floor(name):
+    frames, truth = _load(name)
+    boxes = _track(TrackerConfig.profile(), frames, truth[0])
+    assert _mean_iou(boxes, truth) > DEFAULT_PROFILE_FLOORS[name]
