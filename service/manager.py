@@ -37,7 +37,8 @@ MAX_CRASHES = 5
 CRASH_WINDOW_S = 60.0
 RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
-SPARE_RESPAWN_MIN_S = 2.0       # a spare that dies is replaced at most this often (no spawn storm)
+SPARE_RESPAWN_MIN_S = 2.0
+WORKER_SILENCE_S = 15.0         # a serving worker that sends nothing (not even health) this long is hung: kill it       # a spare that dies is replaced at most this often (no spawn storm)
 
 
 @dataclass
@@ -72,6 +73,7 @@ class Session:
     worker: WorkerHandle | None = None
     send_lock: threading.Lock = field(default_factory=threading.Lock)
     worker_ready: bool = False          # the worker said "ready": it can take an init
+    heard_at: float = 0.0               # monotonic time of the worker's last message
     init_pending: bool = False          # an init (init_box, init_seq) waits to be sent
     init_box: tuple | None = None
     init_frames: list = field(default_factory=list)   # frames pinned for the init: the init frame, then newer
@@ -448,6 +450,12 @@ class SessionManager:
             process = session.process
             if process is not None and process.exitcode is not None and not session.stopping:
                 self._on_worker_exit(session)
+            elif (process is not None and session.worker_ready and not session.stopping
+                  and time.monotonic() - session.heard_at > WORKER_SILENCE_S):
+                log.warning("session %s: worker pid %d silent for %.0f s: killing it", session.sid, process.pid,
+                            WORKER_SILENCE_S)
+                process.kill()          # the exit is handled (failed, restart) on the next round
+                session.heard_at = time.monotonic()
         now = time.monotonic()
         with self._lock:
             due = [s for s in self._sessions.values()
@@ -466,6 +474,7 @@ class SessionManager:
 
     def _on_message(self, session: Session, message: tuple) -> None:
         kind = message[0]
+        session.heard_at = time.monotonic()
         if kind == "result":
             _, seq, box, ok, _pme = message
             with self._lock:
