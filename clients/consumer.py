@@ -1,11 +1,11 @@
 """Onboard consumer: a light subscriber for the boxes of one session or of all, for a gimbal or flight controller.
 
-    with BoxConsumer(session, sid="cam1-target", latest_only=True, frame_size=(1280, 720)) as boxes:
+    with BoxConsumer(session, sid="cam1-target", latest_only=True) as boxes:
         for b in boxes:                          # TrackedBox, newest first when the consumer is slow
             gimbal.point_at(b.center_norm) if b.ok else gimbal.hold()
 
-Boxes come in pixels (x, y, w, h, 0-based, top-left origin) and, when the frame size is known, normalised to
-0..1 as (x, y, w, h) and as top-left + bottom-right corners: the form MAVLink's camera tracking messages
+Boxes come in pixels (x, y, w, h, 0-based, top-left origin) and, with the frame size every result carries,
+normalised to 0..1 as (x, y, w, h) and as top-left + bottom-right corners: the form MAVLink's camera tracking messages
 (CAMERA_TRACKING_IMAGE_STATUS, MAV_CMD_CAMERA_TRACK_RECTANGLE) and most gimbal SDKs use.
 """
 from __future__ import annotations
@@ -36,7 +36,7 @@ class TrackedBox:
     box: Box                         # pixels: x, y, w, h
     ok: bool                         # False: target lost, do not steer on this box
     pme: float
-    frame_size: tuple[int, int] | None   # (width, height) of the frame, when known
+    frame_size: tuple[int, int]      # (width, height) of the frame the box was found in
     received_ns: int                 # when this consumer received it
 
     @property
@@ -50,28 +50,21 @@ class TrackedBox:
         return x + w / 2, y + h / 2
 
     @property
-    def normalised(self) -> Box | None:
-        """(x, y, w, h) in 0..1 of the frame width and height (clipped), or None if the frame size is unknown."""
-        corners = self.corners_normalised
-        if corners is None:
-            return None
-        x1, y1, x2, y2 = corners
+    def normalised(self) -> Box:
+        """(x, y, w, h) in 0..1 of the frame width and height (clipped)."""
+        x1, y1, x2, y2 = self.corners_normalised
         return x1, y1, x2 - x1, y2 - y1
 
     @property
-    def corners_normalised(self) -> Box | None:
+    def corners_normalised(self) -> Box:
         """(top_left_x, top_left_y, bottom_right_x, bottom_right_y) in 0..1, clipped (MAVLink's rectangle)."""
-        if self.frame_size is None:
-            return None
         width, height = self.frame_size
         x, y, w, h = self.box
         return (_clip01(x / width), _clip01(y / height), _clip01((x + w) / width), _clip01((y + h) / height))
 
     @property
-    def center_norm(self) -> tuple[float, float] | None:
-        """Centre in 0..1 (MAVLink's point form), or None if the frame size is unknown."""
-        if self.frame_size is None:
-            return None
+    def center_norm(self) -> tuple[float, float]:
+        """Centre in 0..1 (MAVLink's point form)."""
         cx, cy = self.center
         return _clip01(cx / self.frame_size[0]), _clip01(cy / self.frame_size[1])
 
@@ -80,14 +73,11 @@ def _clip01(value: float) -> float:
     return min(1.0, max(0.0, value))
 
 
-def tracked_box(result: BoxResult, frame_size: tuple[int, int] | None = None,
-                received_ns: int | None = None) -> TrackedBox:
-    """A TrackedBox from a wire BoxResult; the frame size comes from the result when it carries one."""
-    width, height = getattr(result, "width", None), getattr(result, "height", None)
-    if width and height:
-        frame_size = (int(width), int(height))
+def tracked_box(result: BoxResult, received_ns: int | None = None) -> TrackedBox:
+    """A TrackedBox from a wire BoxResult."""
     return TrackedBox(result.node, result.sid, result.seq, result.stamp_ns, tuple(result.box), result.ok,
-                      result.pme, frame_size, time.time_ns() if received_ns is None else received_ns)
+                      result.pme, (result.width, result.height),
+                      time.time_ns() if received_ns is None else received_ns)
 
 
 class BoxConsumer:
@@ -96,17 +86,14 @@ class BoxConsumer:
     session: a zenoh.Session to use (not closed here), or None to open one from `options` (closed on close()).
     latest_only: keep only the newest unread box per session (a slow consumer always gets the freshest box);
     otherwise a FIFO of `queue_size` (oldest dropped when full).
-    frame_size: (width, height) of the frames, for the normalised boxes, when the results do not carry it.
     on_box: a callback, called on a worker thread; without it, iterate the consumer.
     """
 
     def __init__(self, session: zenoh.Session | None = None, sid: str = keys.WILDCARD, node: str = keys.WILDCARD,
-                 *, latest_only: bool = False, frame_size: tuple[int, int] | None = None,
-                 on_box: Callable[[TrackedBox], None] | None = None, options: ZenohOptions | None = None,
+                 *, latest_only: bool = False, on_box: Callable[[TrackedBox], None] | None = None, options: ZenohOptions | None = None,
                  queue_size: int = 64):
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
-        self.frame_size = frame_size
         try:
             key_expr = keys.box_key(node, sid)
             self._stream: ResultStream[TrackedBox] = ResultStream(
@@ -123,7 +110,7 @@ class BoxConsumer:
             result = decode(sample.payload.to_bytes(), BoxResult)
         except DecodeError:
             return None
-        return tracked_box(result, self.frame_size, received)
+        return tracked_box(result, received)
 
     def get(self, timeout: float | None = None) -> TrackedBox | None:
         """The next box, or None after `timeout` seconds or when closed."""

@@ -129,6 +129,8 @@ class BoxResult(WireModel):
     seq: Seq                    # the frame's seq
     stamp_ns: StampNs           # the frame's stamp_ns (as published by the camera)
     box: Box
+    width: Annotated[int, Field(ge=1, le=MAX_FRAME_WIDTH)]    # the frame's size, so that consumers can
+    height: Annotated[int, Field(ge=1, le=MAX_FRAME_HEIGHT)]  # normalise the box without knowing the camera
     ok: bool                    # False: the target is lost (PME under the tracker's threshold)
     pme: FiniteFloat
     score: FiniteFloat

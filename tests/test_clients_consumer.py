@@ -24,8 +24,8 @@ pytestmark = pytest.mark.zenoh
 
 def _box(sid: str, seq: int, box=(64.0, 48.0, 32.0, 24.0), ok: bool = True, node: str = "edge1") -> BoxResult:
     now = time.time_ns()
-    return BoxResult(node=node, sid=sid, seq=seq, stamp_ns=now - 5_000_000, box=box, ok=ok, pme=20.0, score=0.5,
-                     scale=1.0, processing_ms=3.0, published_ns=now)
+    return BoxResult(node=node, sid=sid, seq=seq, stamp_ns=now - 5_000_000, box=box, width=320, height=240, ok=ok,
+                     pme=20.0, score=0.5, scale=1.0, processing_ms=3.0, published_ns=now)
 
 
 def _health(sid: str, state: str = "tracking", node: str = "edge1") -> Health:
@@ -70,19 +70,18 @@ def net():
 
 
 def test_normalised_boxes_for_gimbal_and_mavlink():
-    b = tracked_box(_box("s", 1, box=(64.0, 48.0, 32.0, 24.0)), frame_size=(320, 240))
+    b = tracked_box(_box("s", 1, box=(64.0, 48.0, 32.0, 24.0)))
     assert b.normalised == pytest.approx((0.2, 0.2, 0.1, 0.1))
     assert b.corners_normalised == pytest.approx((0.2, 0.2, 0.3, 0.3))
     assert b.center == (80.0, 60.0) and b.center_norm == pytest.approx((0.25, 0.25))
     assert 0 < b.age_ms < 1000
     # partly outside the frame: clipped to 0..1
-    edge = tracked_box(_box("s", 1, box=(-10.0, 230.0, 40.0, 20.0)), frame_size=(320, 240))
+    edge = tracked_box(_box("s", 1, box=(-10.0, 230.0, 40.0, 20.0)))
     assert edge.corners_normalised == pytest.approx((0.0, 230 / 240, 30 / 320, 1.0))
-    assert tracked_box(_box("s", 1)).normalised is None      # frame size unknown
 
 
 def test_iterator_one_session_in_order(net):
-    with BoxConsumer(net.vehicle, sid="cam1", frame_size=(320, 240)) as boxes:
+    with BoxConsumer(net.vehicle, sid="cam1") as boxes:
         net.wait_matched(box_key("edge1", "cam1"))
         for seq in range(5):
             net.put(_box("cam1", seq))

@@ -42,8 +42,8 @@ def _sample_models():
         StartRequest(image_key="uav1/cam", box=(1, 2, 3, 4), seq=7, overrides={"learning_rate": 0.02}),
         StopRequest(sid="s1"), ListRequest(), health, info,
         SessionList(node="n1", max_sessions=4, sessions=[info]),
-        BoxResult(node="n1", sid="s1", seq=3, stamp_ns=4, box=(1.5, 2.5, 3.5, 4.5), ok=True, pme=20.0,
-                  score=0.5, scale=1.0, processing_ms=3.2, published_ns=9),
+        BoxResult(node="n1", sid="s1", seq=3, stamp_ns=4, box=(1.5, 2.5, 3.5, 4.5), width=640, height=360,
+                  ok=True, pme=20.0, score=0.5, scale=1.0, processing_ms=3.2, published_ns=9),
         Error(code="unknown_session", message="no session 'x'"),
     ]
 
