@@ -190,11 +190,12 @@ class Tracker:
         patches = np.stack([self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)])
         return fhog_batch(patches.astype(np.float32) / 255.0, self.config.cell_size) * self.cosine_window
 
-    def _update_context_penalties(self, context: np.ndarray, object_response: np.ndarray) -> None:
+    def _update_context_penalties(self, context: np.ndarray, context_hat: np.ndarray,
+                                  object_response: np.ndarray) -> None:
         """Challenge factors: how strongly the HOG filter answers each context patch, relative to the target."""
-        bank = self.banks["hog"]
         weights = self.dimensional["hog"].weights if self.config.dimensional_attention else None
-        context_pmes = [pme(crop_centre(bank.response(z, weights), self.grid.crop_cells)) for z in context]
+        responses = self.banks["hog"].response(context, weights, context_hat)
+        context_pmes = [pme(crop_centre(response, self.grid.crop_cells)) for response in responses]
         self.contextual.update_penalties(pme(object_response), np.array(context_pmes))
 
     def _train(self, frame: np.ndarray, object_response: np.ndarray | None = None) -> None:
@@ -206,17 +207,16 @@ class Tracker:
         cfg = self.config
         patch = self._sample(frame, self.pos)
         features = self._features(patch, self.banks)
-        context = None
+        context_energy = None
         if cfg.context_attention and self.contextual.is_context_frame(self.frame_number):
+            hog = self.banks["hog"]
             context = self._context_features(frame)
+            context_hat = hog.spectrum(context)
             if object_response is not None:
-                self._update_context_penalties(context, object_response)
+                self._update_context_penalties(context, context_hat, object_response)
+            context_energy = hog.context_energy(context, context_hat, self.contextual.feature_scales())
         for name, bank in self.banks.items():
-            context_energy = None
-            if name == "hog" and context is not None:
-                scales = self.contextual.feature_scales().astype(np.float32)[:, None, None, None]
-                context_energy = bank.context_energy(context * scales)
-            bank.train(features[name] * self.cosine_window, context_energy)
+            bank.train(features[name] * self.cosine_window, context_energy if name == "hog" else None)
             if cfg.dimensional_attention:
                 self.dimensional[name].update(bank.fresh_self_responses())
         if cfg.colour_window:
