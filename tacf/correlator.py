@@ -36,8 +36,14 @@ class GaussianKernel:
     sigma: float
 
     def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
+        """The kernel map, computed in place in `cross` (the caller's fresh inverse FFT)."""
         n = cross.shape[-1] * cross.shape[-2]
-        return np.exp(-(sq_norm_a + sq_norm_b - 2 * cross) / (self.sigma**2 * n))
+        # exp(-(|a|^2 + |b|^2 - 2 cross) / (sigma^2 N)), step by step without temporaries.
+        cross *= 2
+        np.subtract(sq_norm_a + sq_norm_b, cross, out=cross)
+        np.negative(cross, out=cross)
+        cross /= self.sigma**2 * n
+        return np.exp(cross, out=cross)
 
 
 @dataclass(frozen=True)
@@ -112,13 +118,13 @@ class CorrelatorBank:
         if context_energy is not None:
             denominator = denominator + context_energy
         filter_hat = kernel_hat * self.label_hat / denominator
-        if self.model_x is None:
-            self.model_x, self.model_x_hat, self.model_filter_hat = x, x_hat, filter_hat
+        if self.model_x is None:  # copies: the model is updated in place
+            self.model_x, self.model_x_hat, self.model_filter_hat = x.copy(), x_hat.copy(), filter_hat.copy()
         else:
             rate = self.learning_rate
-            self.model_x = (1 - rate) * self.model_x + rate * x
-            self.model_x_hat = (1 - rate) * self.model_x_hat + rate * x_hat
-            self.model_filter_hat = (1 - rate) * self.model_filter_hat + rate * filter_hat
+            for model, fresh in ((self.model_x, x), (self.model_x_hat, x_hat), (self.model_filter_hat, filter_hat)):
+                model *= 1 - rate  # (1 - rate) model + rate fresh, in place
+                model += rate * fresh
         self._fresh = filter_hat, kernel_hat
 
     def fresh_self_responses(self) -> np.ndarray:
