@@ -61,9 +61,8 @@ class ColourModel:
     def likelihood_window(self, patch: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
         """Foreground likelihood on the feature grid, normalised to [floor, 1]."""
         index, _ = _bin_index(patch, self.bins)
-        fg, bg = self.fg_hist[index], self.bg_hist[index]
-        total = fg + bg
-        likelihood = np.divide(fg, total, out=np.zeros_like(fg), where=total > 0)
+        total = self.fg_hist + self.bg_hist  # per bin, then one lookup per pixel
+        likelihood = np.divide(self.fg_hist, total, out=np.zeros_like(total), where=total > 0)[index]
         likelihood = cv2.resize(likelihood.astype(np.float32), (grid_hw[1], grid_hw[0]),
                                 interpolation=cv2.INTER_AREA)
         low, high = likelihood.min(), likelihood.max()

@@ -36,8 +36,14 @@ class GaussianKernel:
     sigma: float
 
     def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
+        """The kernel map, computed in place in `cross` (the caller's fresh inverse FFT)."""
         n = cross.shape[-1] * cross.shape[-2]
-        return np.exp(-(sq_norm_a + sq_norm_b - 2 * cross) / (self.sigma**2 * n))
+        # exp(-(|a|^2 + |b|^2 - 2 cross) / (sigma^2 N)), step by step without temporaries.
+        cross *= 2
+        np.subtract(sq_norm_a + sq_norm_b, cross, out=cross)
+        np.negative(cross, out=cross)
+        cross /= self.sigma**2 * n
+        return np.exp(cross, out=cross)
 
 
 @dataclass(frozen=True)
@@ -72,7 +78,8 @@ class CorrelatorBank:
         self._fresh: tuple[np.ndarray, np.ndarray] | None = None
 
     # -- kernels ------------------------------------------------------------------------------------------
-    def _fft(self, x: np.ndarray) -> np.ndarray:
+    def spectrum(self, x: np.ndarray) -> np.ndarray:
+        """rfft2 of every (H, W) slice of x: compute it once where several steps need it."""
         return sfft.rfft2(x, axes=(-2, -1))
 
     def _ifft(self, x_hat: np.ndarray) -> np.ndarray:
@@ -82,34 +89,42 @@ class CorrelatorBank:
         """F(k(x_d, x_d)) for every channel d (the leading axes are batch axes)."""
         cross = self._ifft(x_hat * x_hat.conj())
         norms = _sq_norms(x)
-        return self._fft(self.kernel(cross, norms, norms))
+        return self.spectrum(self.kernel(cross, norms, norms))
 
     def cross_kernel_hat(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
         """F(k(z_d, model_x_d)): a target displaced by +d in z peaks at +d."""
         cross = self._ifft(z_hat * self.model_x_hat.conj())
-        return self._fft(self.kernel(cross, _sq_norms(z), _sq_norms(self.model_x)))
+        return self.spectrum(self.kernel(cross, _sq_norms(z), _sq_norms(self.model_x)))
 
-    def context_energy(self, context_x: np.ndarray) -> np.ndarray:
-        """sum_s |F(k(x_s, x_s))|^2 over context patches (S, C, H, W), already scaled by their penalties."""
-        kernel_hat = self.auto_kernel_hat(context_x, self._fft(context_x))
+    def context_energy(self, context_x: np.ndarray, context_x_hat: np.ndarray | None = None,
+                       scales: np.ndarray | None = None) -> np.ndarray:
+        """sum_s |F(k(p_s x_s, p_s x_s))|^2 over context patches x_s (S, C, H, W), each scaled by p_s = scales[s]
+        (default 1) before the kernel; context_x_hat = spectrum(context_x) if already known (it is shared with
+        the penalty responses: F(p_s x_s) = p_s F(x_s) saves a transform)."""
+        if context_x_hat is None:
+            context_x_hat = self.spectrum(context_x)
+        if scales is not None:
+            scales = np.asarray(scales, dtype=np.float32)[:, None, None, None]
+            context_x, context_x_hat = context_x * scales, context_x_hat * scales
+        kernel_hat = self.auto_kernel_hat(context_x, context_x_hat)
         return np.sum(kernel_hat.real**2 + kernel_hat.imag**2, axis=0)
 
     # -- training ------------------------------------------------------------------------------------------
     def train(self, x: np.ndarray, context_energy: np.ndarray | None = None) -> None:
         """Learn fresh filters on x (C, H, W) and blend them into the model."""
-        x_hat = self._fft(x)
+        x_hat = self.spectrum(x)
         kernel_hat = self.auto_kernel_hat(x, x_hat)
         denominator = kernel_hat.real**2 + kernel_hat.imag**2 + self.lambda1
         if context_energy is not None:
             denominator = denominator + context_energy
         filter_hat = kernel_hat * self.label_hat / denominator
-        if self.model_x is None:
-            self.model_x, self.model_x_hat, self.model_filter_hat = x, x_hat, filter_hat
+        if self.model_x is None:  # copies: the model is updated in place
+            self.model_x, self.model_x_hat, self.model_filter_hat = x.copy(), x_hat.copy(), filter_hat.copy()
         else:
             rate = self.learning_rate
-            self.model_x = (1 - rate) * self.model_x + rate * x
-            self.model_x_hat = (1 - rate) * self.model_x_hat + rate * x_hat
-            self.model_filter_hat = (1 - rate) * self.model_filter_hat + rate * filter_hat
+            for model, fresh in ((self.model_x, x), (self.model_x_hat, x_hat), (self.model_filter_hat, filter_hat)):
+                model *= 1 - rate  # (1 - rate) model + rate fresh, in place
+                model += rate * fresh
         self._fresh = filter_hat, kernel_hat
 
     def fresh_self_responses(self) -> np.ndarray:
@@ -121,15 +136,17 @@ class CorrelatorBank:
         return self._ifft(filter_hat * kernel_hat)
 
     # -- detection -----------------------------------------------------------------------------------------
-    def channel_response_hats(self, z: np.ndarray) -> np.ndarray:
-        """F(R_d) for every channel of the sample z (C, H, W)."""
-        return self.model_filter_hat * self.cross_kernel_hat(z, self._fft(z))
+    def channel_response_hats(self, z: np.ndarray, z_hat: np.ndarray | None = None) -> np.ndarray:
+        """F(R_d) for every channel of the sample z (..., C, H, W); z_hat = spectrum(z) if already known."""
+        return self.model_filter_hat * self.cross_kernel_hat(z, self.spectrum(z) if z_hat is None else z_hat)
 
-    def response(self, z: np.ndarray, channel_weights: np.ndarray | None = None) -> np.ndarray:
-        """sum_d w_d R_d as one H x W map: the weighted channel sum is taken before the inverse FFT."""
-        hats = self.channel_response_hats(z)
+    def response(self, z: np.ndarray, channel_weights: np.ndarray | None = None,
+                 z_hat: np.ndarray | None = None) -> np.ndarray:
+        """sum_d w_d R_d as one H x W map per sample z (..., C, H, W): the weighted channel sum is taken before
+        the inverse FFT."""
+        hats = self.channel_response_hats(z, z_hat)
         if channel_weights is None:
-            summed = hats.sum(axis=0)
+            summed = hats.sum(axis=-3)
         else:
-            summed = (channel_weights.astype(hats.real.dtype)[:, None, None] * hats).sum(axis=0)
+            summed = (channel_weights.astype(hats.real.dtype)[:, None, None] * hats).sum(axis=-3)
         return self._ifft(summed)

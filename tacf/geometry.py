@@ -108,6 +108,13 @@ def _clamped_span(start: int, count: int, limit: int) -> slice | np.ndarray:
 
 def crop_replicate(image: np.ndarray, top_left, size_hw) -> np.ndarray:
     """Pixels of the rectangle at integer top_left (row, col) of size_hw, borders replicated."""
+    top, left, height, width = int(top_left[0]), int(top_left[1]), int(size_hw[0]), int(size_hw[1])
+    first_row, first_col = max(top, 0), max(left, 0)
+    end_row, end_col = min(top + height, image.shape[0]), min(left + width, image.shape[1])
+    if first_row < end_row and first_col < end_col:  # overlaps the image: slice, then replicate the borders
+        inside = image[first_row:end_row, first_col:end_col]
+        margins = (first_row - top, top + height - end_row, first_col - left, left + width - end_col)
+        return cv2.copyMakeBorder(inside, *margins, cv2.BORDER_REPLICATE) if any(margins) else inside
     rows = _clamped_span(int(top_left[0]), int(size_hw[0]), image.shape[0])
     cols = _clamped_span(int(top_left[1]), int(size_hw[1]), image.shape[1])
     if isinstance(rows, slice) and isinstance(cols, slice):

@@ -118,6 +118,9 @@ class ScaleFilter:
         self._min_scale, self._max_scale = scale_limits(cfg.scale_step, image_hw, base_target_sz, bg_area)
         self._num: np.ndarray | None = None  # (num_scales // 2 + 1, D) complex
         self._den: np.ndarray | None = None  # (num_scales // 2 + 1,) real
+        # The feature vectors estimate() computed, by patch rectangle, for the update_model() that follows on the
+        # same image: at the same position most (all, when the scale did not change) of its patches recur.
+        self._recent: tuple[np.ndarray, dict[tuple, np.ndarray]] | None = None
 
     @property
     def min_scale(self) -> float:
@@ -138,8 +141,12 @@ class ScaleFilter:
         return self._factors.copy()
 
     def update_model(self, image: np.ndarray, pos, scale_factor: float) -> None:
-        """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11)."""
+        """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11).
+
+        Patches that the last estimate() on this same image already computed are reused, not recomputed.
+        """
         num, den = filter_terms(self._label_hat, self._sample_hat(image, pos, scale_factor))
+        self._recent = None
         if self._num is None:
             self._num, self._den = num, den
             return
@@ -151,6 +158,7 @@ class ScaleFilter:
         """The new scale factor: scale_factor times the best relative scale, clamped (section 11, detection)."""
         if self._num is None:
             raise RuntimeError("ScaleFilter.estimate() called before update_model()")
+        self._recent = None
         sample_hat = self._sample_hat(image, pos, scale_factor)
         response = scale_response(self._num, self._den, sample_hat, self._lambda, self._num_scales)
         best = int(np.argmax(response))  # first maximum, like MATLAB's find(... == max)
@@ -164,9 +172,15 @@ class ScaleFilter:
     def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
         top_left, sizes = scale_patch_rects(pos, self._base_target_sz, scale_factor, self._factors)
-        patches = np.stack([resize_auto(crop_replicate(image, top_left[i], sizes[i]), self._model_sz)
-                            for i in self._sampled])
-        vectors = self._patch_features(patches)
+        rects = [(*top_left[i], *sizes[i]) for i in self._sampled]
+        known = self._recent[1] if self._recent is not None and self._recent[0] is image else {}
+        missing = [rect for rect in rects if rect not in known]
+        if missing:
+            patches = np.stack([resize_auto(crop_replicate(image, rect[:2], rect[2:]), self._model_sz)
+                                for rect in missing])
+            known = {**known, **dict(zip(missing, self._patch_features(patches)))}
+        self._recent = image, known
+        vectors = np.stack([known[rect] for rect in rects])
         sample = np.zeros((self._num_scales, vectors.shape[1]), dtype=np.float64)
         sample[self._sampled] = vectors * self._window[self._sampled, None]
         return sample

@@ -131,7 +131,7 @@ class Tracker:
         self.frame_number += 1
 
         # ------- LOCALISE -------
-        fused = self._localise(frame)
+        fused, object_response = self._localise(frame)
         self.displacement = peak_offset(fused) / self.areas.resize_factor
         self.pos = np.clip(self.pos + self.displacement, 0, np.asarray(frame.shape[:2]) - 1)
 
@@ -142,7 +142,7 @@ class Tracker:
             self.areas = self._areas_around(self.target_hw)
 
         # ------- UPDATE -------
-        self._train(frame)
+        self._train(frame, object_response)
         confidence = pme(fused)
         return TrackResult(box=self.box, pme=confidence, score=float(fused.max()),
                            ok=confidence >= self.config.lost_pme, scale=self.scale_factor)
@@ -165,8 +165,9 @@ class Tracker:
                       "cn": lambda p: color_names(p, self.config.cell_size)}
         return {name: extractors[name](patch) for name in names}
 
-    def _localise(self, frame: np.ndarray) -> np.ndarray:
-        """Fused, upsampled response over the search square; its centre is 'no motion'."""
+    def _localise(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fused, upsampled response over the search square (its centre is 'no motion'), and the cropped HOG
+        response, the reference for the context challenge factors."""
         cfg = self.config
         patch = self._sample(frame, self.pos)
         window = self.cosine_window
@@ -182,33 +183,40 @@ class Tracker:
                 response = response * self.spatiotemporal[name].update(
                     response, self.response_window, motion, self.target_hw)
             cropped[name] = crop_centre(response, self.grid.crop_cells)
-        if cfg.context_attention and self.frame_number > 1 and self.contextual.is_context_frame(self.frame_number):
-            self._update_context_penalties(frame, cropped["hog"])
-        return fuse([upsample(r, self.grid.response_size) for r in cropped.values()])
+        return fuse([upsample(r, self.grid.response_size) for r in cropped.values()]), cropped["hog"]
 
     def _context_features(self, frame: np.ndarray) -> np.ndarray:
         """Windowed fHOG of the four context patches around the current position: (4, 31, H, W)."""
         patches = np.stack([self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)])
         return fhog_batch(patches.astype(np.float32) / 255.0, self.config.cell_size) * self.cosine_window
 
-    def _update_context_penalties(self, frame: np.ndarray, object_response: np.ndarray) -> None:
+    def _update_context_penalties(self, context: np.ndarray, context_hat: np.ndarray,
+                                  object_response: np.ndarray) -> None:
         """Challenge factors: how strongly the HOG filter answers each context patch, relative to the target."""
-        bank = self.banks["hog"]
         weights = self.dimensional["hog"].weights if self.config.dimensional_attention else None
-        context_pmes = [pme(crop_centre(bank.response(z, weights), self.grid.crop_cells))
-                        for z in self._context_features(frame)]
+        responses = self.banks["hog"].response(context, weights, context_hat)
+        context_pmes = [pme(crop_centre(response, self.grid.crop_cells)) for response in responses]
         self.contextual.update_penalties(pme(object_response), np.array(context_pmes))
 
-    def _train(self, frame: np.ndarray) -> None:
+    def _train(self, frame: np.ndarray, object_response: np.ndarray | None = None) -> None:
+        """Learn at the current position. On context frames the four context patches around it serve twice:
+        the model not yet updated measures their challenge factors (the penalties, given object_response,
+        the cropped HOG response of this frame's detection), then they enter the HOG filter as hard negatives.
+        The authors' code measures the penalties on patches around the previous position; sampling once saves
+        four fHOGs per context frame, and the boxes on the ten UAV sequences come out identical."""
         cfg = self.config
         patch = self._sample(frame, self.pos)
         features = self._features(patch, self.banks)
+        context_energy = None
+        if cfg.context_attention and self.contextual.is_context_frame(self.frame_number):
+            hog = self.banks["hog"]
+            context = self._context_features(frame)
+            context_hat = hog.spectrum(context)
+            if object_response is not None:
+                self._update_context_penalties(context, context_hat, object_response)
+            context_energy = hog.context_energy(context, context_hat, self.contextual.feature_scales())
         for name, bank in self.banks.items():
-            context_energy = None
-            if name == "hog" and cfg.context_attention and self.contextual.is_context_frame(self.frame_number):
-                scales = self.contextual.feature_scales().astype(np.float32)[:, None, None, None]
-                context_energy = bank.context_energy(self._context_features(frame) * scales)
-            bank.train(features[name] * self.cosine_window, context_energy)
+            bank.train(features[name] * self.cosine_window, context_energy if name == "hog" else None)
             if cfg.dimensional_attention:
                 self.dimensional[name].update(bank.fresh_self_responses())
         if cfg.colour_window:

@@ -6,7 +6,7 @@ truncation at ``clip`` and no border crop. The all-zero 32nd channel of the orig
 
 Everything is vectorised, over a batch of same-sized images as well: ``fhog_batch`` computes N images in one
 pass (the DSST scale filter needs 31 small patches per sample, where the fixed per-call cost dominates), and
-``fhog`` is its N = 1 case. Images never mix: gradients stop at each image's border and every image has its own
+``fhog`` is its N = 1 case. Large images go through in chunks of about CHUNK_PIXELS pixels. Images never mix: gradients stop at each image's border and every image has its own
 histogram bins, so each image's result is bit for bit what ``fhog`` gives for it alone. Constants that depend
 only on the image size (each pixel's four target cells and bilinear weights) or on nothing (the orientation
 lookup table) are computed once and cached.
@@ -41,6 +41,9 @@ PI32 = np.float32(3.14159265)  # the C code's PI, as float32
 ACOS_STEPS = 10000  # the C acos table holds acos(i / 10000)
 ACOS_GUARD = 10  # extra table entries each side, absorbing rounding beyond +-1
 TABLE_SIZE = 2 * (ACOS_STEPS + ACOS_GUARD)
+# Pixels per vectorised pass: beyond ~50k the per-pixel temporaries fall out of the L2 cache and a batch of
+# 200x200 patches runs ~40% slower per pixel than the same patches one at a time.
+CHUNK_PIXELS = 50_000
 
 
 def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray:
@@ -69,6 +72,15 @@ def fhog_batch(images: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.
     rows, cols = images.shape[1] // cell_size, images.shape[2] // cell_size
     if rows < 1 or cols < 1:
         raise ValueError(f"images {images.shape[1:3]} are smaller than one {cell_size}x{cell_size} cell")
+    per_chunk = max(1, CHUNK_PIXELS // (images.shape[1] * images.shape[2]))
+    if len(images) > per_chunk:
+        return np.concatenate([_fhog_chunk(images[i:i + per_chunk], cell_size, clip, rows, cols)
+                               for i in range(0, len(images), per_chunk)])
+    return _fhog_chunk(images, cell_size, clip, rows, cols)
+
+
+def _fhog_chunk(images: np.ndarray, cell_size: int, clip: float, rows: int, cols: int) -> np.ndarray:
+    """fhog_batch of one chunk, in one vectorised pass."""
     gx, gy, squared = _max_channel_gradients(images)
     used = (slice(None), slice(0, rows * cell_size), slice(0, cols * cell_size))
     magnitude, table_index = _magnitude_and_table_index(gx[used], gy[used], squared[used])
