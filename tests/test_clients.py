@@ -2,6 +2,7 @@
 timeouts, and the wildcard list across two services."""
 from __future__ import annotations
 
+import functools
 import time
 
 import pytest
@@ -15,6 +16,7 @@ from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource, iou
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo
+from tacf_service.loopback import wait_until
 
 pytestmark = pytest.mark.zenoh
 
@@ -46,13 +48,7 @@ def camera(client, request):
     cam.close()
 
 
-def _wait(predicate, timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.05)
-    return False
+_wait = functools.partial(wait_until, timeout=10.0)
 
 
 def test_error_classes_cover_every_wire_code():

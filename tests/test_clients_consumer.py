@@ -5,6 +5,7 @@ check the consumer's side of the wire contract without a tracker; test_clients.p
 """
 from __future__ import annotations
 
+import functools
 import io
 import threading
 import time
@@ -18,6 +19,7 @@ from tacf_clients.watch import SessionRow, render_table, watch
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas import box_key, encode, health_key
 from tacf_schemas.models import BoxResult, Health
+from tacf_service.loopback import wait_until
 
 pytestmark = pytest.mark.zenoh
 
@@ -162,13 +164,7 @@ def test_watch_prints_live_rows(net):
     assert "tacf watch" in out.getvalue()
 
 
-def _wait(predicate, timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return False
+_wait = functools.partial(wait_until, timeout=5.0, period=0.02)
 
 
 def test_client_side_never_imports_the_tracker_and_the_cli_stays_light():

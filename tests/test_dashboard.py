@@ -7,6 +7,7 @@ Set TACF_DASHBOARD_SCREENSHOT=docs/dashboard.png to keep the browser's screensho
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import re
@@ -29,6 +30,7 @@ from tacf_clients.demo import HoldingPublisher
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource, iou
 from tacf_clients.zconfig import ZenohOptions, make_config
+from tacf_service.loopback import wait_until
 
 pytestmark = pytest.mark.zenoh
 
@@ -63,14 +65,7 @@ def stack():
             camera.close()
 
 
-def _wait(predicate, timeout: float = 20.0, step: float = 0.1):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(step)
-    return None
+_wait = functools.partial(wait_until, timeout=20.0, period=0.1)
 
 
 def _get(url: str, headers: dict | None = None) -> tuple[int, dict, bytes]:
