@@ -99,13 +99,6 @@ def resize_auto(patch: np.ndarray, out_hw) -> np.ndarray:
     return cv2.resize(patch, (cols, rows), interpolation=interp)
 
 
-def _clamped_span(start: int, count: int, limit: int) -> slice | np.ndarray:
-    """Indices start..start+count-1, clamped to [0, limit-1] (border replication); a slice when inside."""
-    if start >= 0 and start + count <= limit:
-        return slice(start, start + count)
-    return np.clip(np.arange(start, start + count), 0, limit - 1)
-
-
 def crop_replicate(image: np.ndarray, top_left, size_hw) -> np.ndarray:
     """Pixels of the rectangle at integer top_left (row, col) of size_hw, borders replicated."""
     top, left, height, width = int(top_left[0]), int(top_left[1]), int(size_hw[0]), int(size_hw[1])
@@ -115,14 +108,9 @@ def crop_replicate(image: np.ndarray, top_left, size_hw) -> np.ndarray:
         inside = image[first_row:end_row, first_col:end_col]
         margins = (first_row - top, top + height - end_row, first_col - left, left + width - end_col)
         return cv2.copyMakeBorder(inside, *margins, cv2.BORDER_REPLICATE) if any(margins) else inside
-    rows = _clamped_span(int(top_left[0]), int(size_hw[0]), image.shape[0])
-    cols = _clamped_span(int(top_left[1]), int(size_hw[1]), image.shape[1])
-    if isinstance(rows, slice) and isinstance(cols, slice):
-        return image[rows, cols]
-    if isinstance(rows, slice):
-        rows = np.arange(rows.start, rows.stop)
-    if isinstance(cols, slice):
-        cols = np.arange(cols.start, cols.stop)
+    # entirely outside the image: every pixel repeats the nearest border pixel
+    rows = np.clip(np.arange(top, top + height), 0, image.shape[0] - 1)
+    cols = np.clip(np.arange(left, left + width), 0, image.shape[1] - 1)
     return image[rows[:, None], cols[None, :]]
 
 
