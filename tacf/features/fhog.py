@@ -166,17 +166,19 @@ def _axis_cells(n_cells: int, cell_size: int) -> tuple[list[np.ndarray], list[np
 
 @numba.njit(cache=True)
 def _fhog_images(images, orientation_bins, cell_index, cell_weight, eps, clip, out):
-    """Fill out (N, 31, rows, cols) with the fHOG of each image of images (N, H, W, C)."""
-    n_images, height, width = images.shape[:3]
+    """Fill out (N, 31, rows, cols) with the fHOG of each image of images (N, H, W, C).
+
+    The loops are written out element by element: numba compiles whole-array expressions (slice assignment,
+    broadcasting) very slowly, ~9 s each on this machine, against well under a second for the loops."""
     used_height, used_width = cell_index.shape[1:]
     rows, cols = out.shape[2:]
     magnitude = np.empty((used_height, used_width), dtype=np.float32)
     orientation = np.empty((used_height, used_width), dtype=np.uint8)
-    sensitive = np.empty((N_SENSITIVE, rows, cols), dtype=np.float64)
-    for n in range(n_images):
+    sensitive = np.empty((N_SENSITIVE, rows * cols), dtype=np.float64)
+    for n in range(images.shape[0]):
         _magnitude_and_orientation(images[n], orientation_bins, magnitude, orientation)
         _spatial_histograms(magnitude, orientation, cell_index, cell_weight, sensitive)
-        _normalise_and_truncate(sensitive.astype(np.float32), eps, clip, out[n])
+        _normalise_and_truncate(sensitive, eps, clip, out[n])
 
 
 @numba.njit(cache=True)
@@ -188,9 +190,11 @@ def _magnitude_and_orientation(image, orientation_bins, magnitude, orientation):
     contiguous pixels and compile to vector code."""
     height, width, channels = image.shape
     used_width = magnitude.shape[1]
-    planes = np.empty((channels, height, width), dtype=np.float32)
-    for c in range(channels):
-        planes[c] = image[:, :, c]
+    planes = np.empty((channels, height, width), dtype=np.float32)  # one contiguous plane per colour channel
+    for y in range(height):
+        for x in range(width):
+            for c in range(channels):
+                planes[c, y, x] = image[y, x, c]
     rows = np.empty((6, used_width), dtype=np.float32)
     gx, gy, squared, best_gx, best_gy, best_squared = rows[0], rows[1], rows[2], rows[3], rows[4], rows[5]
     for y in range(magnitude.shape[0]):
@@ -205,11 +209,8 @@ def _magnitude_and_orientation(image, orientation_bins, magnitude, orientation):
             for x in range(used_width):
                 gy[x] = (plane[down, x] - plane[up, x]) * y_scale
                 squared[x] = gx[x] * gx[x] + gy[x] * gy[x]
-            if c == 0:
-                best_gx[:], best_gy[:], best_squared[:] = gx, gy, squared
-                continue
             for x in range(used_width):
-                better = squared[x] > best_squared[x]
+                better = c == 0 or squared[x] > best_squared[x]
                 best_gx[x] = gx[x] if better else best_gx[x]
                 best_gy[x] = gy[x] if better else best_gy[x]
                 best_squared[x] = squared[x] if better else best_squared[x]
@@ -224,29 +225,35 @@ def _magnitude_and_orientation(image, orientation_bins, magnitude, orientation):
 
 @numba.njit(cache=True)
 def _spatial_histograms(magnitude, orientation, cell_index, cell_weight, sensitive):
-    """Contrast-sensitive histograms R1 (18, rows, cols): bilinear in space, hard in orientation, summed in
+    """Contrast-sensitive histograms R1 (18, rows * cols): bilinear in space, hard in orientation, summed in
     float64 one target corner at a time."""
-    sensitive[:] = 0.0
-    flat = sensitive.reshape(N_SENSITIVE, -1)
+    for o in range(N_SENSITIVE):
+        for cell in range(sensitive.shape[1]):
+            sensitive[o, cell] = 0.0
     for corner in range(4):
         for y in range(magnitude.shape[0]):
             for x in range(magnitude.shape[1]):
-                flat[orientation[y, x], cell_index[corner, y, x]] += cell_weight[corner, y, x] * magnitude[y, x]
+                sensitive[orientation[y, x], cell_index[corner, y, x]] += cell_weight[corner, y, x] * magnitude[y, x]
 
 
 @numba.njit(cache=True)
 def _normalise_and_truncate(sensitive, eps, clip, out):
-    """The 31 output channels (31, rows, cols): 0.5 * sum_k min(R n_k, clip) for R1 and the contrast-insensitive
-    R2, and the 4 texture channels. n_k = 1 / sqrt(energy of a 2x2 block + eps) for the 4 blocks around a cell,
-    in the C code's order: top-left cell at offset (0, 0), (-1, 0), (0, -1), (-1, -1); the block grid is
-    clamped at the border. A grid one cell high or wide is normalised as if that cell row / column were doubled."""
-    rows, cols = sensitive.shape[1:]
+    """The 31 output channels (31, rows, cols) from the float64 histograms R1 (18, rows * cols):
+    0.5 * sum_k min(R n_k, clip) for R1 and the contrast-insensitive R2, and the 4 texture channels.
+    n_k = 1 / sqrt(energy of a 2x2 block + eps) for the 4 blocks around a cell, in the C code's order: top-left
+    cell at offset (0, 0), (-1, 0), (0, -1), (-1, -1); the block grid is clamped at the border. A grid one cell
+    high or wide is normalised as if that cell row / column were doubled."""
+    rows, cols = out.shape[1:]
     histograms = np.empty((N_SENSITIVE + N_ORIENTS, rows, cols), dtype=np.float32)  # R1, then R2
-    histograms[:N_SENSITIVE] = sensitive
-    histograms[N_SENSITIVE:] = sensitive[:N_ORIENTS] + sensitive[N_ORIENTS:]
     energy = np.zeros((rows, cols), dtype=np.float32)
-    for o in range(N_SENSITIVE, N_SENSITIVE + N_ORIENTS):
-        energy += histograms[o] * histograms[o]
+    for r in range(rows):
+        for c in range(cols):
+            for o in range(N_SENSITIVE):
+                histograms[o, r, c] = sensitive[o, r * cols + c]
+            for o in range(N_ORIENTS):
+                insensitive = histograms[o, r, c] + histograms[o + N_ORIENTS, r, c]
+                histograms[N_SENSITIVE + o, r, c] = insensitive
+                energy[r, c] += insensitive * insensitive
     block_rows, block_cols = max(rows - 1, 1), max(cols - 1, 1)
     block = np.empty((block_rows, block_cols), dtype=np.float32)
     for r in range(block_rows):
@@ -255,7 +262,10 @@ def _normalise_and_truncate(sensitive, eps, clip, out):
             c1 = min(c + 1, cols - 1)
             block[r, c] = ONE / np.sqrt(energy[r, c] + energy[r1, c] + energy[r, c1] + energy[r1, c1] + eps)
     normaliser = np.empty((rows, cols), dtype=np.float32)
-    out[:] = 0.0
+    for o in range(N_CHANNELS):
+        for r in range(rows):
+            for c in range(cols):
+                out[o, r, c] = 0.0
     for k in range(4):
         for r in range(rows):
             for c in range(cols):
@@ -271,4 +281,7 @@ def _normalise_and_truncate(sensitive, eps, clip, out):
         for r in range(rows):
             for c in range(cols):
                 texture[r, c] *= TEXTURE_FACTOR
-    out[:N_SENSITIVE + N_ORIENTS] *= HALF
+    for o in range(N_SENSITIVE + N_ORIENTS):
+        for r in range(rows):
+            for c in range(cols):
+                out[o, r, c] *= HALF
