@@ -11,12 +11,12 @@ Modules, one concept each:
     state       StateStore: the session table persisted atomically as JSON
     trackers    tracker factories (TACF by profile), passed to workers as "module:function"
     errors      ServiceError(code, message) -> reply_err(Error)
-    probe       a minimal control caller (bench, tests); the full client API is tacf_clients
-    loopback    free ports, loopback peer configs, a frame publisher, a result collector (tests, bench)
+    probe       a minimal control caller (tests); the full client API is tacf_clients
+    loopback    free ports, loopback peer configs, a frame publisher, a result collector (tests)
     scene       a synthetic moving-target video
-    bench       latency / drops / memory benchmark: python -m tacf_service.bench --feeds 1 4
 
 Frames never pass through the service process on their way to a tracker: each worker is a Zenoh client of
 the service's endpoint and subscribes to its image key itself. The service process only keeps a short
 history of each followed key (to initialise on the frame a box was drawn on) and supervises the workers.
+The service benchmark drives it from outside, as a client would: `tacf bench service` (tacf_clients.bench).
 """

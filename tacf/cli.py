@@ -1,7 +1,8 @@
 """The `tacf` command line: one console script, subcommands registered by their own modules.
 
 Each module in COMMAND_MODULES defines `register(subparsers)`, adding its subcommands with
-`set_defaults(func=...)`; `func(args)` returns the exit code. Those modules import only argparse-level
+`set_defaults(func=...)`, and may define `register_bench(bench_subparsers)` for a `tacf bench WHAT`
+benchmark; `func(args)` returns the exit code. Those modules import only argparse-level
 things at import time, so `tacf publish` never loads the tracker and `tacf eval` never loads Zenoh.
 """
 from __future__ import annotations
@@ -15,6 +16,7 @@ COMMAND_MODULES = (
     "tacf.eval.cli",         # eval, track, bench tracker
     "tacf_service.cli",      # serve
     "tacf_clients.cli",      # publish, start, stop, reinit, list, status, watch, demo, dashboard
+    "tacf_clients.bench",    # bench service
 )
 
 
@@ -22,8 +24,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tacf", description="TACF UAV tracker and Zenoh tracking service")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module in COMMAND_MODULES:
-        importlib.import_module(module).register(sub)
+    bench = sub.add_parser("bench", help="speed benchmarks (tracker, service)", description="Speed benchmarks.")
+    bench_sub = bench.add_subparsers(dest="what", metavar="WHAT", required=True)
+    for name in COMMAND_MODULES:
+        module = importlib.import_module(name)
+        getattr(module, "register", lambda _: None)(sub)
+        getattr(module, "register_bench", lambda _: None)(bench_sub)
     return parser
 
 

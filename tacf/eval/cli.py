@@ -57,8 +57,12 @@ def register(subparsers) -> None:
     p.add_argument("--tracker", metavar="NAME", help="any evaluation tracker name instead (e.g. opencv-csrt)")
     p.set_defaults(func=cmd_track)
 
-    p = subparsers.add_parser("bench", help="speed benchmarks", description="Speed benchmarks.")
-    p.add_argument("what", choices=["tracker"], help="tracker: per-stream tracker speed on decoded frames")
+
+
+
+def register_bench(bench_subparsers) -> None:
+    p = bench_subparsers.add_parser("tracker", help="per-stream tracker speed on decoded frames, CSRT alongside",
+                                    description="Per-stream tracker speed on decoded frames, OpenCV CSRT alongside.")
     p.add_argument("root", metavar="ROOT", type=Path, nargs="?",
                    help=f"dataset root (default {DEFAULT_DATA} when present)")
     p.add_argument("--json", type=Path, metavar="OUT", help="write the report here (default: standard output)")

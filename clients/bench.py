@@ -1,0 +1,288 @@
+"""`tacf bench service`: end-to-end latency, drops, memory and CPU of a real `tacf serve` under N camera feeds.
+
+    tacf bench service --feeds 1 6 12 --fps 10 --seconds 30 --json bench.json
+
+For each feed count: starts `tacf serve` in a child process on a free loopback port (no spare worker, so every
+worker process is a session), publishes N feeds from this process, each the JPEG files of one real 1280x720
+sequence of the data folder, looped, sent as they are (no re-encoding, so the publisher costs almost no CPU and
+the service decodes real camera-size JPEGs). Feeds are phase-shifted like unsynchronised cameras. One session
+per feed is started on the sequence's first ground-truth box; after a warm-up the run measures, for frames
+published inside the window:
+
+- latency_ms: frame stamped and put -> its BoxResult received here (one clock, one machine), p50/p95/p99/max;
+- frames_sent, boxes_received, dropped = frames sent that got no box (superseded in a worker's latest-only slot,
+  or lost in transit);
+- rss_mb_per_session: mean RSS of the worker processes, and pss_mb_per_session, their proportional set size
+  (shared library pages divided among the processes that map them: what each session really adds);
+- cpu_percent: CPU time of the service and its workers over the window / window length (100 = one core).
+
+A looped sequence restarts with the target elsewhere; the session then tracks whatever it holds, which costs
+the same per frame, so the figures stay load figures, not accuracy.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+DEFAULT_DATA = Path("../shared/data/sequences")
+FRAME_SIZE = (1280, 720)
+NODE = "bench"
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def register_bench(bench_subparsers) -> None:
+    p = bench_subparsers.add_parser(
+        "service", help="latency, drops, memory and CPU of `tacf serve` under N real 1280x720 JPEG feeds",
+        description="Start `tacf serve`, publish N looped real 1280x720 JPEG sequences at --fps and report "
+                    "latency, drops, memory and CPU as JSON.")
+    p.add_argument("root", metavar="ROOT", type=Path, nargs="?",
+                   help=f"folder of annotated sequences (default {DEFAULT_DATA})")
+    p.add_argument("--feeds", type=int, nargs="+", default=[1], metavar="N",
+                   help="feed counts to run one after the other (default 1)")
+    p.add_argument("--fps", type=float, default=10.0, help="frames per second per feed (default 10)")
+    p.add_argument("--seconds", type=float, default=20.0, help="measured window per feed count (default 20)")
+    p.add_argument("--warmup", type=float, default=5.0,
+                   help="seconds tracked after every session's first box, before measuring (default 5)")
+    p.add_argument("--profile", help="tracker profile of the sessions (default: the service's default)")
+    p.add_argument("--json", type=Path, metavar="OUT", help="write the report here (default: standard output)")
+    p.set_defaults(func=cmd_bench_service)
+
+
+@dataclass(frozen=True)
+class Feed:
+    """One looped camera: the raw JPEG bytes of a sequence's frames and its first ground-truth box."""
+    name: str
+    jpegs: tuple[bytes, ...]
+    first_box: tuple[float, float, float, float]
+
+
+def load_feeds(root: Path, count: int) -> list[Feed]:
+    """`count` feeds from the 1280x720 sequences under root, reusing sequences when there are fewer."""
+    import cv2
+
+    from tacf.eval.datasets import load_sequences
+
+    feeds: list[Feed] = []
+    for seq in load_sequences(root):
+        first = cv2.imread(str(seq.frames[0]))
+        if first is None or (first.shape[1], first.shape[0]) != FRAME_SIZE:
+            continue
+        jpegs = tuple(Path(p).read_bytes() for p in seq.frames)
+        feeds.append(Feed(seq.name, jpegs, tuple(float(v) for v in seq.gt[0])))
+        if len(feeds) == count:
+            break
+    if not feeds:
+        raise FileNotFoundError(f"no {FRAME_SIZE[0]}x{FRAME_SIZE[1]} JPEG sequences under {root}")
+    return [feeds[i % len(feeds)] for i in range(count)]
+
+
+class FeedPublisher:
+    """Publishes every feed at `fps` from one thread, feed i phase-shifted by i / (N fps); records each put."""
+
+    def __init__(self, session, feeds: list[Feed], fps: float):
+        import zenoh
+
+        from tacf_schemas import MSGPACK_ENCODING
+
+        self.feeds, self.period = feeds, 1.0 / fps
+        self.keys = [f"{NODE}/camera{i}" for i in range(len(feeds))]
+        self._pubs = [session.declare_publisher(key, encoding=zenoh.Encoding(MSGPACK_ENCODING),
+                                                congestion_control=zenoh.CongestionControl.DROP)
+                      for key in self.keys]
+        self.sent: list[list[int]] = [[] for _ in feeds]   # stamp_ns of every frame put, by feed; index = seq
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="bench-publisher", daemon=True)
+
+    def start(self) -> "FeedPublisher":
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        from tacf_schemas import Frame, encode
+
+        width, height = FRAME_SIZE
+        n = len(self.feeds)
+        start = time.monotonic()
+        tick = 0
+        while not self._stop.is_set():
+            i, seq = tick % n, tick // n
+            due = start + seq * self.period + i * self.period / n
+            delay = due - time.monotonic()
+            if delay > 0 and self._stop.wait(delay):
+                break
+            jpeg = self.feeds[i].jpegs[seq % len(self.feeds[i].jpegs)]
+            stamp = time.time_ns()
+            self._pubs[i].put(encode(Frame(seq=seq, stamp_ns=stamp, encoding="jpeg", width=width, height=height,
+                                           data=jpeg)))
+            self.sent[i].append(stamp)
+            tick += 1
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        for pub in self._pubs:
+            pub.undeclare()
+
+
+def _descendants(pid: int) -> list[int]:
+    """pid's child processes, recursively (Linux /proc)."""
+    found, todo = [], [pid]
+    while todo:
+        parent = todo.pop()
+        for task in Path(f"/proc/{parent}/task").glob("*"):
+            try:
+                children = [int(c) for c in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            found += children
+            todo += children
+    return found
+
+
+def _cpu_seconds(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS   # utime + stime
+
+
+def _memory_mb(pid: int, file: str, field: str) -> float | None:
+    """A kB field of /proc/<pid>/<file> in MB: ("status", "VmRSS:") or ("smaps_rollup", "Pss:")."""
+    try:
+        for line in Path(f"/proc/{pid}/{file}").read_text().splitlines():
+            if line.startswith(field):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return None
+
+
+def _mean(values) -> float | None:
+    values = [v for v in values if v is not None]
+    return round(sum(values) / len(values), 1) if values else None
+
+
+def _is_worker(pid: int) -> bool:
+    """A session worker, not multiprocessing's resource tracker."""
+    try:
+        return b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
+def _percentile(values: list[float], q: float) -> float | None:
+    if not values:
+        return None
+    ordered = sorted(values)
+    return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))], 1)
+
+
+def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, profile: str | None) -> dict:
+    """One benchmark run with len(feeds) feeds; the JSON-ready report."""
+    from tqdm import tqdm
+
+    from tacf_clients.client import TrackingClient
+    from tacf_clients.local_service import LocalService
+    from tacf_clients.zconfig import open_session
+    from tacf_schemas import BoxResult
+
+    n = len(feeds)
+    service = LocalService(node=NODE, extra_args=("--max-sessions", str(n), "--spare-workers", "0")).start()
+    session = open_session(service.options)
+    received: list[tuple[int, BoxResult]] = []
+    lock = threading.Lock()
+
+    def on_box(box: BoxResult) -> None:
+        now = time.time_ns()
+        with lock:
+            received.append((now, box))
+
+    publisher = None
+    try:
+        service.wait_ready(session)
+        client = TrackingClient(session=session, node=NODE, timeout=30.0)
+        subscription = client.subscribe(on_box=on_box)
+        publisher = FeedPublisher(session, feeds, fps).start()
+        for i, feed in enumerate(feeds):   # the box of frame 0; the service applies it to the next frame it gets
+            client.start(publisher.keys[i], feed.first_box, seq=0, profile=profile, sid=f"feed{i}")
+        deadline = time.monotonic() + 120      # worker processes start cold (--spare-workers 0)
+        while len({b.sid for _, b in received}) < n and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(warmup)
+        service_pid = service.process.pid
+        workers = [pid for pid in _descendants(service_pid) if _is_worker(pid)]
+        processes = [service_pid, *_descendants(service_pid)]
+        cpu_before, wall_before = sum(map(_cpu_seconds, processes)), time.monotonic()
+        first_seq = [len(s) for s in publisher.sent]
+        with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False) as bar:
+            while (elapsed := time.monotonic() - wall_before) < seconds:
+                time.sleep(min(0.2, seconds - elapsed))
+                bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
+        last_seq = [len(s) - 1 for s in publisher.sent]
+        cpu_percent = 100 * (sum(map(_cpu_seconds, processes)) - cpu_before) / (time.monotonic() - wall_before)
+        rss = _mean(_memory_mb(pid, "status", "VmRSS:") for pid in workers)
+        pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
+        time.sleep(2.0)     # let the boxes of the window's last frames arrive
+        with lock:
+            sid_index = {f"feed{i}": i for i in range(n)}
+            window = [(t, b) for t, b in received
+                      if first_seq[sid_index[b.sid]] <= b.seq <= last_seq[sid_index[b.sid]]]
+        subscription.close()
+        for i in range(n):
+            client.stop(f"feed{i}")
+    finally:
+        if publisher is not None:
+            publisher.stop()
+        session.close()
+        service.stop()
+
+    latency = [(t - b.stamp_ns) / 1e6 for t, b in window]
+    frames_sent = sum(last - first + 1 for first, last in zip(first_seq, last_seq))
+    boxes = len({(b.sid, b.seq) for _, b in window})
+    return {
+        "feeds": n, "fps_in": fps, "seconds": seconds,
+        "latency_ms": {"p50": _percentile(latency, 0.50), "p95": _percentile(latency, 0.95),
+                       "p99": _percentile(latency, 0.99), "max": _percentile(latency, 1.0)},
+        "frames_sent": frames_sent, "boxes_received": boxes, "dropped": frames_sent - boxes,
+        "rss_mb_per_session": rss, "pss_mb_per_session": pss,
+        "cpu_percent": round(cpu_percent, 1), "cpus": os.cpu_count(),
+        "sequences": sorted({f.name for f in feeds}), "load_average": [round(v, 2) for v in os.getloadavg()],
+    }
+
+
+def cmd_bench_service(args: argparse.Namespace) -> int:
+    root = args.root or DEFAULT_DATA
+    if not root.is_dir():
+        log.error("no sequences: %s does not exist (pass ROOT)", root)
+        return 2
+    if min(args.feeds) < 1 or args.fps <= 0 or args.seconds <= 0:
+        log.error("--feeds, --fps and --seconds must be positive")
+        return 2
+    try:
+        feeds = load_feeds(root, max(args.feeds))
+    except FileNotFoundError as exc:
+        log.error("%s", exc)
+        return 2
+    reports = []
+    for count in args.feeds:
+        reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile))
+        log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
+                 reports[-1]["dropped"], reports[-1]["frames_sent"])
+    text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(text)
+        log.info("wrote %s", args.json)
+    else:
+        sys.stdout.write(text)
+    return 0
