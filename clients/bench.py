@@ -14,7 +14,9 @@ published inside the window:
   or lost in transit);
 - rss_mb_per_session: mean RSS of the worker processes, and pss_mb_per_session, their proportional set size
   (shared library pages divided among the processes that map them: what each session really adds);
-- cpu_percent: CPU time of the service and its workers over the window / window length (100 = one core).
+- cpu_percent: CPU time of the service and its workers over the window / window length (100 = one core);
+- over_time: total RSS (MB) and open file descriptors of the service and its workers, sampled 20 times over
+  the window, so a long run (`--seconds 600`) is a soak test: both must stay flat.
 
 A looped sequence restarts with the target elsewhere; the session then tracks whatever it holds, which costs
 the same per frame, so the figures stay load figures, not accuracy.
@@ -167,6 +169,13 @@ def _memory_mb(pid: int, file: str, field: str) -> float | None:
     return None
 
 
+def _open_fds(pid: int) -> int:
+    try:
+        return len(os.listdir(f"/proc/{pid}/fd"))
+    except OSError:
+        return 0
+
+
 def _mean(values) -> float | None:
     values = [v for v in values if v is not None]
     return round(sum(values) / len(values), 1) if values else None
@@ -224,8 +233,13 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         processes = [service_pid, *_descendants(service_pid)]
         cpu_before, wall_before = sum(map(_cpu_seconds, processes)), time.monotonic()
         first_seq = [len(s) for s in publisher.sent]
+        over_time = {"seconds": [], "rss_mb": [], "open_fds": []}
         with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False) as bar:
             while (elapsed := time.monotonic() - wall_before) < seconds:
+                if elapsed >= len(over_time["seconds"]) * seconds / 20:
+                    over_time["seconds"].append(round(elapsed, 1))
+                    over_time["rss_mb"].append(round(sum(_memory_mb(p, "status", "VmRSS:") or 0 for p in processes)))
+                    over_time["open_fds"].append(sum(map(_open_fds, processes)))
                 time.sleep(min(0.2, seconds - elapsed))
                 bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
         last_seq = [len(s) - 1 for s in publisher.sent]
@@ -255,7 +269,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
                        "p99": _percentile(latency, 0.99), "max": _percentile(latency, 1.0)},
         "frames_sent": frames_sent, "boxes_received": boxes, "dropped": frames_sent - boxes,
         "rss_mb_per_session": rss, "pss_mb_per_session": pss,
-        "cpu_percent": round(cpu_percent, 1), "cpus": os.cpu_count(),
+        "cpu_percent": round(cpu_percent, 1), "cpus": os.cpu_count(), "over_time": over_time,
         "sequences": sorted({f.name for f in feeds}), "load_average": [round(v, 2) for v in os.getloadavg()],
     }
 
