@@ -9,6 +9,9 @@
 Every call is one Zenoh query on tacf/<node>/control/<op> (a wildcard node when none is given) with a timeout;
 error replies raise the exception class of their code (tacf_clients.errors), a silent service raises
 RequestTimeout, no service at all raises NoService.
+
+Several services (edge boxes) on one network: `start(..., node=LEAST_LOADED)` picks one (see `least_loaded`),
+and `watch_nodes()` reports services appearing and disappearing through their liveliness tokens.
 """
 from __future__ import annotations
 
@@ -21,7 +24,8 @@ import pydantic
 import zenoh
 
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest, NoService,
-                                 ProtocolError, RequestTimeout, TacfError, UnknownSession, error_from_wire)
+                                 ProtocolError, RequestTimeout, TacfError, TooManySessions, UnknownSession,
+                                 error_from_wire)
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -33,6 +37,9 @@ log = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT = 5.0
 BoxLike = Sequence[float]
+#: `start(..., node=LEAST_LOADED)` runs the session on the least-loaded service (so `start` cannot address a
+#: service called "auto").
+LEAST_LOADED = "auto"
 
 
 @dataclass(frozen=True)
@@ -48,12 +55,14 @@ class TrackingClient:
     session: an open zenoh.Session to use (not closed by the client); otherwise the client opens one from
     `options` (ZenohOptions; None = loopback defaults) and closes it in `close()`.
     node: the service to address by default; None = whichever service holds the session (and, for `start`,
-    the only service on the network).
+    the only service on the network). LEAST_LOADED is refused here: it is a choice for `start` only.
     timeout: seconds to wait for replies to each call.
     """
 
     def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
                  node: str | None = None, timeout: float = DEFAULT_TIMEOUT):
+        if node == LEAST_LOADED:
+            raise ValueError(f"node={LEAST_LOADED!r} is for start(); leave the client's node unset")
         self.node = keys.validate_id(node, "node id") if node is not None else None
         self.timeout = timeout
         self._own_session = session is None
@@ -80,11 +89,15 @@ class TrackingClient:
 
         seq: the frame the box was drawn on (the service applies it to that frame if it still holds it).
         sid: a session id of your choice (else the service makes one). node: the service to run it on; needed
-        only when several services are on the network.
+        only when several services are on the network; LEAST_LOADED picks one (see `least_loaded`).
         """
         request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, sid=sid,
                          profile=profile, overrides=dict(overrides or {}))
-        target = node or self.node or self._single_node()
+        target = node or self.node
+        if target == LEAST_LOADED:
+            target = least_loaded(self.services(node=keys.WILDCARD))     # every service, even with self.node set
+        elif target is None:
+            target = self._single_node()
         info = self._call_one(target, "start", request, SessionInfo)
         self._remember(info)
         return info
@@ -134,6 +147,16 @@ class TrackingClient:
     def nodes(self) -> list[str]:
         """Ids of the services that answer a list query."""
         return [listing.node for listing in self.services()]
+
+    def alive_nodes(self) -> list[str]:
+        """Ids of the services whose liveliness token is up, whether or not they answer queries."""
+        replies = self.session.liveliness().get(keys.service_liveliness_key(keys.WILDCARD), timeout=self.timeout)
+        return sorted({node for r in replies if r.ok is not None and (node := _node_of_token(r.ok.key_expr))})
+
+    def watch_nodes(self, on_change: Callable[[str, bool], None] | None = None) -> "NodeWatch":
+        """Follow services appearing (on_change(node, True)) and disappearing (on_change(node, False)), starting
+        with those up now. Close the returned watch (or use `with`) to stop."""
+        return NodeWatch(self.session, on_change)
 
     # --- results ------------------------------------------------------------------------------------------------
     def subscribe(self, sid: str = keys.WILDCARD, on_box: Callable[[BoxResult], None] | None = None,
@@ -237,6 +260,78 @@ class TrackingClient:
                                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                                    timeout=self.timeout)
         return [_parse_reply(reply, reply_model, key, self.timeout) for reply in replies]
+
+
+class NodeWatch:
+    """The services on the network, from their liveliness tokens (@tacf/<node>), with a callback on changes.
+
+    A killed service's token goes as soon as the kernel closes its sockets (milliseconds); a hung one's only
+    when the Zenoh lease expires (transport/link/tx/lease, 10 s by default; ZENOH.md section 6).
+    `on_change` runs on a Zenoh callback thread: keep it short.
+    """
+
+    def __init__(self, session: zenoh.Session, on_change: Callable[[str, bool], None] | None = None):
+        self._on_change = on_change
+        self._alive: set[str] = set()
+        self._lock = threading.Lock()
+        self._subscriber = session.liveliness().declare_subscriber(
+            keys.service_liveliness_key(keys.WILDCARD), self._on_sample, history=True)
+
+    @property
+    def nodes(self) -> list[str]:
+        with self._lock:
+            return sorted(self._alive)
+
+    def close(self) -> None:
+        """Undeclare the subscriber: a callback subscriber left declared can hang interpreter exit (ZENOH.md 8)."""
+        self._subscriber.undeclare()
+
+    def __enter__(self) -> "NodeWatch":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        node = _node_of_token(sample.key_expr)
+        if node is None:
+            return
+        alive = sample.kind == zenoh.SampleKind.PUT
+        with self._lock:
+            if (node in self._alive) == alive:     # the history and the live stream may both report a token
+                return
+            (self._alive.add if alive else self._alive.discard)(node)
+        if self._on_change is not None:
+            try:
+                self._on_change(node, alive)
+            except Exception:                      # zenoh would only log it to "zenoh.handlers"
+                log.exception("node watch callback failed on %s %s", node, "up" if alive else "down")
+
+
+def node_load(listing: SessionList) -> float:
+    """Tracking seconds per second on a service: the sum over its sessions of fps x mean processing time (from
+    their latest Health), i.e. about how many CPU cores its trackers keep busy."""
+    return sum(h.fps * h.processing_ms_mean / 1000 for info in listing.sessions if (h := info.health) is not None)
+
+
+def least_loaded(listings: list[SessionList]) -> str:
+    """The service to start a new session on: among those with a free slot, the fewest sessions; ties go to
+    the lowest `node_load` (sessions on large or fast frames weigh more), then to the node id (deterministic)."""
+    if not listings:
+        raise NoService("no tracking service answered on tacf/*/control/list")
+    free = [lst for lst in listings if len(lst.sessions) < lst.max_sessions]
+    if not free:
+        raise TooManySessions(f"every service is full ({', '.join(lst.node for lst in listings)})")
+    return min(free, key=lambda lst: (len(lst.sessions), node_load(lst), lst.node)).node
+
+
+def _node_of_token(key_expr) -> str | None:
+    """The node of a service token @tacf/<node> (the only tokens @tacf/* matches); None if malformed."""
+    try:
+        return keys.parse_liveliness_key(str(key_expr))[0]
+    except ValueError:
+        log.warning("ignored a malformed liveliness token %s", key_expr)
+        return None
 
 
 def _parse_reply(reply: zenoh.Reply, reply_model: type[WireModel], key: str, timeout: float) -> _Reply:
