@@ -306,7 +306,7 @@ def cmd_nodes(args: argparse.Namespace) -> int:
     if args.follow:
         return _follow_nodes(args)
     from tacf_clients.client import node_load
-    from tacf_clients.watch import _columns as columns
+    from tacf_clients.watch import columns
 
     with _client(args) as client:
         alive = client.alive_nodes()

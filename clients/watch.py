@@ -72,7 +72,7 @@ def session_table(sessions: list[SessionInfo]) -> str:
         h = s.health
         rows.append((s.node, s.sid, s.state, s.image_key, s.profile, _fmt_box(s.box),
                      _fmt(h and h.fps, ".1f"), _fmt(h and h.frames_processed, "d"), _fmt(h and h.frames_dropped, "d")))
-    return _columns(rows)
+    return columns(rows)
 
 
 def render_table(rows: list[SessionRow], now: float | None = None) -> str:
@@ -89,11 +89,11 @@ def render_table(rows: list[SessionRow], now: float | None = None) -> str:
                     _fmt(h and h.frame_age_ms, ".0f"), _fmt(h and h.frames_received, "d"),
                     _fmt(h and h.frames_dropped, "d")))
     if len(out) == 1:
-        return _columns(out) + "\n(no sessions yet)"
-    return _columns(out)
+        return columns(out) + "\n(no sessions yet)"
+    return columns(out)
 
 
-def _columns(rows: list[tuple[str, ...]]) -> str:
+def columns(rows: list[tuple[str, ...]]) -> str:
     widths = [max(len(str(r[i])) for r in rows) for i in range(len(rows[0]))]
     return "\n".join("  ".join(str(c).ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows)
 
