@@ -86,6 +86,9 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
 def worker_config(options: ZenohOptions, endpoints: list[str]):
     """A worker's config: client of the service (same file, so TLS/auth settings carry over)."""
     conf = _base(options.config_file)
+    # The service's access control guards its own session, the entry point. Applied again in the worker, it
+    # would deny the link to the service (which authenticates as no user), and the worker would get no frames.
+    conf.insert_json5("access_control/enabled", "false")
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("listen/endpoints", json.dumps([]))
     conf.insert_json5("connect/endpoints", json.dumps(endpoints))

@@ -1,0 +1,199 @@
+"""Zenoh TLS, user/password authentication and access control through --zenoh-config, on loopback.
+
+The configs under test are the ready-to-use examples of docs/security/ with their /etc/tacf/ paths pointed at a
+tmp dir, which holds certificates made by docs/security/make-certs.sh and the example users file. One service
+(in-process, TLS only) runs one session on a camera feed; the example access control lets the "ground" user call
+tacf/*/control/* and read results, the "viewer" user only read results, and denies everything else.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from tacf_clients.zconfig import ZenohOptions as ClientOptions, make_config
+from tacf_schemas import StartRequest, StopRequest
+from tacf_service.app import ServiceOptions, TrackingService
+from tacf_service.config import ZenohOptions, worker_config
+from tacf_service.loopback import FramePublisher, SessionResults, free_port, wait_until
+from tacf_service.probe import ControlError, call, list_all
+from tacf_service.scene import MovingTargetScene
+
+pytestmark = pytest.mark.zenoh
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "security"
+NODE = "secure-edge"
+SID = "watched"
+FEED = "uav1/camera/front"       # a camera key the example access control lets the ground station read
+
+
+@pytest.fixture(scope="module")
+def etc(tmp_path_factory) -> Path:
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command to make certificates")
+    etc = tmp_path_factory.mktemp("etc")
+    subprocess.run(["sh", str(DOCS / "make-certs.sh"), str(etc / "certs")], check=True, capture_output=True)
+    shutil.copy(DOCS / "users.txt.example", etc / "users.txt")
+    for name in ("service", "ground", "viewer"):
+        text = (DOCS / f"{name}.json5").read_text().replace("/etc/tacf/", f"{etc}/")
+        (etc / f"{name}.json5").write_text(text)
+    return etc
+
+
+@pytest.fixture(scope="module")
+def endpoint() -> str:
+    return f"tls/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture(scope="module")
+def service(etc, endpoint):
+    zenoh_options = ZenohOptions(listen=(endpoint,), config_file=str(etc / "service.json5"))
+    svc = TrackingService(ServiceOptions(node=NODE, zenoh=zenoh_options, spare_workers=1)).open()
+    assert wait_until(lambda: svc.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    yield svc
+    svc.close()
+
+
+def open_client(etc: Path, endpoint: str, role: str, mode: str | None = None, settings: dict | None = None):
+    """A session made the way `tacf list --zenoh-config <role>.json5 --connect <endpoint>` makes it, with
+    settings (Zenoh key path -> value) on top."""
+    extra = tuple((key, json.dumps(value)) for key, value in (settings or {}).items())
+    return zenoh.open(make_config(ClientOptions(connect=(endpoint,), config_file=etc / f"{role}.json5", mode=mode,
+                                                extra=extra)))
+
+
+def derive(source: Path, target: Path, settings: dict) -> Path:
+    """Write `source` with settings (Zenoh key path -> value) applied to `target`."""
+    conf = zenoh.Config.from_file(str(source))
+    for key, value in settings.items():
+        conf.insert_json5(key, json.dumps(value))
+    target.write_text(str(conf))      # str(Config) is JSON that Config.from_file reads back
+    return target
+
+
+@pytest.fixture(scope="module")
+def camera(etc, endpoint, service):
+    """An onboard camera on the edge box: it connects like the service's workers (user "edge")."""
+    session = zenoh.open(worker_config(ZenohOptions(config_file=str(etc / "service.json5")), [endpoint]))
+    with FramePublisher(session, FEED, MovingTargetScene(640, 360, speed=2.0), fps=10) as feed:
+        assert wait_until(lambda: feed.seq >= 3, 10)
+        yield feed
+    session.close()
+
+
+@pytest.fixture(scope="module")
+def ground(etc, endpoint, service):
+    session = open_client(etc, endpoint, "ground")
+    yield session
+    session.close()
+
+
+@pytest.fixture(scope="module")
+def tracked(service, camera, ground):
+    """The authorised ground station starts a session on the feed and sees its boxes."""
+    results = SessionResults(ground, NODE, SID)
+    info = call(ground, NODE, "start", StartRequest(image_key=FEED, box=camera.truth[camera.seq], seq=camera.seq,
+                                                    sid=SID, profile="kcc"), timeout=10)
+    assert (info.node, info.sid) == (NODE, SID)
+    assert wait_until(lambda: len(results.results()) >= 3, 30), "the ground station saw no boxes"
+    yield results
+    results.close()
+
+
+def boxes_grow(results: SessionResults, by: int = 3) -> bool:
+    start = len(results.results())
+    return bool(wait_until(lambda: len(results.results()) >= start + by, 10))
+
+
+def test_ground_station_calls_the_control_queryable_and_reads_boxes(ground, tracked):
+    [sessions] = list_all(ground)                                   # tacf/*/control/list
+    assert (sessions.node, [s.sid for s in sessions.sessions]) == (NODE, [SID])
+    assert boxes_grow(tracked)
+
+
+@pytest.mark.parametrize("spoil", [
+    pytest.param({"transport/auth/usrpwd/password": "wrong"}, id="wrong-password"),
+    pytest.param({"transport/auth/usrpwd": {"user": None, "password": None}}, id="no-credentials"),
+    pytest.param({"transport/link/tls/root_ca_certificate": None}, id="no-ca"),   # the system's CAs instead
+])
+def test_without_ca_or_credentials_nothing_gets_through(etc, endpoint, tracked, spoil):
+    # As a client (what the example configs use), the session does not even open.
+    with pytest.raises(zenoh.ZError):
+        open_client(etc, endpoint, "ground", settings=spoil)
+    # As a peer it opens (peers retry in the background) but reaches nothing.
+    with open_client(etc, endpoint, "ground", "peer", spoil) as intruder:
+        seen = SessionResults(intruder, "*", "*")
+        with pytest.raises(ControlError) as err:
+            call(intruder, NODE, "list", timeout=1.0)
+        assert err.value.code == "timeout"
+        assert boxes_grow(tracked)                                  # boxes flowed meanwhile...
+        assert seen.results() == [] and seen.last_health() is None  # ...but not to the intruder
+        seen.close()
+
+
+def test_viewer_reads_boxes_but_cannot_call_control(etc, endpoint, ground, tracked):
+    with open_client(etc, endpoint, "viewer") as viewer:
+        boxes = SessionResults(viewer, NODE, SID)
+        assert wait_until(lambda: len(boxes.results()) >= 3, 10), "the viewer saw no boxes"
+        assert list_all(viewer, timeout=1.0) == []
+        for op, request in (("stop", StopRequest(sid=SID)), ("start", StartRequest(image_key=FEED, box=(1, 1, 9, 9)))):
+            with pytest.raises(ControlError) as err:
+                call(viewer, NODE, op, request, timeout=1.0)
+            assert err.value.code == "timeout"
+        boxes.close()
+    [sessions] = list_all(ground)
+    assert [(s.sid, s.state) for s in sessions.sessions] == [(SID, "tracking")]
+
+
+def tacf(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "tacf.cli", *args], capture_output=True, text=True, timeout=60)
+
+
+def test_the_cli_takes_the_configs(etc, endpoint, tracked):
+    """`tacf list` works with ground.json5; `tacf stop` with viewer.json5 is refused and stops nothing."""
+    listed = tacf("list", "--json", "--zenoh-config", str(etc / "ground.json5"), "--connect", endpoint)
+    assert listed.returncode == 0, listed.stderr
+    assert SID in listed.stdout
+    refused = tacf("stop", SID, "--node", NODE, "--timeout", "1", "--zenoh-config", str(etc / "viewer.json5"),
+                   "--connect", endpoint)
+    assert refused.returncode != 0
+    assert boxes_grow(tracked)
+
+
+def test_mutual_tls_with_access_control_by_certificate_common_name(etc):
+    """The mutual-TLS variant of the README: every side presents a certificate of make-certs.sh, and the access
+    control's subjects are certificate common names instead of user names."""
+    certs = etc / "certs"
+
+    def presenting(name: str) -> dict:
+        return {"transport/link/tls/enable_mtls": True,
+                "transport/link/tls/connect_certificate": str(certs / f"{name}.pem"),
+                "transport/link/tls/connect_private_key": str(certs / f"{name}.key")}
+
+    subjects = [{"id": "edge", "cert_common_names": ["tacf-service"]},
+                {"id": "ground", "cert_common_names": ["ground"]},
+                {"id": "viewer", "cert_common_names": ["viewer"]}]
+    config = derive(etc / "service.json5", etc / "service-mtls.json5",
+                    {**presenting("service"), "access_control/subjects": subjects})
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    node = "mtls-edge"
+    svc = TrackingService(ServiceOptions(node=node, zenoh=ZenohOptions(listen=(endpoint,), config_file=str(config)),
+                                         spare_workers=1)).open()
+    try:
+        # a worker reports idle once its session is open: it got in with the service's certificate
+        assert wait_until(lambda: svc.manager.idle_spares() >= 1, 60), "no worker connected after 60 s"
+        with open_client(etc, endpoint, "ground", settings=presenting("ground")) as ground:
+            assert [reply.node for reply in list_all(ground)] == [node]
+        # the ground station's password with the viewer's certificate: the certificate decides
+        with open_client(etc, endpoint, "ground", settings=presenting("viewer")) as impostor:
+            assert list_all(impostor, timeout=1.0) == []
+        with pytest.raises(zenoh.ZError):                               # no client certificate at all
+            open_client(etc, endpoint, "ground")
+    finally:
+        svc.close()
