@@ -161,6 +161,18 @@ class FrameHistory:
             self._cond.wait_for(satisfied, timeout)
 
 
+def box_problem(box: tuple, width: int, height: int) -> str | None:
+    """Why `box` cannot initialise a tracker on a width x height frame, or None. It must overlap the frame and
+    be no larger than it: the tracker's search area grows with the box (measured: a 5100x5100 box on a 320x240
+    frame took 17 s to initialise, a 1e9-pixel one ran out of memory)."""
+    x, y, w, h = box
+    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
+        return f"box {list(box)} lies outside the {width}x{height} frame"
+    if w > width or h > height:
+        return f"box {list(box)} is larger than the {width}x{height} frame"
+    return None
+
+
 def _undeclare(entity) -> None:
     try:
         entity.undeclare()

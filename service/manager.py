@@ -23,7 +23,7 @@ from tacf_schemas.keys import InvalidKeyError, validate_image_key
 
 from .config import ZenohOptions
 from .errors import ServiceError
-from .frames import FrameHistory, StoredFrame
+from .frames import FrameHistory, StoredFrame, box_problem
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
 from .worker import Assignment, WorkerSpec, run_worker
@@ -609,10 +609,9 @@ def _catch_up_subset(frames: list, limit: int) -> list:
 
 
 def _check_box_in_frame(box: tuple, frame: StoredFrame) -> None:
-    x, y, w, h = box
-    if x >= frame.width or y >= frame.height or x + w <= 0 or y + h <= 0:
-        raise ServiceError("invalid_box", f"box {list(box)} lies outside the {frame.width}x{frame.height} "
-                                          f"frame seq {frame.seq}")
+    problem = box_problem(box, frame.width, frame.height)
+    if problem is not None:
+        raise ServiceError("invalid_box", f"{problem} (seq {frame.seq})")
 
 
 def _reap(processes: list, deadline: float, kill_after: float = 0.3) -> None:

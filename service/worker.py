@@ -42,6 +42,9 @@ from .trackers import DEFAULT_FACTORY
 log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 1.0
+STALL_S = 2.0               # no frame for this long: health says the session is waiting for frames
+STALE_WINDOW = 64           # a frame up to this many seqs behind the last one used, and not newer, is stale
+MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogus seq, not frames lost in the ring
 CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
 COMMAND_POLL_S = 0.1
 
@@ -75,6 +78,7 @@ class LatestFrame:
         self._woken = False
         self.received = 0
         self.overwritten = 0
+        self.last_put = time.monotonic()
 
     def put(self, payload: bytes) -> None:
         with self._cond:
@@ -82,6 +86,7 @@ class LatestFrame:
                 self.overwritten += 1
             self._payload = payload
             self.received += 1
+            self.last_put = time.monotonic()
             self._cond.notify()
 
     def wake(self) -> None:
@@ -225,10 +230,14 @@ class Worker:
                 return                      # undeclared or session closed
             payload = sample.payload.to_bytes()
             seq = _peek_seq(payload)
-            if seq is not None and last_seq is not None and seq > last_seq + 1:
-                self._ring_dropped += seq - last_seq - 1
             if seq is not None:
-                last_seq = seq
+                # only plausible gaps count: a bogus seq must not inflate the counters (past 2**64 msgpack cannot
+                # encode the Health and the worker died); a reordered frame does not move last_seq back (its gap
+                # would be counted twice)
+                if last_seq is not None and 0 < seq - last_seq - 1 <= MAX_SEQ_GAP:
+                    self._ring_dropped += seq - last_seq - 1
+                if last_seq is None or seq > last_seq or last_seq - seq > STALE_WINDOW:
+                    last_seq = seq
             self._slot.put(payload)
 
     # ------------------------------------------------------------------ commands from the service
@@ -269,6 +278,7 @@ class Worker:
             return
         box, payloads = pending
         self._init_box, self._image_shape = box, None
+        self._last_frame_id = None          # the init frame may be older than the last frame tracked
         self._state, self._message = "starting", None
         # init on the first decodable payload, then catch up through the newer ones while the budget lasts
         # (a slow tracker would otherwise spend seconds on stale frames); the live feed takes over after
@@ -295,8 +305,8 @@ class Worker:
         except DecodeError as exc:
             self._reject(str(exc))
             return
-        if (frame.seq, frame.stamp_ns) == self._last_frame_id:
-            self._skipped += 1                          # the live copy of the last catch-up frame
+        if _is_stale(frame, self._last_frame_id):
+            self._skipped += 1              # a duplicate (e.g. the live copy of the last catch-up frame) or reordered
             return
         try:
             image = decode_frame(frame)
@@ -323,10 +333,14 @@ class Worker:
         self._stats.processed(frame.seq, frame.stamp_ns, processing_ms, float(result.pme))
 
     def _initialise(self, image, frame) -> None:
+        from .frames import box_problem
         box = self._init_box
         try:
+            problem = box_problem(box, image.shape[1], image.shape[0])
+            if problem is not None:
+                raise ValueError(problem)
             self._tracker.init(image, box)
-        except ValueError as exc:
+        except Exception as exc:        # a bad box, or a tracker bug on a hostile one: fail the session, not the worker
             self._init_box = None
             self._state, self._message = "failed", f"cannot initialise on seq {frame.seq}: {exc}"
             log.warning("%s", self._message)
@@ -359,7 +373,11 @@ class Worker:
         stats = self._stats
         stats.frames_received = self._slot.received + self._ring_dropped + self._extra_received
         stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped
-        health = stats.snapshot(self.spec.node, self.job.sid, self._state, self.job.restarts, self._message)
+        message = self._message
+        idle_s = time.monotonic() - self._slot.last_put
+        if idle_s > STALL_S and self._state != "failed":
+            message = f"waiting for frames: none for {idle_s:.0f} s"
+        health = stats.snapshot(self.spec.node, self.job.sid, self._state, self.job.restarts, message)
         payload = encode(health)
         try:
             self._health_pub.put(payload)
@@ -368,8 +386,18 @@ class Worker:
         self._send(("health", payload))
 
 
+def _is_stale(frame, last: tuple[int, int] | None) -> bool:
+    """Whether `frame` duplicates or precedes the last frame used, `last` = (seq, stamp_ns): a seq at most
+    STALE_WINDOW behind and a stamp no newer. A publisher that restarts its seq count has newer stamps, and a
+    single frame with a bogus seq or stamp holds the session back for at most STALE_WINDOW frames."""
+    if last is None:
+        return False
+    seq, stamp_ns = last
+    return seq - STALE_WINDOW < frame.seq <= seq and frame.stamp_ns <= stamp_ns
+
+
 def _peek_seq(payload: bytes) -> int | None:
-    """A Frame's seq without validating the whole message (None if there is no integer seq)."""
+    """A Frame's seq without validating the whole message (None if there is no valid seq)."""
     import msgpack
     try:
         unpacker = msgpack.Unpacker(max_buffer_size=len(payload) + 1, max_bin_len=0, max_str_len=64,
@@ -380,7 +408,8 @@ def _peek_seq(payload: bytes) -> int | None:
             key = unpacker.unpack()
             if key == "seq":
                 value = unpacker.unpack()
-                return value if isinstance(value, int) and not isinstance(value, bool) else None
+                valid = isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**63
+                return value if valid else None
             unpacker.skip()
     except Exception:
         return None
