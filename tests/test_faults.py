@@ -1,0 +1,284 @@
+"""Faults, over real Zenoh on loopback (scouting off, explicit endpoints), with real processes where the fault is a
+process: a publisher process killed and started again, frames duplicated or out of order, a consumer that never
+reads, and a Zenoh router restarted under a `tacf serve` process.
+
+Covered elsewhere, not repeated here: a worker SIGKILLed while tracking (test_service.py) and `tacf serve`
+SIGKILLed and restarted with its --state file (test_service_process.py).
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+zenoh = pytest.importorskip("zenoh")
+
+from tacf_clients.local_service import LocalService
+from tacf_clients.scene import Scene
+from tacf_schemas import (Frame, SessionInfo, StartRequest, StatusRequest, StopRequest, box_key, decode, encode,
+                          health_key, service_liveliness_key)
+from tacf_schemas.images import encode_frame
+from tacf_service.app import ServiceOptions, TrackingService
+from tacf_service.config import ZenohOptions
+from tacf_service.loopback import SessionResults, free_port, peer_config, wait_until
+from tacf_service.probe import call
+
+pytestmark = pytest.mark.zenoh
+
+NODE = "faults"
+SCENE = Scene(320, 240, 24, 18)     # what `tacf publish scene:320x240` publishes
+
+
+@pytest.fixture(scope="module")
+def endpoint():
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture(scope="module")
+def service(endpoint):
+    options = ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(endpoint,)), max_sessions=4, spare_workers=1)
+    svc = TrackingService(options).open()
+    yield svc
+    svc.close()
+
+
+@pytest.fixture(scope="module")
+def client(endpoint, service):
+    session = zenoh.open(peer_config(connect=[endpoint]))
+    yield session
+    session.close()
+
+
+def start(service, client, **fields) -> SessionInfo:
+    """Start a session once a warm worker is there (a cold worker start is not what these tests are about)."""
+    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    return call(client, NODE, "start", StartRequest(profile="kcc", **fields), timeout=10)
+
+
+def start_on_feed(service, client, key: str, sid: str) -> SessionInfo:
+    """Start a session on the target of the scene published on `key`, with the box of its latest frame."""
+    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    frame = latest_frame(client, key)
+    return start(service, client, image_key=key, box=SCENE.box(frame.seq), seq=frame.seq, sid=sid)
+
+
+def status(client, sid: str, node: str = NODE) -> SessionInfo:
+    return call(client, node, "status", StatusRequest(sid=sid))
+
+
+def latest_frame(client, key: str, timeout: float = 30.0) -> Frame:
+    """The next frame published on `key`."""
+    subscriber = client.declare_subscriber(key, zenoh.handlers.RingChannel(1))
+    try:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            sample = subscriber.try_recv()
+            if sample is not None:
+                return decode(sample.payload.to_bytes(), Frame)
+            time.sleep(0.05)
+        raise AssertionError(f"no frame on {key} within {timeout} s")
+    finally:
+        subscriber.undeclare()
+
+
+def publish_process(tmp_path, key: str, connect: str) -> subprocess.Popen:
+    """`tacf publish scene:320x240` at 10 fps, a peer connected to `connect`."""
+    log = open(tmp_path / f"publish-{time.monotonic_ns()}.log", "w")
+    return subprocess.Popen([sys.executable, "-m", "tacf.cli", "publish", "scene:320x240", "--key", key, "--fps", "10",
+                             "--connect", connect], stdout=log, stderr=subprocess.STDOUT)
+
+
+def kill(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.kill()
+    process.wait(timeout=10)
+
+
+def new_boxes(results: SessionResults, after: int, count: int, timeout: float) -> bool:
+    """At least `count` boxes arrive after the first `after`."""
+    return wait_until(lambda: len(results.results()) >= after + count, timeout)
+
+
+# ---------------------------------------------------------------------------------------------- publisher
+
+def test_publisher_process_killed_and_restarted(service, client, endpoint, tmp_path):
+    """The session waits (health: fps 0, 'waiting for frames') while the camera is gone and follows the new
+    camera process, whose seq starts again at 0, as soon as it is back."""
+    key = "faults/cam/restarting"
+    publisher = publish_process(tmp_path, key, endpoint)
+    results = SessionResults(client, NODE, "cam")
+    try:
+        start_on_feed(service, client, key, "cam")
+        assert new_boxes(results, 0, 5, 30)
+        kill(publisher)
+        def waiting():
+            health = results.last_health()
+            return health is not None and health.fps == 0 and (health.message or "").startswith("waiting for frames")
+        assert wait_until(waiting, 10), results.last_health()
+        assert status(client, "cam").state in ("tracking", "lost")
+        last_seq = results.results()[-1].seq
+
+        publisher = publish_process(tmp_path, key, endpoint)
+        marker = len(results.results())
+        assert new_boxes(results, marker, 5, 30), results.last_health()
+        assert min(r.seq for r in results.results()[marker:]) < last_seq        # the new count was followed
+        assert wait_until(lambda: results.last_health().message is None and results.last_health().fps > 0, 5)
+        assert status(client, "cam").restarts == 0
+    finally:
+        kill(publisher)
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="cam"))
+
+
+# ---------------------------------------------------------------------------------------------- frame order
+
+def test_duplicated_and_reordered_frames_are_dropped(service, client):
+    """A frame with the (seq, stamp) of one already used, or older than it, is dropped and counted, never tracked
+    (the tracker would jump back in time); a lower seq with a newer stamp is a restarted camera and is tracked."""
+    key = "faults/cam/reordered"
+    publisher = client.declare_publisher(key)
+    results = SessionResults(client, NODE, "order")
+    frames = {seq: encode_frame(SCENE.frame(seq), seq, "jpeg", stamp_ns=time.time_ns()) for seq in range(1, 6)}
+
+    def put(frame: Frame) -> None:
+        publisher.put(encode(frame))
+
+    def boxed(frame: Frame) -> bool:
+        return any((r.seq, r.stamp_ns) == (frame.seq, frame.stamp_ns) for r in results.results())
+
+    try:
+        start(service, client, image_key=key, box=SCENE.box(1), sid="order")
+        def initialised():                  # frame 1 again until the worker, subscribed by now, gets it
+            put(frames[1])
+            return status(client, "order").state == "tracking"
+        assert wait_until(initialised, 30, period=0.2)
+        for seq in (2, 3):
+            put(frames[seq])
+            assert wait_until(lambda: boxed(frames[seq]), 10)
+        dropped = wait_until(lambda: results.last_health(), 5).frames_dropped
+        for stale in (frames[3], frames[2], frames[1], frames[3]):   # duplicates and older frames, one at a time
+            put(stale)
+            time.sleep(0.3)
+        put(frames[4])
+        assert wait_until(lambda: boxed(frames[4]), 10)
+        assert [r.seq for r in results.results()] == [2, 3, 4]
+        assert wait_until(lambda: results.last_health().frames_dropped >= dropped + 4, 5), results.last_health()
+
+        restarted = encode_frame(SCENE.frame(5), 0, "jpeg", stamp_ns=time.time_ns())
+        put(restarted)
+        assert wait_until(lambda: boxed(restarted), 10)
+    finally:
+        publisher.undeclare()
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="order"))
+
+
+# ---------------------------------------------------------------------------------------------- consumers
+
+#: A consumer process whose subscribers never read (a full FIFO) or never return (a blocked callback).
+STUCK_CONSUMER = """
+import sys, threading, zenoh
+from tacf_service.loopback import peer_config
+endpoint, keys = sys.argv[1], sys.argv[2:]
+session = zenoh.open(peer_config(connect=[endpoint]))
+unread = [session.declare_subscriber(key, zenoh.handlers.FifoChannel(1)) for key in keys]
+blocked = [session.declare_subscriber(key, lambda sample: threading.Event().wait()) for key in keys]
+print("READY", flush=True)
+threading.Event().wait()
+"""
+
+
+def test_a_consumer_that_never_reads_slows_nobody(service, client, endpoint, tmp_path):
+    """A consumer process that never reads the boxes, health and frames: the service, its control queries and
+    another consumer are not slowed, even when a new session's declarations must reach the stuck consumer."""
+    key = "faults/cam/busy"
+    publisher = publish_process(tmp_path, key, endpoint)
+    stuck = subprocess.Popen([sys.executable, "-c", STUCK_CONSUMER, endpoint, box_key(NODE, "*"),
+                              health_key(NODE, "*"), key], stdout=subprocess.PIPE, text=True)
+    results = SessionResults(client, NODE, "busy")
+    try:
+        assert stuck.stdout.readline().strip() == "READY"
+        start_on_feed(service, client, key, "busy")
+        assert new_boxes(results, 0, 3, 30)
+        marker, since = len(results.results()), time.monotonic()
+        took = []
+        for _ in range(10):
+            asked = time.monotonic()
+            status(client, "busy")
+            took.append(time.monotonic() - asked)
+            time.sleep(0.2)
+        other = start_on_feed(service, client, key, "other")          # new declarations reach the stuck consumer
+        assert new_boxes(results, marker, 30, 20)
+        arrived = [t for t, _ in results.timed_results()[marker:]]
+        gaps = [(b - a) / 1e9 for a, b in zip(arrived, arrived[1:])]
+        rate = len(arrived) / (time.monotonic() - since)
+        assert max(took) < 1.0 and max(gaps) < 1.5, (took, max(gaps))
+        assert rate > 3.0, rate           # the feed is 10 fps; the tracker keeps up on a loaded 2-core machine
+        assert stuck.poll() is None       # it was connected (and stuck) all along
+        call(client, NODE, "stop", StopRequest(sid=other.sid))
+    finally:
+        kill(stuck)
+        kill(publisher)
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="busy"))
+
+
+# ---------------------------------------------------------------------------------------------- router
+
+def router_config(endpoint: str):
+    return peer_config(listen=[endpoint], mode="router")
+
+
+def test_router_restarted_then_service_killed_and_restarted(tmp_path):
+    """`tacf serve --state` is a peer connected to a router; the camera and the observer are clients of the
+    router. The router goes away and comes back on the same port: boxes flow again within seconds, with the same
+    worker. Then the service is SIGKILLed and started again: the session is restored and tracks again."""
+    router_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(router_config(router_endpoint))
+    args = ("--connect", router_endpoint, "--state", str(tmp_path / "sessions.json"))
+    serve = LocalService(node="routed", extra_args=args, log_path=tmp_path / "serve.log").start()
+    conf = peer_config(connect=[router_endpoint], mode="client")
+    conf.insert_json5("connect/timeout_ms", "10000")
+    observer = zenoh.open(conf)
+    publisher = publish_process(tmp_path, "faults/cam/routed", router_endpoint)
+    results = SessionResults(observer, "routed", "r")
+
+    def service_alive():
+        replies = observer.liveliness().get(service_liveliness_key("routed"), timeout=1.0)
+        return any(r.ok is not None for r in replies)
+
+    try:
+        assert wait_until(service_alive, 60), serve.log_tail()
+        frame = latest_frame(observer, "faults/cam/routed")
+        call(observer, "routed", "start", StartRequest(image_key="faults/cam/routed", box=SCENE.box(frame.seq),
+                                                       seq=frame.seq, sid="r", profile="kcc"), timeout=15)
+        assert new_boxes(results, 0, 5, 60), serve.log_tail()
+
+        router.close()
+        time.sleep(1.0)                     # the links are down: nothing can flow now
+        marker = len(results.results())
+        restarted_at = time.monotonic()
+        router = zenoh.open(router_config(router_endpoint))
+        assert new_boxes(results, marker, 5, 30), serve.log_tail()
+        print(f"boxes resumed {time.monotonic() - restarted_at:.1f} s after the router restarted")
+        info = status(observer, "r", node="routed")
+        assert info.state in ("tracking", "lost") and info.restarts == 0
+        time.sleep(1.2)                     # the table is saved about once a second
+
+        serve.process.kill()
+        serve.process.wait(timeout=10)
+        assert wait_until(lambda: not service_alive(), 10)
+        serve = LocalService(node="routed", port=serve.port, extra_args=args,
+                             log_path=tmp_path / "serve2.log").start()
+        assert wait_until(service_alive, 60), serve.log_tail()
+        assert [s.sid for s in call(observer, "routed", "list").sessions] == ["r"]
+        marker = len(results.results())
+        assert new_boxes(results, marker, 5, 60), serve.log_tail()
+    finally:
+        kill(publisher)
+        results.close()
+        serve.stop()
+        observer.close()
+        router.close()
