@@ -14,9 +14,14 @@ PROFILES = ("paper", "authors", "kcc")
 DEFAULT_PROFILE = "authors"  # the higher mean success AUC on the UAV sequences; see README "Accuracy"
 
 
+# Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 16, 32).
+LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_step": 2.0,
+          "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256}
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
-    profile: str = DEFAULT_PROFILE
+    profile_name: str = DEFAULT_PROFILE  # not `profile`: that name is the constructor below
 
     # Module switches (the paper's ablation: KCC, +SA, +DA, +CA, all three).
     context_attention: bool = True
@@ -82,6 +87,10 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
+            expected = {"bool": bool, "int": int, "float": (int, float), "str": str}[f.type]
+            # bool is an int in Python: num_scales=True must not pass as 1, nor a float switch as True
+            if not isinstance(v, expected) or (isinstance(v, bool) and f.type != "bool"):
+                raise ValueError(f"TrackerConfig.{f.name} must be {f.type}, got {v!r}")
             if isinstance(v, float) and not math.isfinite(v):
                 raise ValueError(f"TrackerConfig.{f.name} must be finite, got {v}")
         positive = ("cell_size", "fixed_area", "hog_kernel_sigma", "hog_output_sigma_factor",
@@ -99,6 +108,10 @@ class TrackerConfig:
             raise ValueError(f"TrackerConfig.scale_step must be > 1, got {self.scale_step}")
         if self.num_scales % 2 == 0:
             raise ValueError(f"TrackerConfig.num_scales must be odd, got {self.num_scales}")
+        # Upper bounds: overrides arrive from the network, and a huge area or scale count is a memory bomb.
+        for name, high in LIMITS.items():
+            if getattr(self, name) > high:
+                raise ValueError(f"TrackerConfig.{name} must be <= {high:g}, got {getattr(self, name)}")
 
     @classmethod
     def profile_names(cls) -> tuple[str, ...]:
@@ -108,12 +121,12 @@ class TrackerConfig:
     def profile(cls, name: str = DEFAULT_PROFILE, **overrides) -> "TrackerConfig":
         """A named parameter set, optionally with some fields replaced: profile("paper", lambda1=1e-4)."""
         if name == "authors":
-            base = cls(profile="authors")
+            base = cls(profile_name="authors")
         elif name == "paper":
-            base = cls(profile="paper", lambda1=5e-5, context_interval=2, context_lambda2=0.0625,
+            base = cls(profile_name="paper", lambda1=5e-5, context_interval=2, context_lambda2=0.0625,
                        context_penalty_total=1.0, dim_floor=0.1)
         elif name == "kcc":
-            base = cls(profile="kcc", context_attention=False, dimensional_attention=False,
+            base = cls(profile_name="kcc", context_attention=False, dimensional_attention=False,
                        spatiotemporal_attention=False)
         else:
             raise ValueError(f"unknown tracker profile {name!r}; choose one of {', '.join(PROFILES)}")

@@ -52,11 +52,11 @@ def test_registry_names():
         with pytest.raises(ValueError):
             trackers.check_name(bad)
     cfg = trackers.tacf_config("kcc+sa+da")
-    assert cfg.profile == "kcc" and cfg.spatiotemporal_attention and cfg.dimensional_attention
+    assert cfg.profile_name == "kcc" and cfg.spatiotemporal_attention and cfg.dimensional_attention
     assert not cfg.context_attention
     only_ca = trackers.tacf_config("kcc+ca")
     assert only_ca.context_attention and not only_ca.dimensional_attention and not only_ca.spatiotemporal_attention
-    assert trackers.tacf_config("tacf-paper").profile == "paper"
+    assert trackers.tacf_config("tacf-paper").profile_name == "paper"
 
 
 @pytest.mark.parametrize("name", trackers.OPENCV_TRACKERS + ("identity",))

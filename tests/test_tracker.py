@@ -181,3 +181,14 @@ def test_config_validation_and_profiles():
         TrackerConfig(num_scales=32)
     with pytest.raises(ValueError, match="finite"):
         TrackerConfig(learning_rate=float("nan"))
+
+
+def test_config_refuses_wrong_types_and_memory_bombs():
+    """Overrides arrive over the network (start requests): wrong types and absurd sizes are refused up front."""
+    assert TrackerConfig().profile_name == TrackerConfig.profile().profile_name == "authors"
+    for bad, message in [(dict(cell_size=1e-300), "cell_size must be int"), (dict(num_scales=True), "must be int"),
+                         (dict(context_attention=1), "must be bool"), (dict(fixed_area=2.0**62), "<= 1e\\+06"),
+                         (dict(scale_step=2.0**62), "scale_step must be <= 2")]:
+        with pytest.raises(ValueError, match=message):
+            TrackerConfig.profile("authors", **bad)
+    assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
