@@ -140,8 +140,10 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
             curves.append((key(succ, prec), r.name, (succ, prec)[which]))
         curves.sort(key=lambda c: -c[0])
         fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
-        for value, name, ys in curves:
-            ax.plot(xs, ys, label=f"{name} [{label} {value:.3f}]", linewidth=1.8)
+        # The default cycle has ten colours; past ten curves the dash style tells repeated colours apart.
+        for rank, (value, name, ys) in enumerate(curves):
+            ax.plot(xs, ys, label=f"{name} [{label} {value:.3f}]", linewidth=1.8,
+                    linestyle=("-", "--", ":")[rank // 10 % 3])
         ax.set(title=title, xlabel=xlabel, ylabel=ylabel, xlim=(xs[0], xs[-1]), ylim=(0, 1.01))
         ax.grid(alpha=0.3)
         if curves:
