@@ -1,4 +1,5 @@
-"""Clients of the TACF tracking service: ground-station API, onboard box consumer, frame publisher, demo.
+"""Clients of the TACF tracking service: ground-station API, onboard box consumer, frame publisher, demo, and the
+service benchmark (`tacf bench service`, tacf_clients.bench).
 
     from tacf_clients import TrackingClient, BoxConsumer
     with TrackingClient() as client:                 # loopback defaults, like `tacf serve`

@@ -225,7 +225,10 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         for i, feed in enumerate(feeds):   # the box of frame 0; the service applies it to the next frame it gets
             client.start(publisher.keys[i], feed.first_box, seq=0, profile=profile, sid=f"feed{i}")
         deadline = time.monotonic() + 120      # worker processes start cold (--spare-workers 0)
-        while len({b.sid for _, b in received}) < n and time.monotonic() < deadline:
+        while time.monotonic() < deadline:
+            with lock:
+                if len({b.sid for _, b in received}) == n:
+                    break
             time.sleep(0.1)
         time.sleep(warmup)
         service_pid = service.process.pid
