@@ -33,9 +33,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from tacf.eval.cli import DEFAULT_DATA  # argparse-level module: the same default as `tacf bench tracker`
+
 log = logging.getLogger(__name__)
 
-DEFAULT_DATA = Path("../shared/data/sequences")
 FRAME_SIZE = (1280, 720)
 NODE = "bench"
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
@@ -232,8 +233,9 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
             time.sleep(0.1)
         time.sleep(warmup)
         service_pid = service.process.pid
-        workers = [pid for pid in _descendants(service_pid) if _is_worker(pid)]
-        processes = [service_pid, *_descendants(service_pid)]
+        children = _descendants(service_pid)
+        workers = [pid for pid in children if _is_worker(pid)]
+        processes = [service_pid, *children]
         cpu_before, wall_before = sum(map(_cpu_seconds, processes)), time.monotonic()
         first_seq = [len(s) for s in publisher.sent]
         over_time = {"seconds": [], "rss_mb": [], "open_fds": []}
