@@ -6,11 +6,13 @@ truncation at ``clip`` and no border crop. The all-zero 32nd channel of the orig
 
 The per-pixel work is three loops compiled with numba (gradients and orientation, bilinear cell binning, block
 normalisation), bit for bit what the earlier vectorised numpy form gave, which spent most of its time building
-per-pixel temporaries: a 200x200 patch takes 0.9 ms instead of 2.6 ms (README "Speed"). ``fhog_batch`` computes N same-sized images in one call (the DSST
-scale filter needs 31 small patches per sample) and ``fhog`` is its N = 1 case; images never mix, so each
-image's result is what ``fhog`` gives for it alone. Constants that depend only on the image size (each pixel's
-four target cells and bilinear weights) or on nothing (the orientation lookup table) are computed once in numpy
-and cached. The compiled code is cached on disk (numba ``cache=True``), so a new process does not recompile.
+per-pixel temporaries: a 200x200 colour patch takes 0.6 ms instead of 2.6 ms (README "Speed"). ``fhog_batch``
+computes N same-sized images in one call (the DSST scale filter needs 31 small patches per sample) and ``fhog``
+is its N = 1 case; images never mix, so each image's result is what ``fhog`` gives for it alone. Images are
+first laid out as one plane per colour channel, so that the gradient loops read contiguous rows. Constants
+that depend only on the image size (each pixel's two cells and bilinear weights along each axis) or on nothing
+(the orientation lookup table) are computed once in numpy and cached. The compiled code is cached on disk
+(numba ``cache=True``), so a new process does not recompile.
 
 Orientation binning follows the C code step by step: cos(theta) is truncated to the 10000-step acos table,
 pi is added for gy < 0, and the bin is floor(theta * 18 / (2 pi) + 0.5) in float32. All of this is folded
@@ -72,24 +74,27 @@ def fhog_batch(images: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.
     stop at each image's border, cells and normalisers never mix images), so ``fhog_batch(images)[i]`` equals
     ``fhog(images[i])`` bit for bit.
     """
-    images = _as_nhwc_float32(images)
-    rows, cols = images.shape[1] // cell_size, images.shape[2] // cell_size
+    planes = _as_planes_float32(images)
+    rows, cols = planes.shape[2] // cell_size, planes.shape[3] // cell_size
     if rows < 1 or cols < 1:
-        raise ValueError(f"images {images.shape[1:3]} are smaller than one {cell_size}x{cell_size} cell")
-    cell_index, cell_weight = _bilinear_layout(cell_size, rows, cols)
-    out = np.empty((len(images), N_CHANNELS, rows, cols), dtype=np.float32)
+        raise ValueError(f"images {planes.shape[2:4]} are smaller than one {cell_size}x{cell_size} cell")
+    row_cells, row_weights = _axis_cells(rows, cell_size)
+    col_cells, col_weights = _axis_cells(cols, cell_size)
+    out = np.empty((len(planes), N_CHANNELS, rows, cols), dtype=np.float32)
     eps = np.float32(1e-4 / 4 / cell_size**4)
-    _fhog_images(images, _orientation_bins(), cell_index, cell_weight, eps, np.float32(clip), out)
+    _fhog_images(planes, _orientation_bins(), row_cells, row_weights / cell_size**2, col_cells, col_weights,
+                 eps, np.float32(clip), out)
     return out
 
 
-def _as_nhwc_float32(images: np.ndarray) -> np.ndarray:
-    images = np.ascontiguousarray(images, dtype=np.float32)
+def _as_planes_float32(images: np.ndarray) -> np.ndarray:
+    """(N, C, H, W) float32, C-contiguous: one plane per colour channel, so the gradient loops read rows."""
+    images = np.asarray(images)
     if images.ndim == 3:
-        return images[..., None]
+        return np.ascontiguousarray(images[:, None], dtype=np.float32)
     if images.ndim != 4:
         raise ValueError(f"expected NxHxW or NxHxWxC images, got shape {images.shape}")
-    return images
+    return np.ascontiguousarray(images.transpose(0, 3, 1, 2), dtype=np.float32)
 
 
 @lru_cache(maxsize=1)
@@ -128,86 +133,68 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return array
 
 
-@lru_cache(maxsize=16)
-def _bilinear_layout(cell_size: int, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
-    """Flat target-cell indices and weights, shape (4, rows*cell, cols*cell), of each pixel's 4 cells.
+@lru_cache(maxsize=64)
+def _axis_cells(n_cells: int, cell_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Along one axis: each pixel's two target cells (2, n_cells * cell_size), -1 outside the grid, and their
+    bilinear weights, float64.
 
     A pixel at column c has cell coordinate u = (c + 0.5) / cell - 0.5 and goes to cells floor(u) and
-    floor(u) + 1 with weights 1 - frac(u) and frac(u); likewise for rows. Targets outside the grid get
-    weight 0 (and a harmless in-range index). The weights also carry the 1 / cell^2 magnitude factor and
-    the 8/7 boundary-cell factor (twice for corner cells).
-    """
-    row_cells, row_weights = _axis_cells(rows, cell_size)
-    col_cells, col_weights = _axis_cells(cols, cell_size)
-    indices, weights = [], []
-    for row_cell, row_weight in zip(row_cells, row_weights):
-        for col_cell, col_weight in zip(col_cells, col_weights):
-            valid = (row_cell[:, None] >= 0) & (col_cell[None, :] >= 0)
-            indices.append(np.where(valid, row_cell[:, None] * cols + col_cell[None, :], 0))
-            weights.append(np.where(valid, np.outer(row_weight, col_weight), 0.0) / cell_size**2)
-    # float32 weights: the product with the magnitude is then float32, as in the C code.
-    return _read_only(np.stack(indices)), _read_only(np.stack(weights).astype(np.float32))
-
-
-def _axis_cells(n_cells: int, cell_size: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Along one axis: each pixel's two target cells, with weights; targets outside the grid are -1."""
+    floor(u) + 1 with weights 1 - frac(u) and frac(u); likewise for rows. The weights also carry the 8/7
+    boundary-cell factor (a corner cell gets it from both axes)."""
     u = (np.arange(n_cells * cell_size) + 0.5) / cell_size - 0.5
     low = np.floor(u).astype(np.intp)
     frac = u - low
-    cells, weights = [low, low + 1], [1.0 - frac, frac]
-    for cell, weight in zip(cells, weights):
-        weight[cell == 0] *= BOUNDARY_FACTOR
-        weight[cell == n_cells - 1] *= BOUNDARY_FACTOR  # a single cell is both first and last, as in C
-        cell[cell >= n_cells] = -1
-    return cells, weights
+    cells, weights = np.stack([low, low + 1]), np.stack([1.0 - frac, frac])
+    weights[cells == 0] *= BOUNDARY_FACTOR
+    weights[cells == n_cells - 1] *= BOUNDARY_FACTOR  # a single cell is both first and last, as in C
+    cells[cells >= n_cells] = -1
+    return _read_only(cells), _read_only(weights)
 
 
 # ---------------------------------------------------------------------------------------------- compiled loops
 
 @numba.njit(cache=True)
-def _fhog_images(images, orientation_bins, cell_index, cell_weight, eps, clip, out):
-    """Fill out (N, 31, rows, cols) with the fHOG of each image of images (N, H, W, C).
+def _fhog_images(planes, orientation_bins, row_cells, row_weights, col_cells, col_weights, eps, clip, out):
+    """Fill out (N, 31, rows, cols) with the fHOG of each image of planes (N, C, H, W).
 
     The loops are written out element by element: numba compiles whole-array expressions (slice assignment,
     broadcasting) very slowly, ~9 s each on this machine, against well under a second for the loops."""
-    used_height, used_width = cell_index.shape[1:]
+    used_height, used_width = row_cells.shape[1], col_cells.shape[1]
     rows, cols = out.shape[2:]
     magnitude = np.empty((used_height, used_width), dtype=np.float32)
     orientation = np.empty((used_height, used_width), dtype=np.uint8)
-    sensitive = np.empty((N_SENSITIVE, rows * cols), dtype=np.float64)
-    for n in range(images.shape[0]):
-        _magnitude_and_orientation(images[n], orientation_bins, magnitude, orientation)
-        _spatial_histograms(magnitude, orientation, cell_index, cell_weight, sensitive)
-        _normalise_and_truncate(sensitive, eps, clip, out[n])
+    sensitive = np.empty((N_SENSITIVE, rows, cols), dtype=np.float64)
+    for n in range(planes.shape[0]):
+        _magnitude_and_orientation(planes[n], orientation_bins, magnitude, orientation)
+        _spatial_histograms(magnitude, orientation, row_cells, row_weights, col_cells, col_weights, sensitive)
+        _normalise_and_truncate(sensitive.reshape(N_SENSITIVE, rows * cols), eps, clip, out[n])
 
 
 @numba.njit(cache=True)
-def _magnitude_and_orientation(image, orientation_bins, magnitude, orientation):
+def _magnitude_and_orientation(planes, orientation_bins, magnitude, orientation):
     """Gradient magnitude and hard orientation bin of each pixel of the binned area, from the colour channel
     with the largest float32 squared magnitude (the first one on a tie). Gradients are central differences
     x0.5 inside and one-sided (x1) on the image border. The bin is read from _orientation_bins() at the
-    truncated cosine, shifted to the table's second half when gy < 0. Row by row, so the inner loops run over
-    contiguous pixels and compile to vector code."""
-    height, width, channels = image.shape
+    truncated cosine, shifted to the table's second half when gy < 0. Row by row, in loops without branches
+    on x where possible, so that they compile to vector code."""
+    channels, height, width = planes.shape
     used_width = magnitude.shape[1]
-    planes = np.empty((channels, height, width), dtype=np.float32)  # one contiguous plane per colour channel
-    for y in range(height):
-        for x in range(width):
-            for c in range(channels):
-                planes[c, y, x] = image[y, x, c]
     rows = np.empty((6, used_width), dtype=np.float32)
     gx, gy, squared, best_gx, best_gy, best_squared = rows[0], rows[1], rows[2], rows[3], rows[4], rows[5]
+    table_index = np.empty(used_width, dtype=np.int32)
+    last = width - 1
     for y in range(magnitude.shape[0]):
         up, down = max(y - 1, 0), min(y + 1, height - 1)
         y_scale = HALF if 0 < y < height - 1 else ONE
         for c in range(channels):
-            plane = planes[c]
-            gx[0] = plane[y, 1] - plane[y, 0]
-            for x in range(1, used_width):
-                right = min(x + 1, width - 1)
-                gx[x] = (plane[y, right] - plane[y, x - 1]) * (HALF if x < width - 1 else ONE)
+            above, row, below = planes[c, up], planes[c, y], planes[c, down]
+            gx[0] = row[1] - row[0]
+            for x in range(1, min(used_width, last)):
+                gx[x] = (row[x + 1] - row[x - 1]) * HALF
+            if used_width > last:  # the binned area reaches the right border
+                gx[last] = row[last] - row[last - 1]
             for x in range(used_width):
-                gy[x] = (plane[down, x] - plane[up, x]) * y_scale
+                gy[x] = (below[x] - above[x]) * y_scale
                 squared[x] = gx[x] * gx[x] + gy[x] * gy[x]
             for x in range(used_width):
                 better = c == 0 or squared[x] > best_squared[x]
@@ -216,24 +203,33 @@ def _magnitude_and_orientation(image, orientation_bins, magnitude, orientation):
                 best_squared[x] = squared[x] if better else best_squared[x]
         for x in range(used_width):
             norm = np.sqrt(best_squared[x])
-            inverse = min(ONE / norm, MAX_INVERSE) if norm > 0 else MAX_INVERSE  # flat pixels: gx * 1e10 = 0
-            index = int(best_gx[x] * inverse * STEPS32)
-            index += TABLE_SIZE // 2 if best_gy[x] >= 0 else TABLE_SIZE + TABLE_SIZE // 2
-            orientation[y, x] = orientation_bins[min(max(index, 0), 2 * TABLE_SIZE - 1)]
             magnitude[y, x] = norm
+            inverse = min(ONE / norm, MAX_INVERSE) if norm > 0 else MAX_INVERSE  # flat pixels: gx * 1e10 = 0
+            index = np.int32(best_gx[x] * inverse * STEPS32)
+            index += TABLE_SIZE // 2 if best_gy[x] >= 0 else TABLE_SIZE + TABLE_SIZE // 2
+            table_index[x] = min(max(index, 0), 2 * TABLE_SIZE - 1)
+        for x in range(used_width):  # the table lookups apart: the loop above then vectorises
+            orientation[y, x] = orientation_bins[table_index[x]]
 
 
 @numba.njit(cache=True)
-def _spatial_histograms(magnitude, orientation, cell_index, cell_weight, sensitive):
-    """Contrast-sensitive histograms R1 (18, rows * cols): bilinear in space, hard in orientation, summed in
-    float64 one target corner at a time."""
-    for o in range(N_SENSITIVE):
-        for cell in range(sensitive.shape[1]):
-            sensitive[o, cell] = 0.0
-    for corner in range(4):
-        for y in range(magnitude.shape[0]):
+def _spatial_histograms(magnitude, orientation, row_cells, row_weights, col_cells, col_weights, sensitive):
+    """Contrast-sensitive histograms R1 (18, rows, cols): bilinear in space (each pixel to its two row cells
+    times its two column cells), hard in orientation, summed in float64. row_weights carry the 1 / cell^2
+    magnitude factor; the product of the two weights is rounded to float32, as in the C code."""
+    sensitive.fill(0.0)
+    for y in range(magnitude.shape[0]):
+        for i in range(2):
+            row = row_cells[i, y]
+            if row < 0:
+                continue
+            row_weight = row_weights[i, y]
             for x in range(magnitude.shape[1]):
-                sensitive[orientation[y, x], cell_index[corner, y, x]] += cell_weight[corner, y, x] * magnitude[y, x]
+                histogram = sensitive[orientation[y, x], row]
+                for j in range(2):
+                    col = col_cells[j, x]
+                    if col >= 0:
+                        histogram[col] += np.float32(row_weight * col_weights[j, x]) * magnitude[y, x]
 
 
 @numba.njit(cache=True)
