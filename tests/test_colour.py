@@ -1,0 +1,59 @@
+"""The colour-histogram likelihood window (tacf/colour.py)."""
+import numpy as np
+import pytest
+
+from tacf.colour import ColourModel, _bin_index
+
+
+@pytest.mark.parametrize("bins", [8, 32, 64])
+def test_bin_index_is_the_joint_quantised_colour(bins):
+    patch = np.random.default_rng(0).integers(0, 256, (9, 7, 3), dtype=np.uint8)
+    index, count = _bin_index(patch, bins)
+    q = patch.astype(np.int64) // (256 // bins)
+    assert count == bins**3
+    np.testing.assert_array_equal(index, (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2])
+    gray_index, gray_count = _bin_index(patch[..., 0], bins)
+    assert gray_count == bins
+    np.testing.assert_array_equal(gray_index, q[..., 0])
+
+
+def _target_on_background(size=96, target=32, target_bgr=(20, 20, 220), background_bgr=(30, 160, 40)):
+    patch = np.empty((size, size, 3), np.uint8)
+    patch[:] = background_bgr
+    start = (size - target) // 2
+    patch[start:start + target, start:start + target] = target_bgr
+    return patch
+
+
+def test_likelihood_is_high_on_the_target_colour_and_floored_on_the_background():
+    patch = _target_on_background()
+    area = np.array([96.0, 96.0])
+    model = ColourModel(patch, area, fg_area=np.array([26.0, 26.0]), target_hw=np.array([32.0, 32.0]),
+                        bins=32, learning_rate=0.02, floor=0.1)
+    window = model.likelihood_window(patch, (24, 24))
+    assert window.shape == (24, 24) and window.dtype == np.float32
+    assert window[10:14, 10:14].min() == pytest.approx(1.0)  # target colour: only ever seen in the foreground
+    assert window[:3, :3].max() == pytest.approx(0.1)  # background colour: floored
+    # The target moves: the window follows its colour, not the patch centre.
+    moved = np.roll(patch, (20, 20), axis=(0, 1))
+    moved_window = model.likelihood_window(moved, (24, 24))
+    assert moved_window[15:19, 15:19].min() == pytest.approx(1.0) and moved_window[5, 5] == pytest.approx(0.1)
+
+
+def test_uniform_patch_gives_a_neutral_window():
+    patch = np.full((64, 64, 3), 128, np.uint8)
+    model = ColourModel(patch, np.array([64.0, 64.0]), np.array([16.0, 16.0]), np.array([20.0, 20.0]),
+                        bins=32, learning_rate=0.02, floor=0.1)
+    np.testing.assert_array_equal(model.likelihood_window(patch, (16, 16)), np.ones((16, 16), np.float32))
+
+
+def test_update_blends_the_histograms():
+    patch = _target_on_background()
+    model = ColourModel(patch, np.array([96.0, 96.0]), np.array([26.0, 26.0]), np.array([32.0, 32.0]),
+                        bins=32, learning_rate=0.5, floor=0.1)
+    recoloured = _target_on_background(target_bgr=(220, 20, 20))
+    model.update(recoloured)
+    new_bin, _ = _bin_index(np.array([[[220, 20, 20]]], np.uint8), 32)
+    old_bin, _ = _bin_index(np.array([[[20, 20, 220]]], np.uint8), 32)
+    assert model.fg_hist[new_bin[0, 0]] == pytest.approx(model.fg_hist[old_bin[0, 0]])  # half and half
+    assert model.fg_hist.sum() == pytest.approx(1.0) and model.bg_hist.sum() == pytest.approx(1.0)
