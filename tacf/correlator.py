@@ -14,6 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 
+# exp(-u) = 1 - u + r with 0 <= r <= u^2 / 2 for u >= 0: under this exponent the first-order kernel is within
+# 1e-5 of the exact one, element by element (float32 resolves about 6e-8 around 1).
+FIRST_ORDER_EXPONENT = 4.5e-3
+
 
 def gaussian_label(grid_hw: tuple[int, int], sigma: float) -> np.ndarray:
     """Desired output: a Gaussian whose peak sits at (H-1, W-1), i.e. displacement (-1, -1).
@@ -45,6 +49,21 @@ class GaussianKernel:
         cross /= self.sigma**2 * n
         return np.exp(cross, out=cross)
 
+    def first_order_auto_kernel_hat(self, power: np.ndarray, sq_norm: np.ndarray, n: int) -> np.ndarray | None:
+        """F(k(x, x)) in closed form when the kernel stays close to 1, else None (compute it exactly).
+
+        k(x, x)[t] = exp(-u[t]) with u = 2 (|x|^2 - c[t]) / (sigma^2 N), c the circular autocorrelation, so
+        0 <= u <= 4 |x|^2 / (sigma^2 N). Under FIRST_ORDER_EXPONENT, k = 1 - u to within u^2 / 2, whose transform
+        needs no FFT: F(1 - u) = N delta (1 - 2 |x|^2 / (sigma^2 N)) + 2 |F(x)|^2 / (sigma^2 N), with F(c) = |F(x)|^2.
+        power: |F(x)|^2 (..., H, W//2+1); sq_norm: |x|^2 broadcastable against it; n: H * W.
+        """
+        scale = 2.0 / (self.sigma**2 * n)
+        if 2.0 * scale * float(np.max(sq_norm)) > FIRST_ORDER_EXPONENT:
+            return None
+        kernel_hat = scale * power
+        kernel_hat[..., 0, 0] += n * (1.0 - scale * sq_norm[..., 0, 0])
+        return kernel_hat
+
 
 @dataclass(frozen=True)
 class PolynomialKernel:
@@ -56,6 +75,10 @@ class PolynomialKernel:
     def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
         n = cross.shape[-1] * cross.shape[-2]
         return (cross / n + self.offset) ** self.degree
+
+    def first_order_auto_kernel_hat(self, power: np.ndarray, sq_norm: np.ndarray, n: int) -> None:
+        """No closed form is used for this kernel (see GaussianKernel)."""
+        return None
 
 
 def _sq_norms(x: np.ndarray) -> np.ndarray:
@@ -100,13 +123,23 @@ class CorrelatorBank:
                        scales: np.ndarray | None = None) -> np.ndarray:
         """sum_s |F(k(p_s x_s, p_s x_s))|^2 over context patches x_s (S, C, H, W), each scaled by p_s = scales[s]
         (default 1) before the kernel; context_x_hat = spectrum(context_x) if already known (it is shared with
-        the penalty responses: F(p_s x_s) = p_s F(x_s) saves a transform)."""
+        the penalty responses).
+
+        The scales are about sqrt(lambda2) = 1/16, so the Gaussian auto-kernel of a scaled patch stays within
+        ~2e-3 of 1 (measured on the UAV sequences) and its first-order closed form serves, without the two FFTs
+        per channel and patch of the exact kernel; larger scales take the exact path.
+        """
         if context_x_hat is None:
             context_x_hat = self.spectrum(context_x)
-        if scales is not None:
-            scales = np.asarray(scales, dtype=np.float32)[:, None, None, None]
-            context_x, context_x_hat = context_x * scales, context_x_hat * scales
-        kernel_hat = self.auto_kernel_hat(context_x, context_x_hat)
+        squares = np.ones(1, np.float32) if scales is None else np.asarray(scales, np.float32) ** 2
+        squares = squares.reshape(-1, 1, 1, 1)
+        sq_norms = _sq_norms(context_x) * squares  # |p_s x_s|^2 = p_s^2 |x_s|^2
+        power = (context_x_hat.real**2 + context_x_hat.imag**2) * squares
+        kernel_hat = self.kernel.first_order_auto_kernel_hat(power, sq_norms, self.grid_hw[0] * self.grid_hw[1])
+        if kernel_hat is not None:  # real
+            return np.sum(kernel_hat**2, axis=0)
+        scales = np.sqrt(squares)
+        kernel_hat = self.auto_kernel_hat(context_x * scales, context_x_hat * scales)
         return np.sum(kernel_hat.real**2 + kernel_hat.imag**2, axis=0)
 
     # -- training ------------------------------------------------------------------------------------------

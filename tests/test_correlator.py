@@ -98,3 +98,42 @@ def test_model_is_an_exponential_moving_average():
     bank.train(first)
     bank.train(second)
     np.testing.assert_allclose(bank.model_x, 0.75 * first + 0.25 * second)
+
+
+def _exact_context_energy(bank: CorrelatorBank, contexts: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """sum_s |F(k(p_s x_s, p_s x_s))|^2 through the exact kernel, in float64."""
+    scaled = contexts.astype(np.float64) * scales[:, None, None, None]
+    kernel_hat = bank.auto_kernel_hat(scaled, sfft.rfft2(scaled))
+    return np.sum(np.abs(kernel_hat) ** 2, axis=0)
+
+
+def test_context_energy_of_small_scaled_patches_matches_the_exact_kernel():
+    """Context patches scaled by ~1/16 (as in training) take the closed first-order form: it agrees with the
+    exact kernel to far better than the context term's own size at every frequency."""
+    rng = np.random.default_rng(3)
+    grid = (24, 30)
+    contexts = (0.1 * rng.random((4, 3, *grid))).astype(np.float32)  # fHOG-like values, windowed
+    scales = np.array([0.05, 0.1, 0.0625, 0.08])
+    bank = CorrelatorBank(GaussianKernel(0.5), gaussian_label(grid, 1.0), 1e-4, 0.01)
+    exponent_bound = 4 * np.max(np.sum((contexts * scales[:, None, None, None]) ** 2, axis=(-2, -1))) / (0.25 * 720)
+    assert exponent_bound < 4.5e-3  # the closed form applies
+    energy = bank.context_energy(contexts, scales=scales)
+    exact = _exact_context_energy(bank, contexts, scales)
+    np.testing.assert_allclose(energy[:, 0, 0], exact[:, 0, 0], rtol=1e-6)  # the DC term: ~ (S N)^2
+    off_dc = np.ones(exact.shape, bool)
+    off_dc[:, 0, 0] = False
+    assert np.max(np.abs(energy - exact)[off_dc]) < 1e-3 * np.max(exact[off_dc])
+
+
+def test_context_energy_of_large_patches_takes_the_exact_kernel():
+    rng = np.random.default_rng(4)
+    grid = (16, 20)
+    contexts = rng.random((2, 3, *grid)).astype(np.float32)
+    scales = np.array([1.0, 0.5])
+    bank = CorrelatorBank(GaussianKernel(0.5), gaussian_label(grid, 1.0), 1e-4, 0.01)
+    power = np.abs(sfft.rfft2(contexts)) ** 2
+    sq_norms = np.sum(contexts.astype(np.float64) ** 2, axis=(-2, -1))[..., None, None]
+    assert bank.kernel.first_order_auto_kernel_hat(power, sq_norms, 320) is None  # exponent far above the bound
+    exact = _exact_context_energy(bank, contexts, scales)
+    np.testing.assert_allclose(bank.context_energy(contexts, scales=scales), exact, rtol=1e-4,
+                               atol=1e-6 * exact.max())  # float32 against float64
