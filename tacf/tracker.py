@@ -18,6 +18,7 @@ import numpy as np
 from scipy.signal.windows import hann
 
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
+from tacf.allocator import keep_freed_memory
 from tacf.attention.spatiotemporal import to_response_origin
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
@@ -76,6 +77,7 @@ class Tracker:
     def __init__(self, config: TrackerConfig | None = None):
         self.config = config or TrackerConfig.profile()
         self._frame_shape = None
+        keep_freed_memory()  # per-frame temporaries are megabytes: reuse them, don't map them anew (allocator.py)
 
     # ------------------------------------------------------------------------------------------------------
     def init(self, frame: np.ndarray, box) -> None:
