@@ -1,6 +1,6 @@
-"""Loopback Zenoh helpers for tests, the benchmark and demos: free ports, peer configs, a frame publisher.
+"""Loopback Zenoh helpers for tests, the benchmark and demos: peer configs, a frame publisher, result collectors.
 
-    port = free_port(); endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = "tcp/127.0.0.1:7447"  # tests take a free port from tacf_clients.local_service.free_port()
     session = zenoh.open(peer_config(connect=[endpoint]))
     with FramePublisher(session, "cam/a", MovingTargetScene(640, 360), fps=10) as feed:
         ...  feed.truth[seq] is the target's box on frame seq
@@ -9,19 +9,12 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
 import threading
 import time
 
 from tacf_schemas import BoxResult, Health, box_key, decode, encode, health_key
 
 log = logging.getLogger(__name__)
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def peer_config(listen=(), connect=(), mode: str = "peer"):

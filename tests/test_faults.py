@@ -15,6 +15,7 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf_clients.local_service import free_port
 from tacf_clients.local_service import LocalService
 from tacf_clients.scene import Scene
 from tacf_schemas import (Frame, SessionInfo, StartRequest, StatusRequest, StopRequest, box_key, decode, encode,
@@ -22,7 +23,7 @@ from tacf_schemas import (Frame, SessionInfo, StartRequest, StatusRequest, StopR
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
-from tacf_service.loopback import SessionResults, free_port, peer_config, wait_until
+from tacf_service.loopback import SessionResults, peer_config, wait_until
 from tacf_service.probe import call
 
 pytestmark = pytest.mark.zenoh

@@ -20,6 +20,7 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from tacf_clients.local_service import free_port  # noqa: E402
 from tacf_schemas import (CONTROL_OPS, CONTROL_REPLIES, ERROR_CODES, MODELS, BoxResult, DecodeError, Error, Frame,
                           Health, ListRequest, ReinitRequest, SessionInfo, SessionList, StartRequest, StatusRequest,
                           StopRequest, decode, encode)
@@ -221,7 +222,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf_service.app import ServiceOptions, TrackingService  # noqa: E402
 from tacf_service.config import ZenohOptions  # noqa: E402
-from tacf_service.loopback import (FramePublisher, SessionResults, free_port, peer_config,  # noqa: E402
+from tacf_service.loopback import (FramePublisher, SessionResults, peer_config,  # noqa: E402
                                    wait_until)
 from tacf_service.probe import call  # noqa: E402
 from tacf_service.scene import MovingTargetScene  # noqa: E402

@@ -17,11 +17,12 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf_clients.local_service import free_port
 from tacf_clients.zconfig import ZenohOptions as ClientOptions, make_config
 from tacf_schemas import StartRequest, StopRequest
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, worker_config
-from tacf_service.loopback import FramePublisher, SessionResults, free_port, wait_until
+from tacf_service.loopback import FramePublisher, SessionResults, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
 

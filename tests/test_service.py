@@ -18,12 +18,13 @@ from hypothesis import strategies as st
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf_clients.local_service import free_port
 from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
                           control_key, encode, session_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
-from tacf_service.loopback import FramePublisher, SessionResults as Collector, free_port, peer_config, wait_until
+from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene, iou
 

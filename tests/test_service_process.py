@@ -15,9 +15,10 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf_clients.local_service import free_port
 from tacf_schemas import StartRequest, service_liveliness_key
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
-from tacf_service.loopback import FramePublisher, SessionResults as Collector, free_port, peer_config, wait_until
+from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import call
 from tacf_service.scene import MovingTargetScene, iou
 from tacf_service.state import PersistedSession, StateStore
