@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal.windows import hann
 
-from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.allocator import keep_freed_memory
+from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.spatiotemporal import to_response_origin
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
