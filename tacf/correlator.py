@@ -131,14 +131,14 @@ class CorrelatorBank:
         """
         if context_x_hat is None:
             context_x_hat = self.spectrum(context_x)
-        squares = np.ones(1, np.float32) if scales is None else np.asarray(scales, np.float32) ** 2
-        squares = squares.reshape(-1, 1, 1, 1)
+        scales = np.ones(1, np.float32) if scales is None else np.asarray(scales, np.float32)
+        scales = scales.reshape(-1, 1, 1, 1)
+        squares = scales**2
         sq_norms = _sq_norms(context_x) * squares  # |p_s x_s|^2 = p_s^2 |x_s|^2
         power = (context_x_hat.real**2 + context_x_hat.imag**2) * squares
         kernel_hat = self.kernel.first_order_auto_kernel_hat(power, sq_norms, self.grid_hw[0] * self.grid_hw[1])
         if kernel_hat is not None:  # real
             return np.sum(kernel_hat**2, axis=0)
-        scales = np.sqrt(squares)
         kernel_hat = self.auto_kernel_hat(context_x * scales, context_x_hat * scales)
         return np.sum(kernel_hat.real**2 + kernel_hat.imag**2, axis=0)
 

@@ -58,8 +58,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_track)
 
 
-
-
 def register_bench(bench_subparsers) -> None:
     p = bench_subparsers.add_parser("tracker", help="per-stream tracker speed on decoded frames, CSRT alongside",
                                     description="Per-stream tracker speed on decoded frames, OpenCV CSRT alongside.")
