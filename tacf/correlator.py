@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import scipy.fft as sfft
 
@@ -41,13 +42,15 @@ class GaussianKernel:
 
     def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
         """The kernel map, computed in place in `cross` (the caller's fresh inverse FFT)."""
-        n = cross.shape[-1] * cross.shape[-2]
-        # exp(-(|a|^2 + |b|^2 - 2 cross) / (sigma^2 N)), step by step without temporaries.
-        cross *= 2
-        np.subtract(sq_norm_a + sq_norm_b, cross, out=cross)
-        np.negative(cross, out=cross)
-        cross /= self.sigma**2 * n
-        return np.exp(cross, out=cross)
+        inverse_width = 1.0 / (self.sigma**2 * cross.shape[-1] * cross.shape[-2])
+        # exp((2 cross - |a|^2 - |b|^2) / (sigma^2 N)), in place: two passes over the maps, then the exp.
+        cross *= 2 * inverse_width
+        cross -= (sq_norm_a + sq_norm_b) * inverse_width
+        # OpenCV's float32 exp is ~6x faster than numpy's here and as close to the float64 exp (both within
+        # 2e-7); the boxes on the UAV sequences are identical with either (README "Speed").
+        rows = cross.reshape(-1, cross.shape[-1])  # OpenCV takes 2-D arrays
+        cv2.exp(rows, rows)
+        return rows.reshape(cross.shape)
 
     def first_order_auto_kernel_hat(self, power: np.ndarray, sq_norm: np.ndarray, n: int) -> np.ndarray | None:
         """F(k(x, x)) in closed form when the kernel stays close to 1, else None (compute it exactly).
@@ -150,7 +153,8 @@ class CorrelatorBank:
         denominator = kernel_hat.real**2 + kernel_hat.imag**2 + self.lambda1
         if context_energy is not None:
             denominator = denominator + context_energy
-        filter_hat = kernel_hat * self.label_hat / denominator
+        filter_hat = kernel_hat * self.label_hat
+        filter_hat *= 1.0 / denominator  # a real reciprocal: half the time of a complex division
         if self.model_x is None:  # copies: the model is updated in place
             self.model_x, self.model_x_hat, self.model_filter_hat = x.copy(), x_hat.copy(), filter_hat.copy()
         else:
