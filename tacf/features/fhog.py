@@ -161,13 +161,19 @@ def _fhog_images(planes, orientation_bins, row_cells, row_weights, col_cells, co
     broadcasting) very slowly, ~9 s each on this machine, against well under a second for the loops."""
     used_height, used_width = row_cells.shape[1], col_cells.shape[1]
     rows, cols = out.shape[2:]
+    # Work space for all images of the batch (DSST batches are 31 small patches: allocation would dominate).
     magnitude = np.empty((used_height, used_width), dtype=np.float32)
     orientation = np.empty((used_height, used_width), dtype=np.uint8)
     sensitive = np.empty((N_SENSITIVE, rows, cols), dtype=np.float64)
+    histograms = np.empty((N_SENSITIVE + N_ORIENTS, rows, cols), dtype=np.float32)
+    energy = np.empty((rows, cols), dtype=np.float32)
+    block = np.empty((rows, cols), dtype=np.float32)
+    normalisers = np.empty((4, rows, cols), dtype=np.float32)
     for n in range(planes.shape[0]):
         _magnitude_and_orientation(planes[n], orientation_bins, magnitude, orientation)
         _spatial_histograms(magnitude, orientation, row_cells, row_weights, col_cells, col_weights, sensitive)
-        _normalise_and_truncate(sensitive.reshape(N_SENSITIVE, rows * cols), eps, clip, out[n])
+        _normalise_and_truncate(sensitive.reshape(N_SENSITIVE, rows * cols), eps, clip, histograms, energy, block,
+                                normalisers, out[n])
 
 
 @numba.njit(cache=True)
@@ -233,51 +239,58 @@ def _spatial_histograms(magnitude, orientation, row_cells, row_weights, col_cell
 
 
 @numba.njit(cache=True)
-def _normalise_and_truncate(sensitive, eps, clip, out):
+def _normalise_and_truncate(sensitive, eps, clip, histograms, energy, block, normalisers, out):
     """The 31 output channels (31, rows, cols) from the float64 histograms R1 (18, rows * cols):
     0.5 * sum_k min(R n_k, clip) for R1 and the contrast-insensitive R2, and the 4 texture channels.
     n_k = 1 / sqrt(energy of a 2x2 block + eps) for the 4 blocks around a cell, in the C code's order: top-left
     cell at offset (0, 0), (-1, 0), (0, -1), (-1, -1); the block grid is clamped at the border. A grid one cell
-    high or wide is normalised as if that cell row / column were doubled."""
+    high or wide is normalised as if that cell row / column were doubled.
+    histograms (27, rows, cols), energy and block (rows, cols) and normalisers (4, rows, cols) are work space.
+    Each output value sums its four truncated values in the order k = 0..3 in float32, in one pass."""
     rows, cols = out.shape[1:]
-    histograms = np.empty((N_SENSITIVE + N_ORIENTS, rows, cols), dtype=np.float32)  # R1, then R2
-    energy = np.zeros((rows, cols), dtype=np.float32)
-    for r in range(rows):
+    n_histograms = N_SENSITIVE + N_ORIENTS
+    for r in range(rows):  # R1 in float32, R2 and each cell's energy
         for c in range(cols):
+            total = np.float32(0.0)
             for o in range(N_SENSITIVE):
                 histograms[o, r, c] = sensitive[o, r * cols + c]
             for o in range(N_ORIENTS):
                 insensitive = histograms[o, r, c] + histograms[o + N_ORIENTS, r, c]
                 histograms[N_SENSITIVE + o, r, c] = insensitive
-                energy[r, c] += insensitive * insensitive
+                total += insensitive * insensitive
+            energy[r, c] = total
     block_rows, block_cols = max(rows - 1, 1), max(cols - 1, 1)
-    block = np.empty((block_rows, block_cols), dtype=np.float32)
     for r in range(block_rows):
         r1 = min(r + 1, rows - 1)
         for c in range(block_cols):
             c1 = min(c + 1, cols - 1)
             block[r, c] = ONE / np.sqrt(energy[r, c] + energy[r1, c] + energy[r, c1] + energy[r1, c1] + eps)
-    normaliser = np.empty((rows, cols), dtype=np.float32)
-    for o in range(N_CHANNELS):
+    for k in range(4):  # the four normalisers of each cell, as planes: the loop below then runs along rows
         for r in range(rows):
             for c in range(cols):
-                out[o, r, c] = 0.0
+                normalisers[k, r, c] = block[min(max(r - k % 2, 0), block_rows - 1),
+                                             min(max(c - k // 2, 0), block_cols - 1)]
+    textures = out[n_histograms:]
     for k in range(4):
         for r in range(rows):
             for c in range(cols):
-                normaliser[r, c] = block[min(max(r - k % 2, 0), block_rows - 1), min(max(c - k // 2, 0), block_cols - 1)]
-        texture = out[N_SENSITIVE + N_ORIENTS + k]
-        for o in range(N_SENSITIVE + N_ORIENTS):
-            for r in range(rows):
-                for c in range(cols):
-                    truncated = min(histograms[o, r, c] * normaliser[r, c], clip)
-                    out[o, r, c] += truncated
-                    if o < N_SENSITIVE:
-                        texture[r, c] += truncated
+                textures[k, r, c] = 0.0
+    for o in range(n_histograms):
+        with_texture = o < N_SENSITIVE
         for r in range(rows):
             for c in range(cols):
-                texture[r, c] *= TEXTURE_FACTOR
-    for o in range(N_SENSITIVE + N_ORIENTS):
+                value = histograms[o, r, c]
+                truncated0 = min(value * normalisers[0, r, c], clip)
+                truncated1 = min(value * normalisers[1, r, c], clip)
+                truncated2 = min(value * normalisers[2, r, c], clip)
+                truncated3 = min(value * normalisers[3, r, c], clip)
+                out[o, r, c] = (truncated0 + truncated1 + truncated2 + truncated3) * HALF
+                if with_texture:
+                    textures[0, r, c] += truncated0
+                    textures[1, r, c] += truncated1
+                    textures[2, r, c] += truncated2
+                    textures[3, r, c] += truncated3
+    for k in range(4):
         for r in range(rows):
             for c in range(cols):
-                out[o, r, c] *= HALF
+                textures[k, r, c] *= TEXTURE_FACTOR
