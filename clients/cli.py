@@ -193,9 +193,10 @@ def stop_on_signals():
 # ------------------------------------------------------------------------------------------------ commands
 
 def cmd_publish(args: argparse.Namespace) -> int:
+    from tacf.zenoh_options import options_from_args
     from tacf_clients.publisher import FramePublisher, publish
     from tacf_clients.sources import open_source
-    from tacf_clients.zconfig import open_session, options_from_args
+    from tacf_clients.zconfig import open_session
 
     try:
         source = open_source(args.source, loop=args.loop)
@@ -228,9 +229,9 @@ def _client(args: argparse.Namespace, one_shot: bool = True):
 
     import zenoh
 
+    from tacf.zenoh_options import options_from_args
     from tacf_clients.client import LEAST_LOADED, TrackingClient
     from tacf_clients.errors import TacfError
-    from tacf_clients.zconfig import options_from_args
 
     options = options_from_args(args)
     if one_shot and options.mode is None and options.config_file is None:
@@ -346,8 +347,8 @@ def _follow_nodes(args: argparse.Namespace) -> int:
 
 
 def cmd_watch(args: argparse.Namespace) -> int:
+    from tacf.zenoh_options import options_from_args
     from tacf_clients.watch import watch
-    from tacf_clients.zconfig import options_from_args
 
     with stop_on_signals() as stop:
         return watch(options_from_args(args), sid=args.sid, node=args.node, interval=args.interval,
@@ -365,8 +366,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
+    from tacf.zenoh_options import options_from_args
     from tacf_clients.dashboard_http import serve
-    from tacf_clients.zconfig import options_from_args
 
     def ready(url: str) -> None:
         print(f"tacf dashboard: open {url} in a browser (Ctrl-C to stop)", flush=True)

@@ -19,11 +19,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
+from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.errors import TacfError
 from tacf_clients.local_service import LocalService, LocalServiceError
 from tacf_clients.publisher import FramePublisher
-from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.sources import FrameSource, ImageFolderSource, Pacer, SourceFrame, open_source
 from tacf_clients.zconfig import open_session
 from tacf_schemas.models import BoxResult, Health
@@ -326,7 +327,7 @@ def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: G
             overlap = None
             index = publisher.index_of(item.seq)
             if truth is not None and index is not None and (gt := truth.box(index)) is not None:
-                overlap = iou(tuple(item.box), gt)
+                overlap = box_iou(tuple(item.box), gt)
                 report.ious.append(overlap)
             printer.box(item, report.boxes, overlap)
 

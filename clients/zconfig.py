@@ -1,4 +1,5 @@
-"""Zenoh configuration for the client side: the same options as `tacf serve`, with a loopback default.
+"""Zenoh configuration for the client side: the options of `tacf serve` (tacf.zenoh_options), with a loopback
+default.
 
 Layering (as in zenoh-python's examples/common): `--zenoh-config FILE` first, then the command-line overrides.
 Without a file, the defaults keep everything on this machine: peer mode, multicast scouting off, connect to the
@@ -12,9 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from tacf.zenoh_options import ZenohOptions, base_config
 
 if TYPE_CHECKING:
     import zenoh
@@ -25,46 +27,11 @@ LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
 FAST_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
 
 
-@dataclass(frozen=True)
-class ZenohOptions:
-    """How a client session reaches the Zenoh network.
-
-    connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the default (see module doc), () = none.
-    listen: endpoints to listen on; empty = the default.
-    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
-    mode: "peer" or "client"; None keeps the file's mode (or peer without a file).
-    """
-
-    connect: tuple[str, ...] | None = None
-    listen: tuple[str, ...] = ()
-    config_file: Path | None = None
-    mode: str | None = None
-    extra: tuple[tuple[str, str], ...] = field(default=())
-
-    @classmethod
-    def loopback(cls, port: int) -> "ZenohOptions":
-        """Options for a session that connects to a service listening on ``tcp/127.0.0.1:<port>``."""
-        return cls(connect=(f"tcp/127.0.0.1:{port}",))
-
-    @classmethod
-    def listener(cls, endpoint: str) -> "ZenohOptions":
-        """Options for a session that only listens on `endpoint` (e.g. a test's hub)."""
-        return cls(connect=(), listen=(endpoint,))
-
-    def to_config(self) -> "zenoh.Config":
-        return make_config(self)
-
-
 def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
     """Build a `zenoh.Config` from `options` (None: loopback defaults)."""
-    import zenoh
-
     options = options or ZenohOptions()
-    if options.config_file is not None:
-        conf = zenoh.Config.from_file(str(options.config_file))
-    else:
-        conf = zenoh.Config()
-        conf.insert_json5("scouting/multicast/enabled", "false")
+    conf = base_config(options.config_file)
+    if options.config_file is None:
         conf.insert_json5("connect/retry", json.dumps(FAST_RETRY))
         conf.insert_json5("connect/endpoints", json.dumps([DEFAULT_CONNECT]))
         conf.insert_json5("listen/endpoints", json.dumps([LOOPBACK_LISTEN]))
@@ -96,13 +63,6 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--zenoh-config", type=Path, metavar="FILE",
                        help="Zenoh JSON5 config file (router, TLS, access control); flags override it")
     group.add_argument("--mode", choices=("peer", "client"), help="Zenoh session mode (default peer)")
-
-
-def options_from_args(args: argparse.Namespace) -> ZenohOptions:
-    return ZenohOptions(connect=tuple(getattr(args, "connect", None) or ()) or None,
-                        listen=tuple(getattr(args, "listen", None) or ()),
-                        config_file=getattr(args, "zenoh_config", None),
-                        mode=getattr(args, "mode", None))
 
 
 def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh.Session":

@@ -31,10 +31,10 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tacf.zenoh_options import options_from_args
     from tacf_schemas import InvalidIdError, validate_id
 
     from .app import ServiceOptions, default_node_id, serve
-    from .config import ZenohOptions
     from .trackers import DEFAULT_FACTORY
 
     log = logging.getLogger("tacf_service")
@@ -47,8 +47,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_sessions < 1:
         log.error("--max-sessions must be >= 1")
         return 2
-    zenoh_options = ZenohOptions(listen=tuple(args.listen), connect=tuple(args.connect),
-                                 config_file=args.zenoh_config, mode=args.mode)
+    zenoh_options = options_from_args(args)
     options = ServiceOptions(node=node, zenoh=zenoh_options, max_sessions=args.max_sessions, state_file=args.state,
                              tracker_factory=args.tracker_factory or DEFAULT_FACTORY, init_wait_s=args.init_wait,
                              spare_workers=max(0, args.spare_workers),

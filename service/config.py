@@ -8,8 +8,9 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass, field
 from pathlib import Path
+
+from tacf.zenoh_options import ZenohOptions, base_config
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
@@ -17,45 +18,28 @@ _UNSPECIFIED_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
 _ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<host>\[[^\]]*\]|[^:/]+):(?P<port>\d+)(?P<rest>[#?].*)?$")
 
 
-@dataclass(frozen=True)
-class ZenohOptions:
-    """What the command line says about Zenoh. Pickled into worker processes."""
-    listen: tuple[str, ...] = ()
-    connect: tuple[str, ...] = ()
-    config_file: str | None = None
-    mode: str = "peer"
-    extra: dict[str, str] = field(default_factory=dict)   # key path -> JSON5 value, applied last
-
-    def effective_listen(self) -> tuple[str, ...]:
-        """CLI listen endpoints; with no --listen, --connect or config file: loopback only (DEFAULT_LISTEN).
-        With --connect (e.g. to a router on this host) or a config file, nothing is added."""
-        if self.listen:
-            return self.listen
-        if self.config_file or self.connect:
-            return ()
-        return (DEFAULT_LISTEN,)
-
-
-def _base(config_file: str | None):
-    import zenoh
-    if config_file:
-        return zenoh.Config.from_file(str(Path(config_file)))
-    conf = zenoh.Config()
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return conf
+def _listen_endpoints(options: ZenohOptions) -> tuple[str, ...]:
+    """CLI listen endpoints; with no --listen, --connect or config file: loopback only (DEFAULT_LISTEN).
+    With --connect (e.g. to a router on this host) or a config file, nothing is added."""
+    if options.listen:
+        return options.listen
+    if options.config_file or options.connect:
+        return ()
+    return (DEFAULT_LISTEN,)
 
 
 def service_config(options: ZenohOptions):
     """The service session's config: the file (if any), then the command-line overrides."""
-    conf = _base(options.config_file)
-    if options.config_file is None or options.mode != "peer":
-        conf.insert_json5("mode", json.dumps(options.mode))
-    listen = options.effective_listen()
+    conf = base_config(options.config_file)
+    mode = options.mode or "peer"
+    if options.config_file is None or mode != "peer":    # with a file, peer (the --mode default) keeps the file's
+        conf.insert_json5("mode", json.dumps(mode))
+    listen = _listen_endpoints(options)
     if listen or options.config_file is None:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if options.connect or options.config_file is None:
-        conf.insert_json5("connect/endpoints", json.dumps(list(options.connect)))
-    for key, value in options.extra.items():
+        conf.insert_json5("connect/endpoints", json.dumps(list(options.connect or ())))
+    for key, value in options.extra:
         conf.insert_json5(key, value)
     return conf
 
@@ -63,9 +47,10 @@ def service_config(options: ZenohOptions):
 def worker_endpoints(options: ZenohOptions) -> list[str]:
     """Endpoints a worker process on this host connects to: the service's listen endpoints with unspecified
     hosts mapped to loopback; without any, the service's own connect endpoints (a router)."""
-    listen = list(options.effective_listen())
+    mode = options.mode or "peer"
+    listen = list(_listen_endpoints(options))
     if not listen and options.config_file:
-        listen = _configured_list(options.config_file, "listen/endpoints", options.mode)
+        listen = _configured_list(options.config_file, "listen/endpoints", mode)
     endpoints = []
     for endpoint in listen:
         m = _ENDPOINT_RE.match(endpoint)
@@ -75,8 +60,9 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
         endpoints.append(f"{m.group('proto')}/{host}:{m.group('port')}{m.group('rest') or ''}")
     if endpoints:
         return endpoints
-    connect = list(options.connect) or (_configured_list(options.config_file, "connect/endpoints", options.mode)
-                                        if options.config_file else [])
+    connect = list(options.connect or ())
+    if not connect and options.config_file:
+        connect = _configured_list(options.config_file, "connect/endpoints", mode)
     if connect:
         return connect
     raise ValueError("worker processes need an endpoint of the service: give --listen with a fixed port "
@@ -85,7 +71,7 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
 
 def worker_config(options: ZenohOptions, endpoints: list[str]):
     """A worker's config: client of the service (same file, so TLS/auth settings carry over)."""
-    conf = _base(options.config_file)
+    conf = base_config(options.config_file)
     # The service's access control guards its own session, the entry point. Applied again in the worker, it
     # would deny the link to the service (which authenticates as no user), and the worker would get no frames.
     conf.insert_json5("access_control/enabled", "false")
@@ -97,9 +83,8 @@ def worker_config(options: ZenohOptions, endpoints: list[str]):
     return conf
 
 
-def _configured_list(config_file: str, key: str, mode: str) -> list[str]:
-    import zenoh
-    value = json.loads(zenoh.Config.from_file(config_file).get_json(key))
+def _configured_list(config_file: str | Path, key: str, mode: str) -> list[str]:
+    value = json.loads(base_config(config_file).get_json(key))
     if isinstance(value, dict):
         value = value.get(mode, [])
     return [str(v) for v in value or []]

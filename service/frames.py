@@ -12,6 +12,7 @@ import threading
 from collections import deque
 from dataclasses import dataclass
 
+from tacf.boxes import check_box
 from tacf_schemas import DecodeError, Frame, decode
 
 log = logging.getLogger(__name__)
@@ -162,12 +163,14 @@ class FrameHistory:
 
 
 def box_problem(box: tuple, width: int, height: int) -> str | None:
-    """Why `box` cannot initialise a tracker on a width x height frame, or None. It must overlap the frame and
-    be no larger than it: the tracker's search area grows with the box (measured: a 5100x5100 box on a 320x240
-    frame took 17 s to initialise, a 1e9-pixel one ran out of memory)."""
-    x, y, w, h = box
-    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
-        return f"box {list(box)} lies outside the {width}x{height} frame"
+    """Why `box` cannot initialise a tracker on a width x height frame, or None. It must pass the tracker's own
+    check (tacf.boxes.check_box: it overlaps the frame) and be no larger than the frame: the tracker's search
+    area grows with the box (measured: a 5100x5100 box on a 320x240 frame took 17 s to initialise, a 1e9-pixel
+    one ran out of memory)."""
+    try:
+        x, y, w, h = check_box(box, (height, width))
+    except ValueError as exc:
+        return str(exc)
     if w > width or h > height:
         return f"box {list(box)} is larger than the {width}x{height} frame"
     return None

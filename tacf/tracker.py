@@ -20,6 +20,7 @@ from scipy.signal.windows import hann
 from tacf.allocator import keep_freed_memory
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.spatiotemporal import to_response_origin
+from tacf.boxes import check_box
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
 from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
@@ -55,22 +56,6 @@ def _check_frame(frame, expected_shape=None) -> np.ndarray:
     return frame
 
 
-def _check_box(box, frame_shape) -> np.ndarray:
-    try:
-        values = np.asarray(box, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"box must be four numbers (x, y, w, h), got {box!r}") from None
-    if values.size != 4 or not np.all(np.isfinite(values)):
-        raise ValueError(f"box must be four finite numbers (x, y, w, h), got {box!r}")
-    x, y, w, h = values
-    if w <= 0 or h <= 0:
-        raise ValueError(f"box width and height must be positive, got w={w}, h={h}")
-    height, width = frame_shape[:2]
-    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
-        raise ValueError(f"box {tuple(values)} lies outside the {width}x{height} image")
-    return values
-
-
 class Tracker:
     """TACF. Frames are HxWx3 BGR uint8 (OpenCV order) or HxW uint8 grayscale."""
 
@@ -85,7 +70,7 @@ class Tracker:
         """Start (or restart) tracking the target in box = (x, y, w, h) of this frame."""
         cfg = self.config
         frame = _check_frame(frame)
-        x, y, w, h = _check_box(box, frame.shape)
+        x, y, w, h = check_box(box, frame.shape)
         self._frame_shape = frame.shape
         self.frame_number = 1
         self.pos = np.array([y + h / 2, x + w / 2])

@@ -8,12 +8,13 @@ import time
 import pytest
 import zenoh
 
+from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.demo import HoldingPublisher
 from tacf_clients.errors import (ERRORS, AmbiguousNode, DuplicateSession, InvalidBox, InvalidConfig, InvalidId, InvalidKey,
                                  NoService, RequestTimeout, ServiceError, UnknownSession)
 from tacf_clients.local_service import LocalService, free_port
-from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo
 from tacf_service.loopback import wait_until
@@ -89,7 +90,7 @@ def test_boxes_follow_the_target_and_reinit(client, camera):
         camera.hold.clear()                      # the target starts moving once the session tracks
         later = [b for b in _take(boxes, 25) if camera.index_of(b.seq)]
         assert len(later) >= 10
-        overlaps = [iou(tuple(b.box), SCENE.box(camera.index_of(b.seq))) for b in later]
+        overlaps = [box_iou(tuple(b.box), SCENE.box(camera.index_of(b.seq))) for b in later]
         assert sum(o > 0.5 for o in overlaps) >= 0.8 * len(overlaps), overlaps
         assert first.seq < later[0].seq
 
@@ -98,7 +99,7 @@ def test_boxes_follow_the_target_and_reinit(client, camera):
         info = client.reinit("follow", truth, seq=seq)
         assert info.sid == "follow" and info.state in ("starting", "tracking")
         after = [b for b in _take(client.iter_boxes("follow", timeout=30), 10) if b.seq >= seq]
-        assert after and iou(tuple(after[-1].box), SCENE.box(camera.index_of(after[-1].seq))) > 0.3
+        assert after and box_iou(tuple(after[-1].box), SCENE.box(camera.index_of(after[-1].seq))) > 0.3
     finally:
         client.stop(info.sid)
 

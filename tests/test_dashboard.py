@@ -23,12 +23,13 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from tacf.eval.metrics import box_iou
 from tacf_clients import dashboard_metrics
 from tacf_clients.client import TrackingClient
 from tacf_clients.dashboard_http import DashboardApp, static_dir
 from tacf_clients.demo import HoldingPublisher
 from tacf_clients.local_service import LocalService, free_port
-from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_service.loopback import wait_until
 
@@ -383,7 +384,7 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, brows
     info = client.status("drawn")
     assert info.image_key == KEY
     first = next(client.iter_boxes("drawn", timeout=40))
-    assert iou(tuple(first.box), target) > 0.5, (first.box, target)
+    assert box_iou(tuple(first.box), target) > 0.5, (first.box, target)
     camera.hold.clear()
     assert _wait(lambda: browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="drawn"]'), timeout=10)
     assert _wait(lambda: (c := _canvas_state(browser, f"{service.node}/drawn")) and c["count"] > 2, timeout=20)
@@ -411,7 +412,7 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, brows
     assert reinit, "the session was re-initialised on the frame drawn on"
     box = _wait(lambda: next((b for b in client.iter_boxes("drawn", timeout=20) if b.seq > reinit.init_seq), None),
                 timeout=40)
-    assert box is not None and iou(tuple(box.box), target) > 0.5, (box, target)
+    assert box is not None and box_iou(tuple(box.box), target) > 0.5, (box, target)
     camera.hold.clear()
 
     # Stop it from the session list.

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import zenoh
 
+from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
 from tacf_clients.publisher import FramePublisher, publish
-from tacf_clients.scene import Scene, SceneSource, iou
+from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.sources import CaptureSource, ImageFolderSource, Pacer, Thinner, open_source
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
@@ -117,7 +118,7 @@ def test_scene_is_deterministic_and_the_target_stays_inside():
     x, y, w, h = (int(v) for v in scene.box(40))
     inside = image[y:y + h, x:x + w].reshape(-1, 3).mean(0)
     assert inside[2] > inside[1] + 40
-    assert iou(scene.box(5), scene.box(5)) == 1.0 and iou((0, 0, 1, 1), (5, 5, 1, 1)) == 0.0
+    assert box_iou(scene.box(5), scene.box(5)) == 1.0 and box_iou((0, 0, 1, 1), (5, 5, 1, 1)) == 0.0
     assert Scene.from_spec("scene:320x240").width == 320
     with pytest.raises(ValueError):
         Scene.from_spec("scene:big")

@@ -17,11 +17,12 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf.zenoh_options import ZenohOptions
 from tacf_clients.local_service import free_port
-from tacf_clients.zconfig import ZenohOptions as ClientOptions, make_config
+from tacf_clients.zconfig import make_config
 from tacf_schemas import StartRequest, StopRequest
 from tacf_service.app import ServiceOptions, TrackingService
-from tacf_service.config import ZenohOptions, worker_config
+from tacf_service.config import worker_config
 from tacf_service.loopback import FramePublisher, SessionResults, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
@@ -65,8 +66,8 @@ def open_client(etc: Path, endpoint: str, role: str, mode: str | None = None, se
     """A session made the way `tacf list --zenoh-config <role>.json5 --connect <endpoint>` makes it, with
     settings (Zenoh key path -> value) on top."""
     extra = tuple((key, json.dumps(value)) for key, value in (settings or {}).items())
-    return zenoh.open(make_config(ClientOptions(connect=(endpoint,), config_file=etc / f"{role}.json5", mode=mode,
-                                                extra=extra)))
+    return zenoh.open(make_config(ZenohOptions(connect=(endpoint,), config_file=etc / f"{role}.json5", mode=mode,
+                                               extra=extra)))
 
 
 def derive(source: Path, target: Path, settings: dict) -> Path:

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
 from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
                           control_key, encode, session_liveliness_key)
@@ -26,7 +27,7 @@ from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
-from tacf_service.scene import MovingTargetScene, iou
+from tacf_service.scene import MovingTargetScene
 
 pytestmark = pytest.mark.zenoh
 
@@ -79,7 +80,7 @@ def mean_iou(results, truth, last: int | None = None) -> float:
     pairs = [(r.box, truth[r.seq]) for r in results if r.seq in truth]
     if last:
         pairs = pairs[-last:]
-    return statistics.fmean(iou(a, b) for a, b in pairs) if pairs else 0.0
+    return statistics.fmean(box_iou(a, b) for a, b in pairs) if pairs else 0.0
 
 
 # ---------------------------------------------------------------------------------------------- lifecycle
@@ -114,7 +115,7 @@ def test_boxes_follow_moving_target_and_several_targets_in_one_feed(service, cli
             (len(moving.results()), len(static.results()))
         assert mean_iou(moving.results(), feed.truth) > 0.6
         assert mean_iou(moving.results(), feed.truth, last=10) > 0.6
-        assert statistics.fmean(iou(r.box, patch_box) for r in static.results()) > 0.7
+        assert statistics.fmean(box_iou(r.box, patch_box) for r in static.results()) > 0.7
         first, last = moving.results()[0], moving.results()[-1]
         assert abs(last.box[0] - first.box[0]) + abs(last.box[1] - first.box[1]) > 10   # it did move
         def health_with_frames():

@@ -15,12 +15,13 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
+from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
 from tacf_schemas import StartRequest, service_liveliness_key
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import call
-from tacf_service.scene import MovingTargetScene, iou
+from tacf_service.scene import MovingTargetScene
 from tacf_service.state import PersistedSession, StateStore
 
 NODE = "proc-test"
@@ -181,7 +182,7 @@ def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, cli
             marker = len(results.results())
             assert wait_until(lambda: len(results.results()) >= marker + 8, 60), serve.log()
             resumed = results.results()[marker:]
-            assert statistics.fmean(iou(r.box, feed.truth[r.seq]) for r in resumed) > 0.5
+            assert statistics.fmean(box_iou(r.box, feed.truth[r.seq]) for r in resumed) > 0.5
 
             workers = descendants(serve.proc.pid)
             code, took = serve.signal_and_wait(signal.SIGTERM)

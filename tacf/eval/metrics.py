@@ -48,6 +48,11 @@ def iou(pred, gt) -> np.ndarray:
     return np.nan_to_num(np.clip(out, 0.0, 1.0), nan=0.0)
 
 
+def box_iou(a, b) -> float:
+    """IoU of one pair of (x, y, w, h) boxes, as `iou` computes it per frame."""
+    return float(iou([a], [b])[0])
+
+
 def center_error(pred, gt) -> np.ndarray:
     """Per-frame Euclidean distance between box centres xy + (wh - 1) / 2 (inf where a box is NaN)."""
     a, b = _as_boxes(pred), _as_boxes(gt)

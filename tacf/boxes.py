@@ -1,0 +1,27 @@
+"""The box that starts tracking: which (x, y, w, h) Tracker.init accepts, checked once for the tracker and the
+service (tacf_service.frames.box_problem).
+
+Only numpy is imported, so that the service's main process can check boxes without loading OpenCV or SciPy.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def check_box(box, frame_shape) -> np.ndarray:
+    """The box as four float64 values (x, y, w, h); ValueError unless they are finite, w and h are positive and
+    the box overlaps the frame of shape (height, width, ...)."""
+    try:
+        values = np.asarray(box, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"box must be four numbers (x, y, w, h), got {box!r}") from None
+    if values.size != 4 or not np.all(np.isfinite(values)):
+        raise ValueError(f"box must be four finite numbers (x, y, w, h), got {box!r}")
+    x, y, w, h = values
+    if w <= 0 or h <= 0:
+        raise ValueError(f"box width and height must be positive, got w={w}, h={h}")
+    height, width = frame_shape[:2]
+    if x >= width or y >= height or x + w <= 0 or y + h <= 0:
+        # tolist(): plain numbers in the message, which reaches service clients (not numpy 2's np.float64(...))
+        raise ValueError(f"box {tuple(values.tolist())} lies outside the {width}x{height} image")
+    return values

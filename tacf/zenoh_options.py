@@ -1,0 +1,66 @@
+"""ZenohOptions: how a session of the `tacf` command reaches the Zenoh network. One definition for `tacf serve`
+(tacf_service.config) and the client commands (tacf_clients.zconfig); each side turns it into a zenoh.Config
+with its own defaults.
+
+It lives in tacf, next to tacf.cli, because the two sides never import each other (the client side never loads
+tacf_service) and importing tacf_schemas loads pydantic, which `tacf --help` does without. Zenoh itself is
+imported only when a config is built.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import zenoh
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """What the command line says about Zenoh; what it leaves unsaid, each side decides. Pickled into the
+    service's worker processes.
+
+    connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the side's default, () = none.
+    listen: endpoints to listen on; empty = the side's default.
+    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
+    mode: "peer", "client" or "router"; None keeps the file's mode (or peer without a file).
+    extra: (key path, JSON5 value) pairs, applied last.
+    """
+
+    connect: tuple[str, ...] | None = None
+    listen: tuple[str, ...] = ()
+    config_file: str | Path | None = None
+    mode: str | None = None
+    extra: tuple[tuple[str, str], ...] = ()
+
+    @classmethod
+    def loopback(cls, port: int) -> "ZenohOptions":
+        """Options for a session that connects to a service listening on ``tcp/127.0.0.1:<port>``."""
+        return cls(connect=(f"tcp/127.0.0.1:{port}",))
+
+    @classmethod
+    def listener(cls, endpoint: str) -> "ZenohOptions":
+        """Options for a session that only listens on `endpoint` (e.g. a test's hub)."""
+        return cls(connect=(), listen=(endpoint,))
+
+
+def options_from_args(args: argparse.Namespace) -> ZenohOptions:
+    """The options given by --connect, --listen, --zenoh-config and --mode (the names every command uses)."""
+    return ZenohOptions(connect=tuple(getattr(args, "connect", None) or ()) or None,
+                        listen=tuple(getattr(args, "listen", None) or ()),
+                        config_file=getattr(args, "zenoh_config", None),
+                        mode=getattr(args, "mode", None))
+
+
+def base_config(config_file: str | Path | None) -> "zenoh.Config":
+    """The config file's settings; without a file, Zenoh's defaults with multicast scouting off (no UDP
+    multicast on every interface, ZENOH.md §1). Each side then adds its own defaults and the overrides."""
+    import zenoh
+
+    if config_file:
+        return zenoh.Config.from_file(str(config_file))
+    conf = zenoh.Config()
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
