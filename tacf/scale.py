@@ -171,8 +171,9 @@ class ScaleFilter:
 
     def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
-        top_left, sizes = scale_patch_rects(pos, self._base_target_sz, scale_factor, self._factors)
-        rects = [(*top_left[i], *sizes[i]) for i in self._sampled]
+        top_left, sizes = (a.tolist() for a in scale_patch_rects(pos, self._base_target_sz, scale_factor,
+                                                                  self._factors))
+        rects = [(*top_left[i], *sizes[i]) for i in self._sampled]  # plain ints: cheap to hash and to slice with
         known = self._recent[1] if self._recent is not None and self._recent[0] is image else {}
         missing = [rect for rect in rects if rect not in known]
         if missing:
