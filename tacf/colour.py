@@ -10,17 +10,18 @@ import cv2
 import numpy as np
 
 
-def _bin_index(patch: np.ndarray, bins: int) -> tuple[np.ndarray, int]:
-    """Joint histogram bin of every pixel: bins^3 bins for colour patches, bins for grayscale.
+def _bin_index(patch: np.ndarray, bins: int) -> np.ndarray:
+    """Joint histogram bin of every pixel, the first channel varying slowest: bins^3 bins for colour patches,
+    bins for grayscale.
 
     The index is built in uint16 (bins^3 <= 2^15 for the 32 bins in use), half the memory traffic of intp."""
     shift = int(np.log2(256 // bins))
     index_type = np.uint16 if bins**3 <= 2**16 else np.intp
     quantised = (patch >> shift).astype(index_type)
     if quantised.ndim == 2:
-        return quantised, bins
+        return quantised
     bits = bins.bit_length() - 1  # bins is a power of two: multiplying by bins is a shift
-    return (quantised[..., 0] << 2 * bits) | (quantised[..., 1] << bits) | quantised[..., 2], bins**3
+    return (quantised[..., 0] << 2 * bits) | (quantised[..., 1] << bits) | quantised[..., 2]
 
 
 def _centre_mask(area_hw: np.ndarray, block_hw: np.ndarray, inside: bool) -> np.ndarray:
@@ -69,7 +70,7 @@ class ColourModel:
 
     def likelihood_window(self, patch: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
         """Foreground likelihood on the feature grid, normalised to [floor, 1]."""
-        index, _ = _bin_index(patch, self.bins)
+        index = _bin_index(patch, self.bins)
         total = self.fg_hist + self.bg_hist  # per bin, then one lookup per pixel
         per_bin = np.divide(self.fg_hist, total, out=np.zeros_like(total), where=total > 0).astype(np.float32)
         likelihood = cv2.resize(np.take(per_bin, index), (grid_hw[1], grid_hw[0]), interpolation=cv2.INTER_AREA)

@@ -8,13 +8,23 @@ from tacf.colour import ColourModel, _bin_index
 @pytest.mark.parametrize("bins", [8, 32, 64])
 def test_bin_index_is_the_joint_quantised_colour(bins):
     patch = np.random.default_rng(0).integers(0, 256, (9, 7, 3), dtype=np.uint8)
-    index, count = _bin_index(patch, bins)
     q = patch.astype(np.int64) // (256 // bins)
-    assert count == bins**3
-    np.testing.assert_array_equal(index, (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2])
-    gray_index, gray_count = _bin_index(patch[..., 0], bins)
-    assert gray_count == bins
-    np.testing.assert_array_equal(gray_index, q[..., 0])
+    np.testing.assert_array_equal(_bin_index(patch, bins), (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2])
+    np.testing.assert_array_equal(_bin_index(patch[..., 0], bins), q[..., 0])
+
+
+@pytest.mark.parametrize("channels", [3, 1])
+def test_histograms_count_the_bin_index_under_each_mask(channels):
+    """OpenCV's counts (ColourModel._histograms) are those of the bin index under the masks, normalised."""
+    patch = np.random.default_rng(1).integers(0, 256, (40, 36, 3), dtype=np.uint8)
+    patch = patch if channels == 3 else patch[..., 0].copy()
+    model = ColourModel(patch, np.array([40.0, 36.0]), np.array([12.0, 10.0]), np.array([16.0, 14.0]),
+                        bins=32, learning_rate=0.02, floor=0.1)
+    index = _bin_index(patch, 32)
+    for hist, mask in ((model.fg_hist, model.fg_mask), (model.bg_hist, model.bg_mask)):
+        assert 0 < mask.sum() < mask.size
+        counts = np.bincount(index[mask.astype(bool)], minlength=32**channels)
+        np.testing.assert_array_equal(hist, counts / counts.sum())
 
 
 def _target_on_background(size=96, target=32, target_bgr=(20, 20, 220), background_bgr=(30, 160, 40)):
@@ -53,7 +63,7 @@ def test_update_blends_the_histograms():
                         bins=32, learning_rate=0.5, floor=0.1)
     recoloured = _target_on_background(target_bgr=(220, 20, 20))
     model.update(recoloured)
-    new_bin, _ = _bin_index(np.array([[[220, 20, 20]]], np.uint8), 32)
-    old_bin, _ = _bin_index(np.array([[[20, 20, 220]]], np.uint8), 32)
+    new_bin = _bin_index(np.array([[[220, 20, 20]]], np.uint8), 32)
+    old_bin = _bin_index(np.array([[[20, 20, 220]]], np.uint8), 32)
     assert model.fg_hist[new_bin[0, 0]] == pytest.approx(model.fg_hist[old_bin[0, 0]])  # half and half
     assert model.fg_hist.sum() == pytest.approx(1.0) and model.bg_hist.sum() == pytest.approx(1.0)
