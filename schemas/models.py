@@ -135,7 +135,7 @@ class BoxResult(WireModel):
     pme: FiniteFloat
     score: FiniteFloat
     scale: FiniteFloat
-    processing_ms: FiniteFloat  # decode + tracker update
+    processing_ms: FiniteFloat  # decode + locating the target: until this box (the model update comes after)
     published_ns: StampNs       # when the service published this result
 
 
@@ -146,7 +146,7 @@ class Health(WireModel):
     state: SessionState
     stamp_ns: StampNs
     fps: FiniteFloat                         # processed frames per second over the last window
-    processing_ms_mean: FiniteFloat
+    processing_ms_mean: FiniteFloat          # per frame: decode, locate and learn (the box is sent before learning)
     processing_ms_p95: FiniteFloat
     frame_age_ms: Optional[FiniteFloat] = None   # now - stamp_ns of the last processed frame
     frames_received: Count = 0

@@ -1,6 +1,7 @@
 """Tracker factories used by worker processes. A factory is named "module:function" so that it can cross
 the spawn boundary as a string; it takes (profile, overrides) and returns an object with
-init(frame, box) and update(frame) -> result with .box, .ok, .pme, .score, .scale (tacf.Tracker)."""
+init(frame, box) and update(frame) -> result with .box, .ok, .pme, .score, .scale (tacf.Tracker). If it also has
+locate(frame) -> result and learn() (tacf.Tracker does), the worker sends the box between the two."""
 from __future__ import annotations
 
 import importlib

@@ -321,16 +321,25 @@ class Worker:
             self._reject(f"frame size {image.shape[1]}x{image.shape[0]} differs from the init frame "
                          f"{self._image_shape[1]}x{self._image_shape[0]}; reinit the session")
             return
+        # A tracker with locate() and learn() (tacf.Tracker) gives the box before it learns from the frame: the
+        # box is sent in between, so its latency excludes the model update.
+        learns_after = hasattr(self._tracker, "locate") and hasattr(self._tracker, "learn")
         try:
-            result = self._tracker.update(image)
+            result = self._tracker.locate(image) if learns_after else self._tracker.update(image)
         except Exception as exc:                        # a tracker bug must not kill the session
             log.exception("tracker update failed on seq %d", frame.seq)
             self._reject(f"tracker update failed: {exc}")
             return
-        processing_ms = (time.perf_counter() - started) * 1e3
         self._state = "tracking" if result.ok else "lost"
-        self._publish_box(frame, result, processing_ms)
-        self._stats.processed(frame.seq, frame.stamp_ns, processing_ms, float(result.pme))
+        self._publish_box(frame, result, (time.perf_counter() - started) * 1e3)
+        if learns_after:
+            try:
+                self._tracker.learn()
+            except Exception as exc:
+                log.exception("tracker learning failed on seq %d", frame.seq)
+                self._reject(f"tracker learning failed: {exc}")
+                return
+        self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, float(result.pme))
 
     def _initialise(self, image, frame) -> None:
         from .frames import box_problem

@@ -1,4 +1,5 @@
-"""The TACF tracker: `init(frame, box)` then `update(frame) -> TrackResult`, frame after frame.
+"""The TACF tracker: `init(frame, box)` then `update(frame) -> TrackResult`, frame after frame. `update` is
+`locate` (LOCALISE and SCALE: the box) then `learn` (UPDATE), for callers that send the box before learning.
 
 Per frame (ALGORITHM.md section 7, with the decisions of section B):
   LOCALISE  sample the search area at the last position; colour-weighted cosine window; per-channel kernel
@@ -63,6 +64,7 @@ class Tracker:
         self.config = config or TrackerConfig.profile()
         self._frame_shape = None
         self._detection_sample = None  # (frame, pos, bg_area, patch, features) of this frame's detection
+        self._to_learn = None  # (frame, object_response) of a locate() not yet followed by learn()
         keep_freed_memory()  # per-frame temporaries are megabytes: reuse them, don't map them anew (allocator.py)
 
     # ------------------------------------------------------------------------------------------------------
@@ -72,6 +74,7 @@ class Tracker:
         frame = _check_frame(frame)
         x, y, w, h = check_box(box, frame.shape)
         self._frame_shape = frame.shape
+        self._to_learn = None
         self.frame_number = 1
         self.pos = np.array([y + h / 2, x + w / 2])
         self.target_hw = np.maximum(round_half_up([h, w]), 1.0)
@@ -113,9 +116,21 @@ class Tracker:
 
     def update(self, frame: np.ndarray) -> TrackResult:
         """Locate the target in the next frame, then learn from it."""
+        result = self.locate(frame)
+        self.learn()
+        return result
+
+    def locate(self, frame: np.ndarray) -> TrackResult:
+        """The first half of update(): the target's box in the next frame, before the model learns from it.
+
+        Call learn() next. A service can send the box between the two, so that its latency excludes the model
+        update (about half of a frame's time, and all of the context frames' extra work); the boxes are those of
+        update(). A locate() not preceded by learn() learns from the previous frame first.
+        """
         if self._frame_shape is None:
             raise RuntimeError("call init(frame, box) before update(frame)")
         frame = _check_frame(frame, self._frame_shape)
+        self.learn()
         self.frame_number += 1
 
         # ------- LOCALISE -------
@@ -129,11 +144,19 @@ class Tracker:
             self.target_hw = np.maximum(round_half_up(self.base_target_hw * self.scale_factor), 1.0)
             self.areas = self._areas_around(self.target_hw)
 
-        # ------- UPDATE -------
-        self._train(frame, object_response)
+        self._to_learn = frame, object_response
         confidence = pme(fused)
         return TrackResult(box=self.box, pme=confidence, score=float(fused.max()),
                            ok=confidence >= self.config.lost_pme, scale=self.scale_factor)
+
+    def learn(self) -> None:
+        """The second half of update(): learn from the frame of the last locate(); nothing if done already."""
+        if self._to_learn is None:
+            return
+        frame, object_response = self._to_learn
+        self._to_learn = None
+        # ------- UPDATE -------
+        self._train(frame, object_response)
 
     @property
     def box(self) -> tuple[float, float, float, float]:

@@ -224,6 +224,24 @@ def test_training_reuses_the_detection_patch_when_the_target_stays(monkeypatch):
     assert [fresh.update(image) for image in images[1:]] == results
 
 
+
+def test_locate_then_learn_gives_the_boxes_of_update():
+    """update() is locate() then learn(): split, the boxes are the same, whether learn() is called after each
+    locate() or left to the next locate(); learn() twice learns once."""
+    images, boxes = moving_target_sequence(frames=12)
+    expected = _track(TrackerConfig.profile("authors", context_interval=2), images, boxes[0])
+    split = Tracker(TrackerConfig.profile("authors", context_interval=2))
+    split.init(images[0], boxes[0])
+    results = []
+    for number, image in enumerate(images[1:]):
+        results.append(split.locate(image))
+        if number % 3:  # every third frame leaves learning to the next locate()
+            split.learn()
+            split.learn()
+    assert results == expected
+    with pytest.raises(RuntimeError, match="init"):
+        Tracker().locate(images[0])
+
 _HEAP_REUSE_CHECK = """
 import ctypes, sys
 if sys.argv[1] == "tracker":
