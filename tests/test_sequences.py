@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from tacf import Tracker, TrackerConfig
+from tacf.eval.metrics import iou
 
 SEQUENCES = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
 
@@ -39,11 +40,7 @@ def _load(name: str):
 
 def _mean_iou(boxes: np.ndarray, truth: np.ndarray) -> float:
     valid = ~np.isnan(truth).any(axis=1)
-    a, b = boxes[valid], truth[valid]
-    width = np.clip(np.minimum(a[:, 0] + a[:, 2], b[:, 0] + b[:, 2]) - np.maximum(a[:, 0], b[:, 0]), 0, None)
-    height = np.clip(np.minimum(a[:, 1] + a[:, 3], b[:, 1] + b[:, 3]) - np.maximum(a[:, 1], b[:, 1]), 0, None)
-    inter = width * height
-    return float(np.mean(inter / (a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter)))
+    return float(np.mean(iou(boxes[valid], truth[valid])))
 
 
 def _track(config: TrackerConfig, frames, first_box) -> np.ndarray:

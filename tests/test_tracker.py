@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from tacf import Tracker, TrackerConfig, TrackResult
+from tacf.eval.metrics import box_iou
 
 
 def _texture(rng, shape, blur=3):
@@ -31,14 +32,6 @@ def moving_target_sequence(frames=40, size=(240, 320), target=(30, 24), velocity
     return images, np.array(boxes, dtype=float)
 
 
-def _iou(a, b):
-    ax, ay, aw, ah = a
-    bx, by, bw, bh = b
-    iw = max(0.0, min(ax + aw, bx + bw) - max(ax, bx))
-    ih = max(0.0, min(ay + ah, by + bh) - max(ay, by))
-    return iw * ih / (aw * ah + bw * bh - iw * ih)
-
-
 def _track(config, images, first_box):
     tracker = Tracker(config)
     tracker.init(images[0], first_box)
@@ -61,7 +54,7 @@ CONFIGS = {
 def test_follows_a_moving_textured_target(name):
     images, truth = moving_target_sequence()
     results = _track(CONFIGS[name], images, truth[0])
-    overlaps = [_iou(r.box, t) for r, t in zip(results, truth[1:])]
+    overlaps = [box_iou(r.box, t) for r, t in zip(results, truth[1:])]
     assert np.mean(overlaps) > 0.6, overlaps
     assert min(overlaps[-10:]) > 0.4
     assert all(isinstance(r, TrackResult) and r.ok for r in results[:5])
@@ -70,7 +63,7 @@ def test_follows_a_moving_textured_target(name):
 def test_grayscale_frames():
     images, truth = moving_target_sequence(frames=25, gray=True)
     results = _track(TrackerConfig.profile(), images, truth[0])
-    assert np.mean([_iou(r.box, t) for r, t in zip(results, truth[1:])]) > 0.6
+    assert np.mean([box_iou(r.box, t) for r, t in zip(results, truth[1:])]) > 0.6
 
 
 def test_scale_estimate_follows_a_growing_target():
@@ -102,7 +95,7 @@ def test_reinit_restarts_on_a_new_box():
     tracker.init(images[10], truth[10])
     assert tracker.box == pytest.approx(tuple(truth[10]), abs=1.0)
     result = tracker.update(images[11])
-    assert _iou(result.box, truth[11]) > 0.6
+    assert box_iou(result.box, truth[11]) > 0.6
 
 
 def test_tiny_target_and_target_leaving_the_image():
