@@ -84,6 +84,19 @@ class PolynomialKernel:
         return None
 
 
+def _inverse_dft_weights(grid_hw: tuple[int, int], point: tuple[int, int]) -> np.ndarray:
+    """v (H, W//2+1) such that irfft2(s, grid_hw)[point] == real(sum(s * v)) for every half spectrum s.
+
+    The columns 0 and W/2 (W even) stand for themselves, the others also for their mirror images: weight 2.
+    """
+    height, width = grid_hw
+    rows = np.arange(height)[:, None]
+    cols = np.arange(width // 2 + 1)[None, :]
+    multiplicity = np.where((cols == 0) | (2 * cols == width), 1.0, 2.0)
+    phase = np.exp(2j * np.pi * (rows * point[0] / height + cols * point[1] / width))
+    return multiplicity * phase / (height * width)
+
+
 def _sq_norms(x: np.ndarray) -> np.ndarray:
     """Squared norm of every (H, W) slice, shaped to broadcast against the slices."""
     return np.einsum("...hw,...hw->...", x, x)[..., None, None]
@@ -96,6 +109,12 @@ class CorrelatorBank:
         self.kernel = kernel
         self.grid_hw = label.shape
         self.label_hat = sfft.rfft2(label.astype(np.float32))
+        # For fresh_self_response_maxima_and_means: the label's peak, and whether its spectrum, centred there, is
+        # non-negative (true of any label narrow enough for its grid, as TACF's are).
+        label_peak = np.unravel_index(np.argmax(label), label.shape)
+        centred_label_hat = sfft.rfft2(np.roll(label, [-i for i in label_peak], axis=(0, 1))).real
+        self._self_responses_peak_at_label = bool(centred_label_hat.min() >= -1e-9 * centred_label_hat.max())
+        self._at_label_peak = _inverse_dft_weights(self.grid_hw, label_peak).astype(np.complex64)
         self.lambda1 = lambda1
         self.learning_rate = learning_rate
         self.model_x: np.ndarray | None = None  # template in space (kept for its norms)
@@ -164,13 +183,23 @@ class CorrelatorBank:
                 model += rate * fresh
         self._fresh = filter_hat, kernel_hat
 
-    def fresh_self_responses(self) -> np.ndarray:
-        """real(F^-1(W_d . K_d)) of the filters just trained: how well each channel answers its own sample.
+    def fresh_self_response_maxima_and_means(self) -> tuple[np.ndarray, np.ndarray]:
+        """Max and mean of each channel's R_d = real(F^-1(W_d . K_d)) for the filters just trained: how well
+        each channel answers its own sample. They feed dimensional attention (ALGORITHM.md section 8).
 
-        They feed dimensional attention (ALGORITHM.md section 8).
+        No inverse FFT is needed. W_d K_d = K_d^2 Y / (|K_d|^2 + lambda1 + context): the auto-kernel is even, so
+        K_d is real, and the label's spectrum Y is non-negative once centred on its peak. A map whose spectrum is
+        real and non-negative peaks at its origin, so R_d peaks where the label does (on all 54,264 self-responses
+        of the ten UAV sequences, measured): its maximum is that one inverse-DFT value, its mean the DC term / N.
         """
         filter_hat, kernel_hat = self._fresh
-        return self._ifft(filter_hat * kernel_hat)
+        self_response_hat = filter_hat * kernel_hat
+        if not self._self_responses_peak_at_label:  # a label too wide for its grid: search the whole maps
+            responses = self._ifft(self_response_hat)
+            return responses.max(axis=(-2, -1)), responses.mean(axis=(-2, -1))
+        maxima = np.einsum("chw,hw->c", self_response_hat, self._at_label_peak).real
+        means = self_response_hat[:, 0, 0].real / (self.grid_hw[0] * self.grid_hw[1])
+        return maxima, means
 
     # -- detection -----------------------------------------------------------------------------------------
     def channel_response_hats(self, z: np.ndarray, z_hat: np.ndarray | None = None) -> np.ndarray:

@@ -240,7 +240,7 @@ class Tracker:
         for name, bank in self.banks.items():
             bank.train(features[name] * self.cosine_window, context_energy if name == "hog" else None)
             if cfg.dimensional_attention:
-                self.dimensional[name].update(bank.fresh_self_responses())
+                self.dimensional[name].update(*bank.fresh_self_response_maxima_and_means())
         if cfg.colour_window:
             if self.colour is None:
                 self.colour = ColourModel(patch, self.grid.patch_hw,

@@ -50,9 +50,7 @@ def test_context_frames_and_offsets():
 
 def test_dimensional_gating():
     attention = DimensionalAttention(channels=3, threshold=0.3, floor=0.1, learning_rate=1.0)
-    responses = np.zeros((3, 5, 5))
-    responses[0, 0, 0], responses[1, 0, 0], responses[2, 0, 0] = 2.0, 0.9, 0.1
-    attention.update(responses)
+    attention.update(np.array([2.0, 0.9, 0.1]), np.array([0.08, 0.036, 0.004]))
     # z = max + mean = 2.08, 0.936, 0.104; mean-1 normalisation: z * 3 / 3.12
     z = np.array([2.08, 0.936, 0.104]) * 3 / 3.12
     gated = np.maximum(z - 0.3, 0) + 0.1
@@ -62,9 +60,7 @@ def test_dimensional_gating():
 
 def test_dimensional_weights_move_slowly():
     attention = DimensionalAttention(channels=2, threshold=0.3, floor=0.3, learning_rate=0.022)
-    responses = np.zeros((2, 4, 4))
-    responses[0, 0, 0] = 1.0
-    attention.update(responses)
+    attention.update(np.array([1.0, 0.0]), np.array([1 / 16, 0.0]))
     assert abs(attention.weights[0] - 1.0) < 0.05 and attention.weights.mean() == pytest.approx(1.0)
 
 

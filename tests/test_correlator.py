@@ -91,6 +91,26 @@ def test_weighted_channel_sum_equals_sum_of_weighted_channel_responses():
     np.testing.assert_allclose(bank.response(z, weights), np.tensordot(weights, per_channel, 1), atol=1e-4)
 
 
+@pytest.mark.parametrize("kernel", [GaussianKernel(0.5), PolynomialKernel(1.0, 2.0)])
+@pytest.mark.parametrize("sigma", [1.0, 6.0])  # a TACF-like label, and one too wide for its grid
+def test_self_response_maxima_and_means_are_those_of_the_maps(kernel, sigma):
+    rng = np.random.default_rng(5)
+    grid = (15, 12)
+    x = rng.random((3, *grid)).astype(np.float32)
+    bank = CorrelatorBank(kernel, gaussian_label(grid, sigma), 1e-4, 0.01)
+    assert bank._self_responses_peak_at_label == (sigma == 1.0)
+    contexts = 0.5 * rng.random((2, 3, *grid)).astype(np.float32)
+    for context_energy in (None, bank.context_energy(contexts)):
+        bank.train(x, context_energy)
+        filter_hat, kernel_hat = bank._fresh
+        maps = sfft.irfft2(filter_hat * kernel_hat, s=grid)
+        maxima, means = bank.fresh_self_response_maxima_and_means()
+        np.testing.assert_allclose(maxima, maps.max(axis=(1, 2)), rtol=1e-5)
+        np.testing.assert_allclose(means, maps.mean(axis=(1, 2)), rtol=1e-5, atol=1e-7)
+        if sigma == 1.0:  # the maps peak where the label does: (H-1, W-1)
+            assert all(np.unravel_index(np.argmax(m), grid) == (14, 11) for m in maps)
+
+
 def test_model_is_an_exponential_moving_average():
     rng = np.random.default_rng(4)
     first, second = rng.random((2, 1, 10, 10))

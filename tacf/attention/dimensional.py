@@ -15,10 +15,11 @@ class DimensionalAttention:
         self.learning_rate = learning_rate
         self.weights = np.ones(channels)
 
-    def update(self, self_responses: np.ndarray) -> None:
-        """Blend in the weights given by fresh self-responses (C, H, W); applied from the next frame."""
-        channels = self_responses.shape[0]
-        activation = self_responses.max(axis=(1, 2)) + self_responses.mean(axis=(1, 2))
+    def update(self, self_response_maxima: np.ndarray, self_response_means: np.ndarray) -> None:
+        """Blend in the weights given by the fresh self-responses' maxima and means (C,); applied from the next
+        frame."""
+        channels = len(self_response_maxima)
+        activation = self_response_maxima + self_response_means
         total = activation.sum()
         if not np.isfinite(total) or total <= 0:
             return
