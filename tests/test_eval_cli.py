@@ -270,15 +270,62 @@ def test_ablation_table_rows_and_gains():
     assert "| +0.050 |" in lines[3] and "| -0.020 |" in lines[4] and "| +0.100 |" in lines[6]
 
 
-@needs_tacf
-def test_eval_ablation_command(tmp_path, capsys):
-    frames, box = synthetic_frames(8)
-    seq = tmp_path / "data" / "synthetic" / "drift"
+def test_robustness_of_hand_made_scores():
+    from tacf.eval.report import robustness, robustness_table
+
+    def summary(aucs_a, aucs_b):
+        sequences = lambda aucs: {"sequences": {f"s{i}": {"auc": a} for i, a in enumerate(aucs)}}  # noqa: E731
+        return {"trackers": {"a": sequences(aucs_a), "b": sequences(aucs_b)}}
+
+    per_start = {(0, 0): summary([0.5, 0.6, 0.7], [0.4, 0.6, 0.9]),
+                 (1, 0): summary([0.2, 0.6, 0.7], [0.2, 0.5, 0.8]),
+                 (-1, 0): summary([0.5, 0.3, 0.7], [0.5, 0.3, 0.7])}
+    result = robustness(per_start, ["a", "b"])
+    assert result["starts"] == ["+0,+0", "+1,+0", "-1,+0"] and result["sequences"] == 3
+    a, b = result["trackers"]["a"], result["trackers"]["b"]
+    np.testing.assert_allclose(a["auc_per_start"], [0.6, 0.5, 0.5])
+    assert (a["mean"], a["min"], a["max"]) == pytest.approx((1.6 / 3, 0.5, 0.6)) and "difference" not in a
+    # b - a per sequence, over the starts: (-0.1 + 0 + 0) / 3, (0 - 0.1 + 0) / 3, (0.2 + 0.1 + 0) / 3
+    assert b["difference"]["to"] == "a" and b["difference"]["mean"] == pytest.approx(0.1 / 9)
+    low, high = b["difference"]["ci95"]
+    assert -0.1 / 3 - 1e-12 <= low < b["difference"]["mean"] < high <= 0.1 + 1e-12  # within the per-sequence range
+    table = robustness_table(result)
+    assert "(+1,+0)" in table and "| b | 0.633 | 0.544 | 0.500 - 0.633 | +0.011 (" in table
+
+
+def write_synthetic_dataset(root: Path, n: int) -> Path:
+    """synthetic_frames as a generic-layout dataset under root/data: one sequence, synthetic/drift."""
+    frames, _ = synthetic_frames(n)
+    seq = root / "data" / "synthetic" / "drift"
     (seq / "img").mkdir(parents=True)
     for i, f in enumerate(frames, 1):
         cv2.imwrite(str(seq / "img" / f"{i:06d}.png"), f)
-    (seq / "groundtruth.txt").write_text("".join(f"{31 + 2 * i},{41 + i},24,24\n" for i in range(8)))
-    rc = main(["eval", "--ablation", str(tmp_path / "data"), "--out", str(tmp_path / "out"), "--no-progress"])
+    (seq / "groundtruth.txt").write_text("".join(f"{31 + 2 * i},{41 + i},24,24\n" for i in range(n)))
+    return root / "data"
+
+
+def test_eval_shifts_command(tmp_path, capsys):
+    out = tmp_path / "out"
+    args = ["eval", str(write_synthetic_dataset(tmp_path, 6)), "--trackers", "identity,opencv-mosse",
+            "--out", str(out), "--no-progress"]
+    assert main(args + ["--shifts", "-1"]) == 2
+    assert main(args + ["--shifts", "2"]) == 0
+    first_lines = {start.name: (start / "identity" / "synthetic" / "drift.txt").read_text().splitlines()[0]
+                   for start in (out / "shifted").iterdir()}
+    assert len(first_lines) == 8 and first_lines["+2+0"] == "33.000,41.000,24.000,24.000"
+    assert first_lines["-2+2"] == "29.000,43.000,24.000,24.000"
+    assert (out / "identity" / "synthetic" / "drift.txt").read_text().startswith("31.000,41.000,")
+    robust = json.loads((out / "summary.json").read_text())["robustness"]
+    assert len(robust["starts"]) == 9 and robust["sequences"] == 1
+    assert robust["trackers"]["opencv-mosse"]["difference"]["to"] == "identity"
+    table = "Robustness: first box moved by (dx,dy) = (+0,+0), (-2,-2),"
+    assert table in capsys.readouterr().out and table in (out / "summary.md").read_text()
+
+
+@needs_tacf
+def test_eval_ablation_command(tmp_path, capsys):
+    data = write_synthetic_dataset(tmp_path, 8)
+    rc = main(["eval", "--ablation", str(data), "--out", str(tmp_path / "out"), "--no-progress"])
     assert rc == 0
     out = capsys.readouterr().out
     assert "KCC (baseline)" in out and "TACF (SA + DA + CA)" in out

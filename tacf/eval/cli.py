@@ -44,6 +44,9 @@ def register(subparsers) -> None:
                    help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
     p.add_argument("--max-frames", type=int, metavar="N",
                    help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
+    p.add_argument("--shifts", type=int, default=0, metavar="PX",
+                   help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
+                        "each AUC moves and whether the trackers' differences stand out of that")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -88,7 +91,7 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from . import report
-    from .runner import pending_jobs, run_jobs
+    from .runner import pending_jobs, run_jobs, start_dir
     from .trackers import ABLATION
 
     if args.ablation and args.trackers:
@@ -102,8 +105,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not seqs:
         log.error("no sequences in %s%s", args.root, f" matching {args.sequences!r}" if args.sequences else "")
         return 2
-    jobs = pending_jobs(trackers, seqs, args.out, force=args.force)
-    skipped = len(trackers) * len(seqs) - len(jobs)
+    if args.shifts < 0:
+        log.error("--shifts must be >= 0 pixels, got %d", args.shifts)
+        return 2
+    starts = [(0, 0)]
+    if args.shifts:
+        starts += [(dx * args.shifts, dy * args.shifts) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
+    jobs = [job for shift in starts for job in pending_jobs(trackers, seqs, args.out, args.force, shift)]
+    skipped = len(starts) * len(trackers) * len(seqs) - len(jobs)
     if skipped:
         log.info("%d (tracker, sequence) results already recorded in %s; skipped (use --force to rerun)",
                  skipped, args.out)
@@ -112,11 +121,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
     summary, reports = report.summarize(args.out, trackers, seqs)
+    if args.shifts:
+        summary["robustness"] = report.robustness(
+            {shift: report.summarize(start_dir(args.out, shift), trackers, seqs)[0] for shift in starts}, trackers)
     paths = report.write_reports(args.out, summary, reports)
     table = report.markdown_table(summary)
     if args.ablation:
         table = report.ablation_table(summary)
         (Path(args.out) / "ablation.md").write_text(table)
+    if args.shifts:
+        table += "\n" + report.robustness_table(summary["robustness"])
     sys.stdout.write(table)
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return 1 if failed else 0

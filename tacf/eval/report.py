@@ -5,6 +5,7 @@ summary.json shape (read by other tools; docs DESIGN.md 6):
                        "sequences": {SEQ: {"auc": f, "precision20": f, "fps": f, "frames": n}}}}}
 A tracker's auc and precision20 are the means over its sequences (as benchmark tables report them);
 fps = total frames / total tracker seconds; frames = total frames tracked.
+With `tacf eval --shifts`, summary.json also has "robustness" (see `robustness`).
 """
 from __future__ import annotations
 
@@ -120,6 +121,56 @@ def ablation_table(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def robustness(per_start: dict[tuple[int, int], dict], trackers: list[str], resamples: int = 10000) -> dict:
+    """How far each tracker's mean AUC moves when only its first box moves by a few pixels, and whether the other
+    trackers' differences to the first tracker stand out of that.
+
+    per_start: {shift (dx, dy): summary dict of the runs started there}; the sequences scored in every run count.
+    Per tracker: the mean AUC of each start, their mean, min and max. Per later tracker: its AUC minus the first
+    tracker's, per sequence averaged over the starts, then over the sequences, with a 95 % bootstrap interval
+    over the sequences (fixed seed): an interval that holds 0 means the sequences cannot tell the two apart.
+    """
+    starts = list(per_start)
+    sequence_sets = [set(summary["trackers"][t]["sequences"]) for summary in per_start.values() for t in trackers]
+    names = sorted(set.intersection(*sequence_sets)) if sequence_sets else []
+    aucs = {t: np.array([[per_start[start]["trackers"][t]["sequences"][n]["auc"] for n in names]
+                         for start in starts]) for t in trackers}  # (starts, sequences)
+    result = {"starts": [f"{dx:+d},{dy:+d}" for dx, dy in starts], "sequences": len(names), "trackers": {}}
+    if not names:
+        return result
+    first = trackers[0]
+    resampled = np.random.default_rng(0).integers(0, len(names), (resamples, len(names)))
+    for t in trackers:
+        per_start_auc = aucs[t].mean(axis=1)
+        entry = {"auc_per_start": per_start_auc.tolist(), "mean": float(per_start_auc.mean()),
+                 "min": float(per_start_auc.min()), "max": float(per_start_auc.max())}
+        if t != first:
+            difference = (aucs[t] - aucs[first]).mean(axis=0)
+            low, high = np.percentile(difference[resampled].mean(axis=1), [2.5, 97.5])
+            entry["difference"] = {"to": first, "mean": float(difference.mean()), "ci95": [float(low), float(high)]}
+        result["trackers"][t] = entry
+    return result
+
+
+def robustness_table(result: dict) -> str:
+    """The robustness dict as markdown: one row per tracker."""
+    trackers = result["trackers"]
+    if not trackers:
+        return ""
+    first = next(iter(trackers))
+    starts = ", ".join(f"({start})" for start in result["starts"])
+    lines = [f"Robustness: first box moved by (dx,dy) = {starts} pixels; {result['sequences']} sequences:", "",
+             f"| tracker | AUC, first box as given | mean over the starts | min - max | difference to {first} "
+             "(95 % interval over sequences) |", "|---|---|---|---|---|"]
+    for name, t in trackers.items():
+        difference = t.get("difference")
+        cell = "-" if difference is None else (f"{difference['mean']:+.3f} ({difference['ci95'][0]:+.3f} to "
+                                                f"{difference['ci95'][1]:+.3f})")
+        lines.append(f"| {name} | {_f(t['auc_per_start'][0])} | {_f(t['mean'])} | {_f(t['min'])} - {_f(t['max'])} "
+                     f"| {cell} |")
+    return "\n".join(lines) + "\n"
+
+
 def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
     """success_plot.png and precision_plot.png: one mean curve per tracker, best first in the legend."""
     import matplotlib
@@ -160,6 +211,8 @@ def _finite(obj):
     """NaN/inf floats become null so that strict JSON readers accept the file."""
     if isinstance(obj, dict):
         return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_finite(v) for v in obj]
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
     return obj
@@ -172,6 +225,7 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) ->
     js = out_dir / "summary.json"
     js.write_text(json.dumps(_finite(summary), indent=2, allow_nan=False) + "\n")
     md = out_dir / "summary.md"
-    md.write_text(markdown_table(summary))
+    robust = robustness_table(summary["robustness"]) if "robustness" in summary else ""
+    md.write_text(markdown_table(summary) + ("\n" + robust if robust else ""))
     success, precision = plot_curves(reports, out_dir)
     return {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}

@@ -4,6 +4,7 @@ Result tree (got10k layout, docs ECOSYSTEM.md 3.5):
     <out>/<tracker>/<seq>.txt                  x,y,w,h per frame, 1-based, %.3f, line 1 = the init box
     <out>/<tracker>/times/<seq>_time.txt       seconds of tracker time per frame (init on line 1)
 <seq> is the sequence name relative to the dataset root, so it may contain folders (UAV123_10fps/wakeboard7).
+Runs started from a shifted first box (`tacf eval --shifts`) go to <out>/shifted/<dx><dy>/ in the same layout.
 Timing covers the init/update calls only (time.perf_counter), never the image decoding.
 """
 from __future__ import annotations
@@ -72,11 +73,17 @@ def track_frames(tracker: BoxTracker, frames: Iterable[np.ndarray], init_box) ->
     return TrackRun(np.asarray(boxes, dtype=np.float64), np.asarray(times), np.asarray(oks), np.asarray(pmes))
 
 
-def track_sequence(tracker: BoxTracker, seq: Sequence) -> TrackRun:
-    """One-pass evaluation: init from the first ground-truth box, decode frames lazily outside the timer."""
+def track_sequence(tracker: BoxTracker, seq: Sequence, shift: tuple[int, int] = (0, 0)) -> TrackRun:
+    """One-pass evaluation: init from the first ground-truth box, moved by shift = (dx, dy) pixels, decode frames
+    lazily outside the timer."""
     if not np.isfinite(seq.gt[0]).all() or seq.gt[0, 2] <= 0 or seq.gt[0, 3] <= 0:
         raise ValueError(f"{seq.name}: the first ground-truth box {seq.gt[0].tolist()} cannot start a track")
-    return track_frames(tracker, iter_frames(seq.frames), seq.gt[0])
+    return track_frames(tracker, iter_frames(seq.frames), seq.gt[0] + [shift[0], shift[1], 0, 0])
+
+
+def start_dir(out_dir: Path, shift: tuple[int, int]) -> Path:
+    """The result tree of the runs started from the first box moved by shift: out_dir itself for no shift."""
+    return Path(out_dir) if shift == (0, 0) else Path(out_dir) / "shifted" / f"{shift[0]:+d}{shift[1]:+d}"
 
 
 def result_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
@@ -110,6 +117,7 @@ class Job:
     tracker: str
     seq: Sequence
     out_dir: Path
+    shift: tuple[int, int] = (0, 0)
 
 
 @dataclass(frozen=True)
@@ -127,7 +135,7 @@ def run_job(job: Job) -> JobOutcome:
         import cv2
 
         cv2.setNumThreads(1)  # one core per job: fair per-stream numbers and no oversubscription
-        run = track_sequence(make_tracker(job.tracker), job.seq)
+        run = track_sequence(make_tracker(job.tracker), job.seq, job.shift)
         write_run(job.out_dir, job.tracker, job.seq.name, run)
         return JobOutcome(job.tracker, job.seq.name, len(run.boxes), float(run.times.sum()))
     except Exception as exc:  # noqa: BLE001 - one failed pair must not stop the others
@@ -135,13 +143,16 @@ def run_job(job: Job) -> JobOutcome:
         return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}")
 
 
-def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, force: bool = False) -> list[Job]:
-    """The (tracker, sequence) pairs without a recorded result (all of them with `force`)."""
+def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, force: bool = False,
+                 shift: tuple[int, int] = (0, 0)) -> list[Job]:
+    """The (tracker, sequence) pairs without a recorded result (all of them with `force`), for runs started from
+    the first box moved by shift."""
+    out_dir = start_dir(out_dir, shift)
     jobs = []
     for name in trackers:
         for seq in sequences:
             if force or not result_path(out_dir, name, seq.name).is_file():
-                jobs.append(Job(name, seq, Path(out_dir)))
+                jobs.append(Job(name, seq, out_dir, shift))
             else:
                 log.debug("%s/%s already recorded; skipped", name, seq.name)
     return jobs
