@@ -323,6 +323,17 @@ def test_eval_shifts_command(tmp_path, capsys):
 
 
 @needs_tacf
+def test_eval_shifts_off_the_image_fail_clearly(tmp_path, caplog):
+    data = write_synthetic_dataset(tmp_path, 3)
+    rc = main(["eval", str(data), "--trackers", "kcc", "--out", str(tmp_path / "out"), "--shifts", "500",
+               "--no-progress"])
+    assert rc == 1  # the 8 shifted starts leave the 160 x 120 frames; the given start still runs
+    assert "first box moved by (-500, -500)" in caplog.text and "outside" in caplog.text
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["trackers"]["kcc"]["sequences"] and summary["robustness"]["sequences"] == 0
+
+
+@needs_tacf
 def test_eval_ablation_command(tmp_path, capsys):
     data = write_synthetic_dataset(tmp_path, 8)
     rc = main(["eval", "--ablation", str(data), "--out", str(tmp_path / "out"), "--no-progress"])

@@ -139,8 +139,9 @@ def run_job(job: Job) -> JobOutcome:
         write_run(job.out_dir, job.tracker, job.seq.name, run)
         return JobOutcome(job.tracker, job.seq.name, len(run.boxes), float(run.times.sum()))
     except Exception as exc:  # noqa: BLE001 - one failed pair must not stop the others
-        log.exception("%s on %s failed", job.tracker, job.seq.name)
-        return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}")
+        start = f" (first box moved by {job.shift})" if job.shift != (0, 0) else ""
+        log.exception("%s on %s%s failed", job.tracker, job.seq.name, start)
+        return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}{start}")
 
 
 def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, force: bool = False,
