@@ -320,6 +320,7 @@ def test_eval_shifts_command(tmp_path, capsys):
     assert robust["trackers"]["opencv-mosse"]["difference"]["to"] == "identity"
     table = "Robustness: first box moved by (dx,dy) = (+0,+0), (-2,-2),"
     assert table in capsys.readouterr().out and table in (out / "summary.md").read_text()
+    assert (out / "robustness_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 @needs_tacf

@@ -207,6 +207,32 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
     return paths
 
 
+def plot_robustness(result: dict, out_dir: Path) -> Path:
+    """robustness_plot.png: each tracker's mean AUC from every start (dots; the given box ringed) and their mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    trackers = result["trackers"]
+    fig, ax = plt.subplots(figsize=(1.2 * len(trackers) + 2.5, 4), dpi=100)
+    for x, t in enumerate(trackers.values()):
+        aucs = np.asarray(t["auc_per_start"])
+        spread = np.linspace(-0.15, 0.15, len(aucs))
+        ax.scatter(x + spread, aucs, s=18, color="tab:blue", alpha=0.7)
+        ax.scatter([x + spread[0]], aucs[:1], s=70, facecolors="none", edgecolors="tab:red")
+        ax.hlines(t["mean"], x - 0.3, x + 0.3, color="black", linewidth=2)
+    ax.set_xticks(range(len(trackers)), list(trackers), rotation=20)
+    ax.set(title=f"Mean AUC from {len(result['starts'])} starting boxes ({result['sequences']} sequences)",
+           ylabel="Success AUC", xlabel="dots: one start each (ringed: the box as given); bar: their mean")
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = Path(out_dir) / "robustness_plot.png"
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def _finite(obj):
     """NaN/inf floats become null so that strict JSON readers accept the file."""
     if isinstance(obj, dict):
@@ -219,7 +245,7 @@ def _finite(obj):
 
 
 def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) -> dict[str, Path]:
-    """summary.json, summary.md and the two plots in `out_dir`."""
+    """summary.json, summary.md, the two plots and, with a robustness entry, its plot, in `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     js = out_dir / "summary.json"
@@ -228,4 +254,7 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) ->
     robust = robustness_table(summary["robustness"]) if "robustness" in summary else ""
     md.write_text(markdown_table(summary) + ("\n" + robust if robust else ""))
     success, precision = plot_curves(reports, out_dir)
-    return {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}
+    paths = {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}
+    if summary.get("robustness", {}).get("trackers"):
+        paths["robustness_plot"] = plot_robustness(summary["robustness"], out_dir)
+    return paths
