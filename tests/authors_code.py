@@ -9,8 +9,8 @@ profile departs from that code on purpose in three places that move the boxes fr
 3. the code writes the box before its scale step, so a reported box keeps the previous frame's size.
 `CodeLikeTracker` undoes those three. Its boxes then equal the authors' on the first frames of every sequence
 (tests/test_authors_parity.py), which checks the port itself: features, kernels, filters, windows, colour model,
-dimensional and contextual attention and the DSST agree to the pixel. Later frames part by one upsampled pixel or
-one scale step, then drift apart as any tracker's trajectory does after a small difference.
+dimensional attention, the first frame's context term and the DSST agree to the pixel. Later frames part by one
+upsampled pixel or one scale step, then drift apart as any tracker's trajectory does after a small difference.
 
     python tests/authors_code.py      # the README's parity table (about a minute)
 """
