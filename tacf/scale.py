@@ -13,6 +13,7 @@ full complex FFT at half the cost.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -93,6 +94,16 @@ def scale_response(num: np.ndarray, den: np.ndarray, sample_hat: np.ndarray, reg
     return scipy.fft.irfft(np.sum(num * sample_hat, axis=1) / (den + reg), n=num_scales)
 
 
+@dataclass(frozen=True)
+class _RecentSample:
+    """A scale sample of one image: its patch rectangles, their feature vectors, the sample's spectrum."""
+
+    image: np.ndarray
+    rects: list
+    vectors: dict
+    spectrum: np.ndarray
+
+
 class ScaleFilter:
     """The DSST scale filter of one sequence (section 11).
 
@@ -118,9 +129,10 @@ class ScaleFilter:
         self._min_scale, self._max_scale = scale_limits(cfg.scale_step, image_hw, base_target_sz, bg_area)
         self._num: np.ndarray | None = None  # (num_scales // 2 + 1, D) complex
         self._den: np.ndarray | None = None  # (num_scales // 2 + 1,) real
-        # The feature vectors estimate() computed, by patch rectangle, for the update_model() that follows on the
-        # same image: at the same position most (all, when the scale did not change) of its patches recur.
-        self._recent: tuple[np.ndarray, dict[tuple, np.ndarray]] | None = None
+        # What estimate() computed, for the update_model() that follows on the same image: the feature vectors by
+        # patch rectangle (at the same position most of the patches recur) and the spectrum of the whole sample
+        # (all of them recur when the scale did not change, as in most frames).
+        self._recent: _RecentSample | None = None
 
     @property
     def min_scale(self) -> float:
@@ -143,10 +155,11 @@ class ScaleFilter:
     def update_model(self, image: np.ndarray, pos, scale_factor: float) -> None:
         """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11).
 
-        Patches that the last estimate() on this same image already computed are reused, not recomputed.
+        What the last estimate() on this same image computed is reused: all of it when the rectangles are the same
+        (the scale did not change), else the feature vectors of the patches that recur.
         """
         num, den = filter_terms(self._label_hat, self._sample_hat(image, pos, scale_factor))
-        self._recent = None
+        self._recent = None  # the next image is another
         if self._num is None:
             self._num, self._den = num, den
             return
@@ -167,23 +180,40 @@ class ScaleFilter:
 
     def _sample_hat(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """FFT over the scale axis of the windowed scale sample, (num_scales // 2 + 1, D)."""
-        return scipy.fft.rfft(self._sample(image, pos, scale_factor), axis=0)
+        rects = self._rects(pos, scale_factor)
+        recent = self._recent if self._recent is not None and self._recent.image is image else None
+        if recent is not None and recent.rects == rects:
+            return recent.spectrum
+        vectors = self._feature_vectors(image, rects, recent.vectors if recent is not None else {})
+        spectrum = scipy.fft.rfft(self._windowed(vectors, rects), axis=0)
+        self._recent = _RecentSample(image, rects, vectors, spectrum)
+        return spectrum
 
     def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
+        rects = self._rects(pos, scale_factor)
+        return self._windowed(self._feature_vectors(image, rects, {}), rects)
+
+    def _rects(self, pos, scale_factor: float) -> list[tuple[int, int, int, int]]:
+        """(top, left, height, width) of each sampled scale's patch, as plain ints: cheap to hash and slice with."""
         top_left, sizes = (a.tolist() for a in scale_patch_rects(pos, self._base_target_sz, scale_factor,
                                                                   self._factors))
-        rects = [(*top_left[i], *sizes[i]) for i in self._sampled]  # plain ints: cheap to hash and to slice with
-        known = self._recent[1] if self._recent is not None and self._recent[0] is image else {}
+        return [(*top_left[i], *sizes[i]) for i in self._sampled]
+
+    def _feature_vectors(self, image: np.ndarray, rects: list, known: dict) -> dict[tuple, np.ndarray]:
+        """The feature vector of every rectangle, by rectangle: those in `known` as they are, the others new."""
         missing = [rect for rect in rects if rect not in known]
-        if missing:
-            patches = np.stack([resize_auto(crop_replicate(image, rect[:2], rect[2:]), self._model_sz)
-                                for rect in missing])
-            known = {**known, **dict(zip(missing, self._patch_features(patches)))}
-        self._recent = image, known
-        vectors = np.stack([known[rect] for rect in rects])
-        sample = np.zeros((self._num_scales, vectors.shape[1]), dtype=np.float64)
-        sample[self._sampled] = vectors * self._window[self._sampled, None]
+        if not missing:
+            return known
+        patches = np.stack([resize_auto(crop_replicate(image, rect[:2], rect[2:]), self._model_sz)
+                            for rect in missing])
+        return {**known, **dict(zip(missing, self._patch_features(patches)))}
+
+    def _windowed(self, vectors: dict[tuple, np.ndarray], rects: list) -> np.ndarray:
+        """The sample matrix: the vectors of the sampled scales, windowed, and zero rows for the others."""
+        stacked = np.stack([vectors[rect] for rect in rects])
+        sample = np.zeros((self._num_scales, stacked.shape[1]), dtype=np.float64)
+        sample[self._sampled] = stacked * self._window[self._sampled, None]
         return sample
 
     def _patch_features(self, patches: np.ndarray) -> np.ndarray:
