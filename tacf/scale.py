@@ -25,7 +25,7 @@ from tacf.features import fhog_batch
 from tacf.geometry import crop_replicate, resize_auto
 
 FeatureFn = Callable[[np.ndarray, int], np.ndarray]
-"""features(patch float32 HxW or HxWxC with raw 0-255 values, cell_size) -> (C, H // cell, W // cell)."""
+"""features(patch uint8 HxW or HxWxC (raw 0-255 values), cell_size) -> (C, H // cell, W // cell)."""
 BatchFeatureFn = Callable[[np.ndarray, int], np.ndarray]
 """The same for N patches of one size at once: (N, H, W[, C]) -> (N, C, H // cell, W // cell)."""
 
@@ -219,7 +219,7 @@ class ScaleFilter:
     def _patch_features(self, patches: np.ndarray) -> np.ndarray:
         """fHOG of patches already resized to scale_model_sz, (N, H, W[, C]) raw 0-255 values, one batch call;
         row n is patch n's feature map flattened column-major (section 11)."""
-        feature_maps = self._batch_features(patches.astype(np.float32), self._cell_size)
+        feature_maps = self._batch_features(patches, self._cell_size)
         feature_maps = feature_maps[:, :SCALE_FEATURE_CHANNELS].transpose(0, 1, 3, 2)
         return feature_maps.reshape(len(patches), -1)  # (C, W, H) C-order == (H, W, C) column-major
 

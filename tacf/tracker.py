@@ -172,7 +172,7 @@ class Tracker:
         return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area * self.grid.sample_growth)
 
     def _features(self, patch: np.ndarray, names) -> dict[str, np.ndarray]:
-        extractors = {"hog": lambda p: fhog(p.astype(np.float32) / 255.0, self.config.cell_size),
+        extractors = {"hog": lambda p: fhog(p, self.config.cell_size, divisor=255.0),
                       "cn": lambda p: color_names(p, self.config.cell_size)}
         return {name: extractors[name](patch) for name in names}
 
@@ -210,7 +210,7 @@ class Tracker:
     def _context_features(self, frame: np.ndarray) -> np.ndarray:
         """Windowed fHOG of the four context patches around the current position: (4, 31, H, W)."""
         patches = np.stack([self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)])
-        return fhog_batch(patches.astype(np.float32) / 255.0, self.config.cell_size) * self.cosine_window
+        return fhog_batch(patches, self.config.cell_size, divisor=255.0) * self.cosine_window
 
     def _update_context_penalties(self, context: np.ndarray, context_hat: np.ndarray,
                                   object_response: np.ndarray) -> None:

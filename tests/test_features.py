@@ -252,6 +252,14 @@ def test_fhog_accepts_uint8_and_float64():
     np.testing.assert_array_equal(fhog(image), fhog(image.astype(np.float64)))
 
 
+@pytest.mark.parametrize("shape", [(40, 36, 3), (25, 30)])
+def test_fhog_divisor_equals_dividing_a_float32_copy_first(shape):
+    image = (random_image(shape, seed=4) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(fhog(image, divisor=255.0), fhog(image.astype(np.float32) / 255.0))
+    batch = np.stack([image, image[::-1]])
+    np.testing.assert_array_equal(fhog_batch(batch, divisor=255.0), fhog_batch(batch.astype(np.float32) / 255.0))
+
+
 # --------------------------------------------------------------------------------------------------------
 # fHOG of a batch of same-sized images
 # --------------------------------------------------------------------------------------------------------

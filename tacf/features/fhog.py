@@ -52,11 +52,12 @@ MAX_INVERSE = np.float32(1e10)
 STEPS32 = np.float32(ACOS_STEPS)
 
 
-def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray:
+def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2, divisor: float = 1.0) -> np.ndarray:
     """fHOG of ``image`` as float32 ``(31, H // cell_size, W // cell_size)``, C-contiguous.
 
-    ``image`` is HxW or HxWxC (float32; 0..1 or 0..255, the scale only changes the effect of the
-    normalisation epsilon). Channels 0-17 are contrast-sensitive orientations, 18-26 contrast-insensitive,
+    ``image`` is HxW or HxWxC, of any real dtype, divided by ``divisor`` in float32 first, exactly as
+    ``image.astype(np.float32) / divisor``: 255 turns uint8 pixels into 0..1 without a converted copy. The scale
+    only changes the effect of the normalisation epsilon. Channels 0-17 are contrast-sensitive orientations, 18-26 contrast-insensitive,
     27-30 texture (one per block normaliser). Gradients use the whole image; only the pixels inside the
     full cells are binned. A grid only one cell high or wide (possible for thin DSST scale patches) is
     normalised as if that cell row or column were duplicated; the C code reads raw energies there instead.
@@ -64,17 +65,17 @@ def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray
     image = np.asarray(image)
     if image.ndim not in (2, 3):
         raise ValueError(f"expected an HxW or HxWxC image, got shape {image.shape}")
-    return fhog_batch(image[None], cell_size, clip)[0]
+    return fhog_batch(image[None], cell_size, clip, divisor)[0]
 
 
-def fhog_batch(images: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.ndarray:
+def fhog_batch(images: np.ndarray, cell_size: int = 4, clip: float = 0.2, divisor: float = 1.0) -> np.ndarray:
     """fHOG of N same-sized images at once, float32 ``(N, 31, H // cell_size, W // cell_size)``, C-contiguous.
 
     ``images`` is NxHxW or NxHxWxC. Each image is computed on its own, exactly as ``fhog`` would (gradients
     stop at each image's border, cells and normalisers never mix images), so ``fhog_batch(images)[i]`` equals
     ``fhog(images[i])`` bit for bit.
     """
-    planes = _as_planes_float32(images)
+    planes = _as_planes_float32(images, divisor)
     rows, cols = planes.shape[2] // cell_size, planes.shape[3] // cell_size
     if rows < 1 or cols < 1:
         raise ValueError(f"images {planes.shape[2:4]} are smaller than one {cell_size}x{cell_size} cell")
@@ -87,14 +88,22 @@ def fhog_batch(images: np.ndarray, cell_size: int = 4, clip: float = 0.2) -> np.
     return out
 
 
-def _as_planes_float32(images: np.ndarray) -> np.ndarray:
-    """(N, C, H, W) float32, C-contiguous: one plane per colour channel, so the gradient loops read rows."""
+def _as_planes_float32(images: np.ndarray, divisor: float) -> np.ndarray:
+    """(N, C, H, W) float32 images / divisor, C-contiguous: one plane per colour channel, so the gradient loops
+    read rows. One pass: the transpose, the conversion and the division write the planes directly."""
     images = np.asarray(images)
     if images.ndim == 3:
-        return np.ascontiguousarray(images[:, None], dtype=np.float32)
-    if images.ndim != 4:
+        images = images[:, None]
+    elif images.ndim == 4:
+        images = images.transpose(0, 3, 1, 2)
+    else:
         raise ValueError(f"expected NxHxW or NxHxWxC images, got shape {images.shape}")
-    return np.ascontiguousarray(images.transpose(0, 3, 1, 2), dtype=np.float32)
+    planes = np.empty(images.shape, dtype=np.float32)
+    if divisor == 1.0:
+        np.copyto(planes, images, casting="unsafe")
+    else:
+        np.divide(images, np.float32(divisor), out=planes, dtype=np.float32, casting="unsafe")
+    return planes
 
 
 @lru_cache(maxsize=1)
