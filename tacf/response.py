@@ -1,6 +1,8 @@
 """From per-feature responses to a displacement: crop, upsample, fuse, find the peak (ALGORITHM.md 7, 7.5)."""
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 
@@ -11,10 +13,14 @@ def crop_centre(response: np.ndarray, size: int) -> np.ndarray:
     out[a, b] = R[(a - h - 1) mod H, (b - h - 1) mod W] with h = (size - 1) / 2: the centre of the output is
     displacement zero.
     """
+    rows, cols = _crop_indices(response.shape[-2], response.shape[-1], size)
+    return response.take(rows, axis=-2).take(cols, axis=-1)
+
+
+@lru_cache(maxsize=16)
+def _crop_indices(height: int, width: int, size: int) -> tuple[np.ndarray, np.ndarray]:
     half = (size - 1) // 2
-    rows = (np.arange(size) - half - 1) % response.shape[0]
-    cols = (np.arange(size) - half - 1) % response.shape[1]
-    return response[np.ix_(rows, cols)]
+    return (np.arange(size) - half - 1) % height, (np.arange(size) - half - 1) % width
 
 
 def upsample(response: np.ndarray, size: int) -> np.ndarray:

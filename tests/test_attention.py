@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
+from tacf.attention.contextual import median
 from tacf.attention.spatiotemporal import add_motion, attention_map, to_response_origin
 from tacf.response import crop_centre, fuse, fusion_weight, peak_offset
 
@@ -15,6 +16,21 @@ def test_pme_on_a_hand_made_map():
     response += 3.0  # invariant to an offset
     assert pme(response) == pytest.approx(16.0)
     assert pme(np.ones((5, 5))) == 0.0
+
+
+@pytest.mark.parametrize("shape", [(101, 101), (25, 24), (1,), (2,), (7, 3)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_median_is_numpy_s(shape, dtype):
+    values = np.random.default_rng(sum(shape)).standard_normal(shape).astype(dtype)
+    values.flat[0] = values.flat[-1]  # a tie
+    assert median(values) == np.median(values)
+    assert median(values).dtype == np.median(values).dtype
+
+
+def test_pme_of_a_response_with_nan_is_zero():
+    response = np.ones((5, 5))
+    response[2, 2], response[0, 0] = 5.0, np.nan
+    assert pme(response) == 0.0
 
 
 def test_sharper_peak_has_higher_pme():

@@ -2,15 +2,23 @@
 import numpy as np
 import pytest
 
-from tacf.colour import ColourModel, _bin_index
+from tacf.colour import ColourModel, _per_pixel
+
+
+def _bin_index(patch, bins):
+    """The joint histogram bin of each pixel, the first channel varying slowest; the quantised value for gray."""
+    q = patch.astype(np.int64) // (256 // bins)
+    return q if q.ndim == 2 else (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2]
 
 
 @pytest.mark.parametrize("bins", [8, 32, 64])
-def test_bin_index_is_the_joint_quantised_colour(bins):
+def test_per_pixel_lookup_reads_each_pixel_s_joint_bin(bins):
     patch = np.random.default_rng(0).integers(0, 256, (9, 7, 3), dtype=np.uint8)
-    q = patch.astype(np.int64) // (256 // bins)
-    np.testing.assert_array_equal(_bin_index(patch, bins), (q[..., 0] * bins + q[..., 1]) * bins + q[..., 2])
-    np.testing.assert_array_equal(_bin_index(patch[..., 0], bins), q[..., 0])
+    bits = bins.bit_length() - 1
+    values = np.random.default_rng(1).random(bins**3).astype(np.float32)
+    np.testing.assert_array_equal(_per_pixel(values, patch, 8 - bits, bits), values[_bin_index(patch, bins)])
+    gray = np.ascontiguousarray(patch[..., :1])
+    np.testing.assert_array_equal(_per_pixel(values[:bins], gray, 8 - bits, bits), values[_bin_index(gray[..., 0], bins)])
 
 
 @pytest.mark.parametrize("channels", [3, 1])

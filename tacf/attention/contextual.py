@@ -9,13 +9,24 @@ from __future__ import annotations
 import numpy as np
 
 
+def median(values: np.ndarray):
+    """np.median of all values, by one partition: np.median's NaN pass and generic mean make it ~8x slower on
+    a 101 x 101 response. A NaN gives some value here, not NaN (pme then returns 0 from its energy)."""
+    flat = values.ravel()
+    half = flat.size // 2
+    if flat.size % 2:
+        return np.partition(flat, half)[half]
+    low, high = np.partition(flat, [half - 1, half])[half - 1:half + 1]
+    return (low + high) / 2
+
+
 def pme(response: np.ndarray) -> float:
     """Peak-to-median energy: (R_max - R_med)^2 / mean((R - R_med)^2); 0 for a flat response."""
-    median = np.median(response)
-    energy = float(np.mean((response - median) ** 2))
+    median_value = median(response)
+    energy = float(np.mean((response - median_value) ** 2))
     if energy <= 0.0 or not np.isfinite(energy):
         return 0.0
-    return float((response.max() - median) ** 2 / energy)
+    return float((response.max() - median_value) ** 2 / energy)
 
 
 def context_offsets(target_hw: np.ndarray) -> np.ndarray:
