@@ -9,7 +9,9 @@ Layout: MATLAB keeps Xs as (D, num_scales); here it is stored transposed, (num_s
 feature vector is contiguous, and the FFT runs over axis 0. Each vector is flattened in MATLAB's column-major
 order (row fastest, then column, then channel) for parity; the filter itself does not depend on that order.
 The feature vectors are real, so a real FFT (`rfft`/`irfft` with n = num_scales) gives the same response as the
-full complex FFT at half the cost.
+full complex FFT at half the cost. Samples, spectra and the model are float32 (complex64), as the translation
+filters are: float64 picked the same scale in every frame of the ten UAV sequences (boxes identical) at ~5 % more
+time per frame.
 """
 from __future__ import annotations
 
@@ -122,9 +124,9 @@ class ScaleFilter:
         self._batch_features = fhog_batch if features is None else _one_by_one(features)
 
         self._factors = scale_factors(cfg.num_scales, cfg.scale_step)
-        self._window = scale_window(cfg.num_scales)
+        self._window = scale_window(cfg.num_scales).astype(np.float32)
         self._sampled = np.flatnonzero(self._window)  # zero-weight scales contribute zero features: skip them
-        self._label_hat = scipy.fft.rfft(scale_label(cfg.num_scales, cfg.scale_sigma_factor))
+        self._label_hat = scipy.fft.rfft(scale_label(cfg.num_scales, cfg.scale_sigma_factor)).astype(np.complex64)
         self._model_sz = scale_model_size(norm_target_sz, cfg.scale_model_max_area, cfg.cell_size)
         self._min_scale, self._max_scale = scale_limits(cfg.scale_step, image_hw, base_target_sz, bg_area)
         self._num: np.ndarray | None = None  # (num_scales // 2 + 1, D) complex
@@ -212,7 +214,7 @@ class ScaleFilter:
     def _windowed(self, vectors: dict[tuple, np.ndarray], rects: list) -> np.ndarray:
         """The sample matrix: the vectors of the sampled scales, windowed, and zero rows for the others."""
         stacked = np.stack([vectors[rect] for rect in rects])
-        sample = np.zeros((self._num_scales, stacked.shape[1]), dtype=np.float64)
+        sample = np.zeros((self._num_scales, stacked.shape[1]), dtype=np.float32)
         sample[self._sampled] = stacked * self._window[self._sampled, None]
         return sample
 
