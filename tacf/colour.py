@@ -52,7 +52,7 @@ class ColourModel:
         self.fg_hist, self.bg_hist = self._histograms(patch)
 
     def _histograms(self, patch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Normalised joint histograms under the foreground and background masks, flat in _bin_index's order.
+        """Normalised joint histograms under the foreground and background masks, flat in _per_pixel's order.
 
         OpenCV counts them (the first channel varies slowest, as in _per_pixel), in float32, exact up to 2^24
         pixels, ~2x faster than indexing and np.bincount."""
