@@ -221,6 +221,7 @@ def test_bench_tracker_json(tmp_path):
     assert set(r["ms_per_frame"]) >= {"p50", "p95"} and r["ms_per_frame"]["p95"] >= r["ms_per_frame"]["p50"]
     assert r["peers"]["opencv-csrt"]["fps"] > 0 and r["peers"]["opencv-csrt"]["frames"] == 10
     assert r["sequences"]["UAV123_10fps/wakeboard7"]["frames"] == 10
+    assert r["opencv"] == cv2.__version__
 
 
 @needs_data
