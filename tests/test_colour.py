@@ -18,7 +18,8 @@ def test_per_pixel_lookup_reads_each_pixel_s_joint_bin(bins):
     values = np.random.default_rng(1).random(bins**3).astype(np.float32)
     np.testing.assert_array_equal(_per_pixel(values, patch, 8 - bits, bits), values[_bin_index(patch, bins)])
     gray = np.ascontiguousarray(patch[..., :1])
-    np.testing.assert_array_equal(_per_pixel(values[:bins], gray, 8 - bits, bits), values[_bin_index(gray[..., 0], bins)])
+    np.testing.assert_array_equal(_per_pixel(values[:bins], gray, 8 - bits, bits),
+                                  values[_bin_index(gray[..., 0], bins)])
 
 
 @pytest.mark.parametrize("channels", [3, 1])
