@@ -19,8 +19,11 @@ def crop_centre(response: np.ndarray, size: int) -> np.ndarray:
 
 @lru_cache(maxsize=16)
 def _crop_indices(height: int, width: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of crop_centre's square, cached per shape: read-only, as they are shared."""
     half = (size - 1) // 2
-    return (np.arange(size) - half - 1) % height, (np.arange(size) - half - 1) % width
+    rows, cols = (np.arange(size) - half - 1) % height, (np.arange(size) - half - 1) % width
+    rows.flags.writeable = cols.flags.writeable = False
+    return rows, cols
 
 
 def upsample(response: np.ndarray, size: int) -> np.ndarray:

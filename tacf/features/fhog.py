@@ -57,9 +57,9 @@ def fhog(image: np.ndarray, cell_size: int = 4, clip: float = 0.2, divisor: floa
 
     ``image`` is HxW or HxWxC, of any real dtype, divided by ``divisor`` in float32 first, exactly as
     ``image.astype(np.float32) / divisor``: 255 turns uint8 pixels into 0..1 without a converted copy. The scale
-    only changes the effect of the normalisation epsilon. Channels 0-17 are contrast-sensitive orientations,
-    18-26 contrast-insensitive, 27-30 texture (one per block normaliser). Gradients use the whole image; only the pixels inside the
-    full cells are binned. A grid only one cell high or wide (possible for thin DSST scale patches) is
+    only changes the effect of the normalisation epsilon. Channels 0-17 are contrast-sensitive orientations, 18-26
+    contrast-insensitive, 27-30 texture (one per block normaliser). Gradients use the whole image; only the pixels
+    inside the full cells are binned. A grid only one cell high or wide (possible for thin DSST scale patches) is
     normalised as if that cell row or column were duplicated; the C code reads raw energies there instead.
     """
     image = np.asarray(image)
