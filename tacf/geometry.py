@@ -90,13 +90,39 @@ class NormalisedGrid:
         return cls(patch, filt, target, response, crop, patch / natural)
 
 
-def resize_auto(patch: np.ndarray, out_hw) -> np.ndarray:
-    """mexResize 'auto': bilinear when enlarging, area averaging when shrinking."""
+def resize_auto(patch: np.ndarray, out_hw, fast: bool = False) -> np.ndarray:
+    """Resize a sampled patch to out_hw (rows, cols).
+
+    fast=False is mexResize 'auto', as in the authors' code: bilinear when enlarging, area averaging when shrinking.
+    fast=True (TrackerConfig.fast_resize) halves the patch by exact 2x2 means while it is at least twice the output
+    on both axes (OpenCV's integer area path; an odd size first repeats its last row or column), then samples that
+    level bilinearly where the patch's own geometry puts each output pixel: a mipmap, which neither shifts nor
+    stretches the content. Enlargements are the same either way. OpenCV's general area resize runs a scalar loop over weight
+    tables: a 586x528 colour crop to 216x192 takes 1.1 ms that way and 0.25 ms this way. On real frames the two
+    differ by 0.3 grey levels on average (mean absolute difference) for shrinks under 1.3x, by about 1 for shrinks
+    of 1.3-4x and 1.5 beyond; the tracker's accuracy is unchanged within its noise (README "Decisions").
+    """
     rows, cols = int(out_hw[0]), int(out_hw[1])
     if patch.shape[0] == rows and patch.shape[1] == cols:
         return patch
-    interp = cv2.INTER_LINEAR if cols > patch.shape[1] else cv2.INTER_AREA
-    return cv2.resize(patch, (cols, rows), interpolation=interp)
+    if not fast:
+        interp = cv2.INTER_LINEAR if cols > patch.shape[1] else cv2.INTER_AREA
+        return cv2.resize(patch, (cols, rows), interpolation=interp)
+    level, factor = patch, 1
+    while level.shape[0] >= 2 * rows and level.shape[1] >= 2 * cols:
+        odd_rows, odd_cols = level.shape[0] % 2, level.shape[1] % 2
+        if odd_rows or odd_cols:  # the border pixel repeated, as resizes do beyond the border
+            level = cv2.copyMakeBorder(level, 0, odd_rows, 0, odd_cols, cv2.BORDER_REPLICATE)
+        level = cv2.resize(level, (level.shape[1] // 2, level.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        factor *= 2
+    if factor == 1:
+        return cv2.resize(patch, (cols, rows), interpolation=cv2.INTER_LINEAR)
+    # Output pixel x samples the patch at (x + 0.5) s - 0.5 with s = patch size / output size, as a resize would:
+    # that is the level at (x + 0.5) s / factor - 0.5, the padding of odd sizes notwithstanding.
+    scale_x, scale_y = patch.shape[1] / (cols * factor), patch.shape[0] / (rows * factor)
+    to_level = np.array([[scale_x, 0.0, 0.5 * scale_x - 0.5], [0.0, scale_y, 0.5 * scale_y - 0.5]])
+    return cv2.warpAffine(level, to_level, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE)
 
 
 def crop_replicate(image: np.ndarray, top_left, size_hw) -> np.ndarray:
@@ -114,10 +140,10 @@ def crop_replicate(image: np.ndarray, top_left, size_hw) -> np.ndarray:
     return image[rows[:, None], cols[None, :]]
 
 
-def subwindow(image: np.ndarray, pos: np.ndarray, model_hw, sample_hw) -> np.ndarray:
-    """getSubwindow: a sample_hw window centred on pos, border-replicated, resized to model_hw."""
+def subwindow(image: np.ndarray, pos: np.ndarray, model_hw, sample_hw, fast_resize: bool = False) -> np.ndarray:
+    """getSubwindow: a sample_hw window centred on pos, border-replicated, resized to model_hw (resize_auto)."""
     size = np.maximum(np.asarray(sample_hw, dtype=np.float64), 2)
     count = np.floor(size)
     top_left = round_half_up(pos + 1 - size / 2)
     patch = crop_replicate(image, top_left, count)
-    return resize_auto(patch, model_hw)
+    return resize_auto(patch, model_hw, fast_resize)

@@ -120,6 +120,7 @@ class ScaleFilter:
         self._learning_rate = cfg.scale_learning_rate
         self._lambda = cfg.scale_lambda
         self._num_scales = cfg.num_scales
+        self._fast_resize = cfg.fast_resize
         self._base_target_sz = np.asarray(base_target_sz, dtype=np.float64)
         self._batch_features = fhog_batch if features is None else _one_by_one(features)
 
@@ -207,7 +208,7 @@ class ScaleFilter:
         missing = [rect for rect in rects if rect not in known]
         if not missing:
             return known
-        patches = np.stack([resize_auto(crop_replicate(image, rect[:2], rect[2:]), self._model_sz)
+        patches = np.stack([resize_auto(crop_replicate(image, rect[:2], rect[2:]), self._model_sz, self._fast_resize)
                             for rect in missing])
         return {**known, **dict(zip(missing, self._patch_features(patches)))}
 

@@ -169,7 +169,8 @@ class Tracker:
                                   self.config.inner_padding)
 
     def _sample(self, frame: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area * self.grid.sample_growth)
+        return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area * self.grid.sample_growth,
+                         self.config.fast_resize)
 
     def _features(self, patch: np.ndarray, names) -> dict[str, np.ndarray]:
         extractors = {"hog": lambda p: fhog(p, self.config.cell_size, divisor=255.0),

@@ -1,0 +1,91 @@
+"""Patch resizing (geometry.resize_auto): mexResize's 'auto' rule, and the mipmap of TrackerConfig.fast_resize."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from tacf import Tracker, TrackerConfig
+from tacf.geometry import resize_auto, subwindow
+
+RNG = np.random.default_rng(7)
+
+
+def random_patch(shape) -> np.ndarray:
+    return RNG.integers(0, 256, shape).astype(np.uint8)
+
+
+def ramp(height: int, width: int) -> np.ndarray:
+    """A float32 image whose value is the column coordinate: resampling it reads back where each pixel sampled."""
+    return np.tile(np.arange(width, dtype=np.float32), (height, 1))
+
+
+@pytest.mark.parametrize("shape", [(40, 50), (40, 50, 3)])
+def test_authors_rule_is_bilinear_to_enlarge_and_area_to_shrink(shape):
+    patch = random_patch(shape)
+    assert np.array_equal(resize_auto(patch, (60, 70)), cv2.resize(patch, (70, 60), interpolation=cv2.INTER_LINEAR))
+    assert np.array_equal(resize_auto(patch, (17, 23)), cv2.resize(patch, (23, 17), interpolation=cv2.INTER_AREA))
+
+
+@pytest.mark.parametrize("out_hw", [(60, 70), (45, 45), (30, 40), (21, 26)])
+def test_fast_rule_is_bilinear_below_a_halving(out_hw):
+    """Enlargements, and shrinks of less than two on some axis, are one bilinear resize."""
+    patch = random_patch((40, 50, 3))
+    expected = cv2.resize(patch, out_hw[::-1], interpolation=cv2.INTER_LINEAR)
+    assert np.array_equal(resize_auto(patch, out_hw, fast=True), expected)
+
+
+@pytest.mark.parametrize("halvings", [1, 2])
+def test_fast_rule_halves_by_exact_two_by_two_means(halvings):
+    patch = random_patch((64, 48, 3))
+    block = 2**halvings
+    block_means = patch.astype(np.float64).reshape(64 // block, block, 48 // block, block, 3).mean(axis=(1, 3))
+    error = np.abs(resize_auto(patch, (64 // block, 48 // block), fast=True) - block_means)
+    assert error.max() <= 0.5 * halvings  # one rounding to uint8 per halving
+
+
+@pytest.mark.parametrize("source_hw", [(203, 157), (97, 130), (64, 64), (33, 250)])
+@pytest.mark.parametrize("out_hw", [(25, 20), (9, 11)])
+def test_fast_rule_neither_shifts_nor_stretches_the_content(source_hw, out_hw):
+    """Halvings of odd sizes do not move the samples: on a ramp, every output pixel reads the coordinate an area
+    resize centres it on, (x + 0.5) * source / output - 0.5, to 1/20 pixel; the first and last columns, which
+    sample within half a level pixel of the border, where bilinear sampling clamps, to within a pixel."""
+    out = resize_auto(ramp(*source_hw), out_hw, fast=True)
+    centres = np.tile((np.arange(out_hw[1]) + 0.5) * source_hw[1] / out_hw[1] - 0.5, (out_hw[0], 1))
+    np.testing.assert_allclose(out[:, 1:-1], centres[:, 1:-1], atol=0.05)
+    np.testing.assert_allclose(out, centres, atol=1.0)
+
+
+def test_fast_rule_stays_close_to_area_averaging_on_a_real_image():
+    """On smooth content the mipmap and one area resize agree to a few grey levels (mean well under one)."""
+    x, y = np.meshgrid(np.linspace(0, 6, 300), np.linspace(0, 4, 260))
+    image = (127.5 + 100 * np.sin(x) * np.cos(y)).astype(np.uint8)
+    for out_hw in [(200, 230), (120, 140), (40, 35)]:
+        area = resize_auto(image, out_hw).astype(float)
+        fast = resize_auto(image, out_hw, fast=True).astype(float)
+        assert np.abs(area - fast).mean() < 0.5 and np.abs(area - fast).max() <= 3
+
+
+def test_subwindow_and_the_tracker_use_the_configured_rule(monkeypatch):
+    frame = random_patch((240, 320, 3))
+    pos, model_hw, sample_hw = np.array([120.0, 160.0]), (50, 60), np.array([150.0, 170.0])  # rows 46-195, cols 76-245
+    assert np.array_equal(subwindow(frame, pos, model_hw, sample_hw),
+                          resize_auto(frame[46:196, 76:246], model_hw))
+    assert np.array_equal(subwindow(frame, pos, model_hw, sample_hw, fast_resize=True),
+                          resize_auto(frame[46:196, 76:246], model_hw, fast=True))
+    import tacf.geometry as geometry
+    import tacf.scale as scale
+    seen = []
+
+    def spy(patch, out_hw, fast=False):
+        seen.append(fast)
+        return resize_auto(patch, out_hw, fast)
+
+    monkeypatch.setattr(geometry, "resize_auto", spy)
+    monkeypatch.setattr(scale, "resize_auto", spy)
+    for fast in (True, False):
+        seen.clear()
+        tracker = Tracker(TrackerConfig.profile(fast_resize=fast))
+        tracker.init(frame, (140, 100, 40, 30))
+        tracker.update(frame)
+        assert seen and set(seen) == {fast}  # the samples and the DSST patches alike
