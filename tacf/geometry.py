@@ -97,10 +97,10 @@ def resize_auto(patch: np.ndarray, out_hw, fast: bool = False) -> np.ndarray:
     fast=True (TrackerConfig.fast_resize) halves the patch by exact 2x2 means while it is at least twice the output
     on both axes (OpenCV's integer area path; an odd size first repeats its last row or column), then samples that
     level bilinearly where the patch's own geometry puts each output pixel: a mipmap, which neither shifts nor
-    stretches the content. Enlargements are the same either way. OpenCV's general area resize runs a scalar loop over weight
-    tables: a 586x528 colour crop to 216x192 takes 1.1 ms that way and 0.25 ms this way. On real frames the two
-    differ by 0.3 grey levels on average (mean absolute difference) for shrinks under 1.3x, by about 1 for shrinks
-    of 1.3-4x and 1.5 beyond; the tracker's accuracy is unchanged within its noise (README "Decisions").
+    stretches the content. Enlargements are the same either way. OpenCV's general area resize runs a scalar loop
+    over weight tables: a 586x528 colour crop to 216x192 takes 1.1 ms that way and 0.25 ms this way. On real frames
+    the two differ by 0.3 grey levels on average (mean absolute difference) for shrinks under 1.3x and by 1-2 for
+    larger ones (tests/test_geometry.py); the tracker's accuracy is unchanged within its noise (README "Decisions").
     """
     rows, cols = int(out_hw[0]), int(out_hw[1])
     if patch.shape[0] == rows and patch.shape[1] == cols:
