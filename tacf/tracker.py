@@ -217,7 +217,9 @@ class Tracker:
                                   object_response: np.ndarray) -> None:
         """Challenge factors: how strongly the HOG filter answers each context patch, relative to the target."""
         weights = self.dimensional["hog"].weights if self.config.dimensional_attention else None
-        responses = self.banks["hog"].response(context, weights, context_hat)
+        hog = self.banks["hog"]
+        respond = hog.pooled_kernel_response if self.config.context_pooled_kernel else hog.response
+        responses = respond(context, weights, context_hat)
         context_pmes = [pme(crop_centre(response, self.grid.crop_cells)) for response in responses]
         self.contextual.update_penalties(pme(object_response), np.array(context_pmes))
 

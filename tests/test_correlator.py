@@ -1,4 +1,5 @@
 """The kernel correlators: closed form against a direct least-squares solve, labels, shift recovery."""
+import cv2
 import numpy as np
 import pytest
 import scipy.fft as sfft
@@ -91,6 +92,41 @@ def test_weighted_channel_sum_equals_sum_of_weighted_channel_responses():
     np.testing.assert_allclose(bank.response(z, weights), np.tensordot(weights, per_channel, 1), atol=1e-4)
 
 
+def _direct_pooled_response(bank, z, weights, sigma=None, poly=None):
+    """The multi-channel kernel written out in space, with full complex FFTs: k[t] over all channels at once."""
+    channels, n = z.shape[-3], z.shape[-2] * z.shape[-1]
+    x = bank.model_x
+    cross = sum(np.real(np.fft.ifft2(np.fft.fft2(z[..., d, :, :]) * np.conj(np.fft.fft2(x[d]))))
+                for d in range(channels))
+    if sigma is not None:
+        sq = np.sum(z**2, axis=(-3, -2, -1))[..., None, None] + np.sum(x**2)
+        kernel = np.exp(-(sq - 2 * cross) / (sigma**2 * n * channels))
+    else:
+        kernel = (cross / (n * channels) + poly[0]) ** poly[1]
+    full_filters = np.stack([np.fft.fft2(sfft.irfft2(w, s=z.shape[-2:])) for w in bank.model_filter_hat])
+    return np.real(np.fft.ifft2(np.fft.fft2(kernel) * np.tensordot(weights, full_filters, 1)))
+
+
+@pytest.mark.parametrize("kernel", [GaussianKernel(0.5), PolynomialKernel(1.0, 2.0)])
+def test_pooled_kernel_response_is_the_multi_channel_kernel_under_the_weighted_filters(kernel):
+    rng = np.random.default_rng(4)
+    x = rng.random((5, 16, 12)).astype(np.float32) * 0.3
+    z = rng.random((3, 5, 16, 12)).astype(np.float32) * 0.3  # three samples at once, as the context patches
+    bank = CorrelatorBank(kernel, gaussian_label((16, 12), 1.0), 1e-4, 0.01)
+    bank.train(x)
+    weights = np.array([0.5, 1.0, 2.0, 0.0, 1.5])
+    expected = _direct_pooled_response(bank, z.astype(np.float64), weights,
+                                       sigma=getattr(kernel, "sigma", None),
+                                       poly=None if isinstance(kernel, GaussianKernel) else (kernel.offset, kernel.degree))
+    pooled = bank.pooled_kernel_response(z, weights)
+    assert pooled.shape == (3, 16, 12)
+    np.testing.assert_allclose(pooled, expected, rtol=1e-3, atol=1e-3 * np.abs(expected).max())  # float32
+    # one channel: pooling changes nothing
+    single = CorrelatorBank(kernel, gaussian_label((16, 12), 1.0), 1e-4, 0.01)
+    single.train(x[:1])
+    np.testing.assert_allclose(single.pooled_kernel_response(z[:, :1]), single.response(z[:, :1]), rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("kernel", [GaussianKernel(0.5), PolynomialKernel(1.0, 2.0)])
 @pytest.mark.parametrize("sigma", [1.0, 6.0])  # a TACF-like label, and one too wide for its grid
 def test_self_response_maxima_and_means_are_those_of_the_maps(kernel, sigma):
@@ -157,3 +193,22 @@ def test_context_energy_of_large_patches_takes_the_exact_kernel():
     exact = _exact_context_energy(bank, contexts, scales)
     np.testing.assert_allclose(bank.context_energy(contexts, scales=scales), exact, rtol=1e-4,
                                atol=1e-6 * exact.max())  # float32 against float64
+
+
+def test_pooled_and_per_channel_responses_both_answer_a_copy_of_the_template_most():
+    """What the challenge factors need of either form: a context patch like the target gets the sharper response."""
+    from tacf.attention import pme
+    from tacf.features import fhog
+
+    rng = np.random.default_rng(5)
+    texture = lambda: cv2.GaussianBlur(rng.integers(0, 256, (96, 96, 3), dtype=np.uint8), (0, 0), 2)
+    target, other = texture(), texture()
+    window = np.outer(np.hanning(24), np.hanning(24)).astype(np.float32)
+    x = fhog(target, 4, divisor=255.0) * window
+    bank = CorrelatorBank(GaussianKernel(0.5), gaussian_label((24, 24), 24 / 40), 1e-4, 0.01)
+    bank.train(x)
+    samples = np.stack([fhog(target, 4, divisor=255.0), fhog(other, 4, divisor=255.0)]) * window
+    for respond in (bank.response, bank.pooled_kernel_response):
+        copy_response, other_response = (crop_centre(r, 11) for r in respond(samples))
+        assert pme(copy_response) > 3 * pme(other_response)
+        assert np.unravel_index(np.argmax(copy_response), (11, 11)) == (5, 5)

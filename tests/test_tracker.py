@@ -266,3 +266,4 @@ def test_tracker_keeps_freed_memory_for_reuse():
 
     assert run("plain") == "mapped anew"
     assert run("tracker") == "reused"
+
