@@ -84,6 +84,7 @@ class TrackerConfig:
     # exact 2x2 halvings then bilinearly instead of one area resize (geometry.resize_auto; README "Decisions").
     fast_fft: bool = True
     fast_resize: bool = True
+    fast_context: bool = True  # the four context patches cut from one sample covering them (Tracker._context_features)
 
     # Output: the target counts as lost when the PME of the fused response falls under this floor. Measured on
     # the 10 UAV sequences (1,282 frames): under 20 flags 25 % of the frames with IoU < 0.1 and none of the frames

@@ -267,3 +267,21 @@ def test_tracker_keeps_freed_memory_for_reuse():
     assert run("plain") == "mapped anew"
     assert run("tracker") == "reused"
 
+
+
+def test_fast_context_cuts_the_four_context_patches_from_one_sample():
+    """Where the grid is the image's own (normalised area = search area, no resize), the four windows cut from the
+    covering sample hold the separate context patches' fHOG, border cells aside (they see the pixels beyond)."""
+    image = _texture(np.random.default_rng(5), (320, 360, 3), blur=2)
+    box = (100, 80, 32, 32)  # padding 3: a 128 x 128 search area, the normalised one with fixed_area = 128^2
+    trackers = {}
+    for fast in (True, False):
+        tracker = Tracker(TrackerConfig.profile("authors", fast_context=fast, fast_fft=False, fixed_area=128.0**2))
+        tracker.init(image, box)
+        trackers[fast] = tracker
+    assert trackers[True].grid.filter_hw == (32, 32) and trackers[True].areas.resize_factor == 1.0
+    cut, separate = (trackers[fast]._context_features(image) for fast in (True, False))
+    assert cut.shape == separate.shape == (4, 31, 32, 32)
+    inner = (slice(None), slice(None), slice(2, -2), slice(2, -2))
+    np.testing.assert_allclose(cut[inner], separate[inner], rtol=1e-5, atol=1e-6)
+    assert not np.allclose(cut[0], cut[1])  # four different places
