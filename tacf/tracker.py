@@ -223,12 +223,13 @@ class Tracker:
         grid_per_image_pixel = self.grid.patch_hw / sample_hw
         margin_cells = round_half_up(self.target_hw * grid_per_image_pixel / cell).astype(int)  # rows, cols
         margin = margin_cells * cell
-        union = subwindow(frame, self.pos, self.grid.patch_hw + 2 * margin, sample_hw + 2 * margin / grid_per_image_pixel,
-                          self.config.fast_resize)
+        union = subwindow(frame, self.pos, self.grid.patch_hw + 2 * margin,
+                          sample_hw + 2 * margin / grid_per_image_pixel, self.config.fast_resize)
         features = fhog(union, cell, divisor=255.0)
         (rows, cols), (margin_rows, margin_cols) = self.grid.filter_hw, margin_cells
+        # up, left, down, right, as context_offsets orders them
         corners = [(0, margin_cols), (margin_rows, 0), (2 * margin_rows, margin_cols), (margin_rows, 2 * margin_cols)]
-        return np.stack([features[:, r:r + rows, c:c + cols] for r, c in corners]) * self.cosine_window  # up, left, down, right
+        return np.stack([features[:, r:r + rows, c:c + cols] for r, c in corners]) * self.cosine_window
 
     def _update_context_penalties(self, context: np.ndarray, context_hat: np.ndarray,
                                   object_response: np.ndarray) -> None:

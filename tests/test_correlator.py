@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 import scipy.fft as sfft
 
+from tacf.attention import pme
 from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
+from tacf.features import fhog
 from tacf.response import crop_centre, peak_offset
 
 
@@ -115,9 +117,8 @@ def test_pooled_kernel_response_is_the_multi_channel_kernel_under_the_weighted_f
     bank = CorrelatorBank(kernel, gaussian_label((16, 12), 1.0), 1e-4, 0.01)
     bank.train(x)
     weights = np.array([0.5, 1.0, 2.0, 0.0, 1.5])
-    expected = _direct_pooled_response(bank, z.astype(np.float64), weights,
-                                       sigma=getattr(kernel, "sigma", None),
-                                       poly=None if isinstance(kernel, GaussianKernel) else (kernel.offset, kernel.degree))
+    poly = None if isinstance(kernel, GaussianKernel) else (kernel.offset, kernel.degree)
+    expected = _direct_pooled_response(bank, z.astype(np.float64), weights, getattr(kernel, "sigma", None), poly)
     pooled = bank.pooled_kernel_response(z, weights)
     assert pooled.shape == (3, 16, 12)
     np.testing.assert_allclose(pooled, expected, rtol=1e-3, atol=1e-3 * np.abs(expected).max())  # float32
@@ -197,9 +198,6 @@ def test_context_energy_of_large_patches_takes_the_exact_kernel():
 
 def test_pooled_and_per_channel_responses_both_answer_a_copy_of_the_template_most():
     """What the challenge factors need of either form: a context patch like the target gets the sharper response."""
-    from tacf.attention import pme
-    from tacf.features import fhog
-
     rng = np.random.default_rng(5)
     texture = lambda: cv2.GaussianBlur(rng.integers(0, 256, (96, 96, 3), dtype=np.uint8), (0, 0), 2)
     target, other = texture(), texture()
