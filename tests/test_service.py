@@ -364,7 +364,9 @@ def test_too_many_sessions(endpoint, client, tmp_path):
                                            max_sessions=1, spare_workers=0, init_wait_s=0.2)).open()
     try:
         request = dict(image_key="test/cam/none", box=(1.0, 1.0, 10.0, 10.0), profile=PROFILE)
-        assert call(client, "small", "start", StartRequest(sid="one", **request)).sid == "one"
+        # With no spare worker this start spawns a worker process first: on a loaded machine (three other
+        # CPU-bound processes on two cores) that once took over the default 5 s.
+        assert call(client, "small", "start", StartRequest(sid="one", **request), timeout=20.0).sid == "one"
         with pytest.raises(ControlError) as err:
             call(client, "small", "start", StartRequest(sid="two", **request))
         assert err.value.code == "too_many_sessions"
