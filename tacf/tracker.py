@@ -168,9 +168,12 @@ class Tracker:
         return TargetAreas.around(target_hw, self.padding, self._frame_shape[:2], self.config.fixed_area,
                                   self.config.inner_padding)
 
+    def _sample_hw(self) -> np.ndarray:
+        """The image area a sample covers: the background area, grown with the fast-FFT grid."""
+        return self.areas.bg_area * self.grid.sample_growth
+
     def _sample(self, frame: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        return subwindow(frame, pos, self.grid.patch_hw, self.areas.bg_area * self.grid.sample_growth,
-                         self.config.fast_resize)
+        return subwindow(frame, pos, self.grid.patch_hw, self._sample_hw(), self.config.fast_resize)
 
     def _features(self, patch: np.ndarray, names) -> dict[str, np.ndarray]:
         extractors = {"hog": lambda p: fhog(p, self.config.cell_size, divisor=255.0),
@@ -216,19 +219,19 @@ class Tracker:
         about 2.4 search areas instead of 4; the patches' border cells, which the cosine window all but removes,
         then see the pixels beyond them."""
         cell = self.config.cell_size
+        offsets = context_offsets(self.target_hw)
         if not self.config.fast_context:
-            patches = np.stack([self._sample(frame, self.pos + offset) for offset in context_offsets(self.target_hw)])
+            patches = np.stack([self._sample(frame, self.pos + offset) for offset in offsets])
             return fhog_batch(patches, cell, divisor=255.0) * self.cosine_window
-        sample_hw = self.areas.bg_area * self.grid.sample_growth
+        sample_hw = self._sample_hw()
         grid_per_image_pixel = self.grid.patch_hw / sample_hw
-        margin_cells = round_half_up(self.target_hw * grid_per_image_pixel / cell).astype(int)  # rows, cols
-        margin = margin_cells * cell
+        offset_cells = (np.sign(offsets) * round_half_up(np.abs(offsets) * grid_per_image_pixel / cell)).astype(int)
+        margin = np.abs(offset_cells).max(axis=0) * cell  # rows, cols of the covering sample beyond the search area
         union = subwindow(frame, self.pos, self.grid.patch_hw + 2 * margin,
                           sample_hw + 2 * margin / grid_per_image_pixel, self.config.fast_resize)
         features = fhog(union, cell, divisor=255.0)
-        (rows, cols), (margin_rows, margin_cols) = self.grid.filter_hw, margin_cells
-        # up, left, down, right, as context_offsets orders them
-        corners = [(0, margin_cols), (margin_rows, 0), (2 * margin_rows, margin_cols), (margin_rows, 2 * margin_cols)]
+        rows, cols = self.grid.filter_hw
+        corners = margin // cell + offset_cells  # each context patch's first cell in the covering sample
         return np.stack([features[:, r:r + rows, c:c + cols] for r, c in corners]) * self.cosine_window
 
     def _update_context_penalties(self, context: np.ndarray, context_hat: np.ndarray,
