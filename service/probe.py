@@ -17,14 +17,15 @@ class ControlError(Exception):
 
 
 def call(session, node: str, op: str, request: WireModel | bytes | None = None, timeout: float = 5.0):
-    """One control request to one node; the reply model, or ControlError (timeout -> code "timeout")."""
+    """One control request to one node; the reply model, or ControlError: code "no_service" when no queryable
+    matched (Zenoh ends such a get at once with no reply), "timeout" when one matched but did not answer in time."""
     import zenoh
     payload = encode(request) if isinstance(request, WireModel) else request
     replies = session.get(control_key(node, op), payload=payload, encoding=zenoh.Encoding(MSGPACK_ENCODING),
                           timeout=timeout)
     for reply in replies:
         return _reply_model(op, reply)
-    raise ControlError("timeout", f"no reply from {node!r} to {op} within {timeout} s")
+    raise ControlError("no_service", f"no service {node!r} is reachable (nothing serves {control_key(node, op)})")
 
 
 def list_all(session, timeout: float = 3.0) -> list:
@@ -42,5 +43,8 @@ def _reply_model(op: str, reply):
     try:
         error = decode(raw, Error)
     except DecodeError:
-        raise ControlError("transport", raw.decode("utf-8", "replace")[:200]) from None
+        text = raw.decode("utf-8", "replace")
+        if text.strip().lower() == "timeout":        # Zenoh's own reply at the get's deadline
+            raise ControlError("timeout", f"no reply to {op} in time") from None
+        raise ControlError("transport", text[:200]) from None
     raise ControlError(error.code, error.message)

@@ -364,6 +364,10 @@ def test_too_many_sessions(endpoint, client, tmp_path):
                                            max_sessions=1, spare_workers=0, init_wait_s=0.2)).open()
     try:
         request = dict(image_key="test/cam/none", box=(1.0, 1.0, 10.0, 10.0), profile=PROFILE)
+        # The client reaches "small" only once gossip has linked them (peers do not relay): until then a get
+        # finds no queryable and ends at once. CI once sent the start in that window.
+        assert wait_until(lambda: "small" in {lst.node for lst in list_all(client, timeout=1.0)}, 20), \
+            "the client never reached the second service"
         # With no spare worker this start spawns a worker process first: on a loaded machine (three other
         # CPU-bound processes on two cores) that once took over the default 5 s.
         assert call(client, "small", "start", StartRequest(sid="one", **request), timeout=20.0).sid == "one"
