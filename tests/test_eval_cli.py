@@ -300,9 +300,9 @@ def test_robustness_of_hand_made_scores():
         sequences = lambda aucs: {"sequences": {f"s{i}": {"auc": a} for i, a in enumerate(aucs)}}  # noqa: E731
         return {"trackers": {"a": sequences(aucs_a), "b": sequences(aucs_b)}}
 
-    per_start = {(0, 0): summary([0.5, 0.6, 0.7], [0.4, 0.6, 0.9]),
-                 (1, 0): summary([0.2, 0.6, 0.7], [0.2, 0.5, 0.8]),
-                 (-1, 0): summary([0.5, 0.3, 0.7], [0.5, 0.3, 0.7])}
+    per_start = {"+0,+0": summary([0.5, 0.6, 0.7], [0.4, 0.6, 0.9]),
+                 "+1,+0": summary([0.2, 0.6, 0.7], [0.2, 0.5, 0.8]),
+                 "-1,+0": summary([0.5, 0.3, 0.7], [0.5, 0.3, 0.7])}
     result = robustness(per_start, ["a", "b"])
     assert result["starts"] == ["+0,+0", "+1,+0", "-1,+0"] and result["sequences"] == 3
     a, b = result["trackers"]["a"], result["trackers"]["b"]
@@ -313,7 +313,30 @@ def test_robustness_of_hand_made_scores():
     low, high = b["difference"]["ci95"]
     assert -0.1 / 3 - 1e-12 <= low < b["difference"]["mean"] < high <= 0.1 + 1e-12  # within the per-sequence range
     table = robustness_table(result)
-    assert "(+1,+0)" in table and "| b | 0.633 | 0.544 | 0.500 - 0.633 | +0.011 (" in table
+    assert table.startswith("Robustness: first box moved by (dx,dy) = (+0,+0), (+1,+0), (-1,+0) pixels; 3 seq")
+    assert "| b | 0.633 | 0.544 | 0.500 - 0.633 | +0.011 (" in table
+    temporal = robustness_table(robustness({"0/3": per_start["+0,+0"], "1/3": per_start["+1,+0"]}, ["a"], "tre"))
+    assert temporal.startswith("Temporal robustness: runs started at (0/3), (1/3) of each sequence; 3 sequences")
+
+
+def test_temporal_starts_begin_at_the_segments_first_usable_box():
+    from tacf.eval.datasets import Sequence
+    from tacf.eval.runner import Start, temporal_starts
+
+    gt = np.tile([10.0, 10.0, 5.0, 5.0], (20, 1))
+    gt[10:13] = np.nan                      # target absent at frames 10-12
+    gt[15, 2] = 0.0                         # a zero-width box cannot start a track
+    seq = Sequence("s", [Path(f"{i}.jpg") for i in range(20)], gt)
+    starts = temporal_starts(4)
+    assert [s.label for s in starts] == ["0/4", "1/4", "2/4", "3/4"] and starts[0] == Start(segment=0, segments=4)
+    parts = [s.sequence(seq) for s in starts]
+    assert parts[0] is seq
+    # frames 0, 5, 10 -> 13 (the first box after the gap), 15 -> 16
+    assert [p.frames[0].name for p in parts] == ["0.jpg", "5.jpg", "13.jpg", "16.jpg"]
+    assert [len(p) for p in parts] == [20, 15, 7, 4] and np.array_equal(parts[2].gt, gt[13:])
+    assert Start(segment=19, segments=20).sequence(seq) is None     # no frame to track after the start
+    assert Start(segment=1, segments=4).directory(Path("out")) == Path("out/tre/1of4")
+    assert starts[0].directory(Path("out")) == Path("out")
 
 
 def write_synthetic_dataset(root: Path, n: int) -> Path:
@@ -344,6 +367,31 @@ def test_eval_shifts_command(tmp_path, capsys):
     table = "Robustness: first box moved by (dx,dy) = (+0,+0), (-2,-2),"
     assert table in capsys.readouterr().out and table in (out / "summary.md").read_text()
     assert (out / "robustness_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_eval_tre_command(tmp_path, capsys):
+    out = tmp_path / "out"
+    args = ["eval", str(write_synthetic_dataset(tmp_path, 8)), "--trackers", "identity,opencv-mosse",
+            "--out", str(out), "--no-progress"]
+    assert main(args + ["--tre", "1"]) == 2
+    assert main(args + ["--tre", "4", "--shifts", "1"]) == 0
+    # segment i of 4 starts at frame 2 i, from the ground-truth box there: 31 + 2 * 2 i, 41 + 2 i
+    for i in (1, 2, 3):
+        rows = (out / "tre" / f"{i}of4" / "identity" / "synthetic" / "drift.txt").read_text().splitlines()
+        assert len(rows) == 8 - 2 * i and rows[0] == f"{31 + 4 * i:.3f},{41 + 2 * i:.3f},24.000,24.000"
+    assert len(list((out / "shifted").iterdir())) == 8     # both protocols; the one-pass runs serve both
+    summary = json.loads((out / "summary.json").read_text())
+    temporal = summary["temporal_robustness"]
+    assert temporal["protocol"] == "tre" and temporal["starts"] == ["0/4", "1/4", "2/4", "3/4"]
+    assert summary["robustness"]["protocol"] == "shifts" and len(summary["robustness"]["starts"]) == 9
+    # identity keeps the start box: its AUC only falls with the time left to drift away in
+    identity = temporal["trackers"]["identity"]["auc_per_start"]
+    assert identity == sorted(identity) and identity[0] == summary["trackers"]["identity"]["auc"]
+    printed = capsys.readouterr().out
+    for text in (printed, (out / "summary.md").read_text()):
+        assert "Temporal robustness: runs started at (0/4), (1/4), (2/4), (3/4)" in text and "Robustness: first" in text
+    assert (out / "temporal_robustness_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "robustness_plot.png").is_file()
 
 
 @needs_tacf

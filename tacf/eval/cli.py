@@ -47,6 +47,9 @@ def register(subparsers) -> None:
     p.add_argument("--shifts", type=int, default=0, metavar="PX",
                    help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
                         "each AUC moves and whether the trackers' differences stand out of that")
+    p.add_argument("--tre", type=int, default=0, metavar="K",
+                   help="also start every pair at frames N/K, 2N/K, ... of each sequence (OTB's temporal robustness; "
+                        "K = 10 is 5.5 times the one-pass work) and report it as --shifts does")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -91,7 +94,7 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from . import report
-    from .runner import pending_jobs, run_jobs, start_dir
+    from .runner import Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
     from .trackers import ABLATION
 
     if args.ablation and args.trackers:
@@ -108,11 +111,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.shifts < 0:
         log.error("--shifts must be >= 0 pixels, got %d", args.shifts)
         return 2
-    starts = [(0, 0)]
+    if args.tre < 0 or args.tre == 1:
+        log.error("--tre must be 0 (off) or at least 2 segments, got %d", args.tre)
+        return 2
+    protocols = {}  # summary.json key: the starts of that robustness protocol, the one-pass start first
     if args.shifts:
-        starts += [(dx * args.shifts, dy * args.shifts) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
-    jobs = [job for shift in starts for job in pending_jobs(trackers, seqs, args.out, args.force, shift)]
-    skipped = len(starts) * len(trackers) * len(seqs) - len(jobs)
+        protocols["robustness"] = ("shifts", shifted_starts(args.shifts))
+    if args.tre:
+        protocols["temporal_robustness"] = ("tre", temporal_starts(args.tre))
+    # Every protocol begins with the one-pass start (results in out_dir itself): it runs once.
+    starts = [Start()] + [start for _, its_starts in protocols.values() for start in its_starts[1:]]
+    jobs = [job for start in starts for job in pending_jobs(trackers, seqs, args.out, args.force, start)]
+    skipped = sum(len(trackers) * len(start.sequences(seqs)) for start in starts) - len(jobs)
     if skipped:
         log.info("%d (tracker, sequence) results already recorded in %s; skipped (use --force to rerun)",
                  skipped, args.out)
@@ -121,16 +131,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
     summary, reports = report.summarize(args.out, trackers, seqs)
-    if args.shifts:
-        summary["robustness"] = report.robustness(
-            {shift: report.summarize(start_dir(args.out, shift), trackers, seqs)[0] for shift in starts}, trackers)
+    for key, (protocol, its_starts) in protocols.items():
+        per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs))[0]
+                     for start in its_starts}
+        summary[key] = report.robustness(per_start, trackers, protocol)
     paths = report.write_reports(args.out, summary, reports)
     table = report.markdown_table(summary)
     if args.ablation:
         table = report.ablation_table(summary)
         (Path(args.out) / "ablation.md").write_text(table)
-    if args.shifts:
-        table += "\n" + report.robustness_table(summary["robustness"])
+    table += report.robustness_tables(summary)
     sys.stdout.write(table)
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return 1 if failed else 0

@@ -5,7 +5,7 @@ summary.json shape (read by other tools; docs DESIGN.md 6):
                        "sequences": {SEQ: {"auc": f, "precision20": f, "fps": f, "frames": n}}}}}
 A tracker's auc and precision20 are the means over its sequences (as benchmark tables report them);
 fps = total frames / total tracker seconds; frames = total frames tracked.
-With `tacf eval --shifts`, summary.json also has "robustness" (see `robustness`).
+With `tacf eval --shifts` summary.json also has "robustness", with `--tre` "temporal_robustness" (see `robustness`).
 """
 from __future__ import annotations
 
@@ -121,21 +121,24 @@ def ablation_table(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def robustness(per_start: dict[tuple[int, int], dict], trackers: list[str], resamples: int = 10000) -> dict:
-    """How far each tracker's mean AUC moves when only its first box moves by a few pixels, and whether the other
-    trackers' differences to the first tracker stand out of that.
+def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = "shifts",
+               resamples: int = 10000) -> dict:
+    """How far each tracker's mean AUC moves over several starts of the same runs (the first box moved by a few
+    pixels, protocol "shifts"; later first frames, protocol "tre"), and whether the other trackers' differences to
+    the first tracker stand out of that.
 
-    per_start: {shift (dx, dy): summary dict of the runs started there}; the sequences scored in every run count.
-    Per tracker: the mean AUC of each start, their mean, min and max. Per later tracker: its AUC minus the first
-    tracker's, per sequence averaged over the starts, then over the sequences, with a 95 % bootstrap interval
-    over the sequences (fixed seed): an interval that holds 0 means the sequences cannot tell the two apart.
+    per_start: {start label: summary dict of the runs started there}, the given start first; the sequences scored
+    in every start count. Per tracker: the mean AUC of each start, their mean, min and max. Per later tracker: its
+    AUC minus the first tracker's, per sequence averaged over the starts, then over the sequences, with a 95 %
+    bootstrap interval over the sequences (fixed seed): an interval that holds 0 means the sequences cannot tell
+    the two apart.
     """
     starts = list(per_start)
     sequence_sets = [set(summary["trackers"][t]["sequences"]) for summary in per_start.values() for t in trackers]
     names = sorted(set.intersection(*sequence_sets)) if sequence_sets else []
     aucs = {t: np.array([[per_start[start]["trackers"][t]["sequences"][n]["auc"] for n in names]
                          for start in starts]) for t in trackers}  # (starts, sequences)
-    result = {"starts": [f"{dx:+d},{dy:+d}" for dx, dy in starts], "sequences": len(names), "trackers": {}}
+    result = {"protocol": protocol, "starts": starts, "sequences": len(names), "trackers": {}}
     if not names:
         return result
     first = trackers[0]
@@ -159,8 +162,12 @@ def robustness_table(result: dict) -> str:
         return ""
     first = next(iter(trackers))
     starts = ", ".join(f"({start})" for start in result["starts"])
-    lines = [f"Robustness: first box moved by (dx,dy) = {starts} pixels; {result['sequences']} sequences:", "",
-             f"| tracker | AUC, first box as given | mean over the starts | min - max | difference to {first} "
+    if result["protocol"] == "tre":
+        title = f"Temporal robustness: runs started at {starts} of each sequence"
+    else:
+        title = f"Robustness: first box moved by (dx,dy) = {starts} pixels"
+    lines = [f"{title}; {result['sequences']} sequences:", "",
+             f"| tracker | AUC, one pass | mean over the starts | min - max | difference to {first} "
              "(95 % interval over sequences) |", "|---|---|---|---|---|"]
     for name, t in trackers.items():
         difference = t.get("difference")
@@ -207,8 +214,18 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
     return paths
 
 
+ROBUSTNESS_KEYS = ("robustness", "temporal_robustness")  # the summary.json keys of --shifts and --tre
+
+
+def robustness_tables(summary: dict) -> str:
+    """The robustness tables a summary holds, each after a blank line; empty when it holds none."""
+    return "".join("\n" + robustness_table(summary[key]) for key in ROBUSTNESS_KEYS
+                   if summary.get(key, {}).get("trackers"))
+
+
 def plot_robustness(result: dict, out_dir: Path) -> Path:
-    """robustness_plot.png: each tracker's mean AUC from every start (dots; the given box ringed) and their mean."""
+    """robustness_plot.png (temporal_robustness_plot.png for TRE): each tracker's mean AUC from every start (dots;
+    the one-pass start ringed) and their mean."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -223,11 +240,12 @@ def plot_robustness(result: dict, out_dir: Path) -> Path:
         ax.scatter([x + spread[0]], aucs[:1], s=70, facecolors="none", edgecolors="tab:red")
         ax.hlines(t["mean"], x - 0.3, x + 0.3, color="black", linewidth=2)
     ax.set_xticks(range(len(trackers)), list(trackers), rotation=20)
-    ax.set(title=f"Mean AUC from {len(result['starts'])} starting boxes ({result['sequences']} sequences)",
-           ylabel="Success AUC", xlabel="dots: one start each (ringed: the box as given); bar: their mean")
+    starts = "starting frames" if result["protocol"] == "tre" else "starting boxes"
+    ax.set(title=f"Mean AUC from {len(result['starts'])} {starts} ({result['sequences']} sequences)",
+           ylabel="Success AUC", xlabel="dots: one start each (ringed: the one-pass start); bar: their mean")
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    path = Path(out_dir) / "robustness_plot.png"
+    path = Path(out_dir) / ("temporal_robustness_plot.png" if result["protocol"] == "tre" else "robustness_plot.png")
     fig.savefig(path)
     plt.close(fig)
     return path
@@ -251,10 +269,10 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) ->
     js = out_dir / "summary.json"
     js.write_text(json.dumps(_finite(summary), indent=2, allow_nan=False) + "\n")
     md = out_dir / "summary.md"
-    robust = robustness_table(summary["robustness"]) if "robustness" in summary else ""
-    md.write_text(markdown_table(summary) + ("\n" + robust if robust else ""))
+    md.write_text(markdown_table(summary) + robustness_tables(summary))
     success, precision = plot_curves(reports, out_dir)
     paths = {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}
-    if summary.get("robustness", {}).get("trackers"):
-        paths["robustness_plot"] = plot_robustness(summary["robustness"], out_dir)
+    for key in ROBUSTNESS_KEYS:
+        if summary.get(key, {}).get("trackers"):
+            paths[f"{key}_plot"] = plot_robustness(summary[key], out_dir)
     return paths

@@ -4,7 +4,8 @@ Result tree (got10k layout, docs ECOSYSTEM.md 3.5):
     <out>/<tracker>/<seq>.txt                  x,y,w,h per frame, 1-based, %.3f, line 1 = the init box
     <out>/<tracker>/times/<seq>_time.txt       seconds of tracker time per frame (init on line 1)
 <seq> is the sequence name relative to the dataset root, so it may contain folders (UAV123_10fps/wakeboard7).
-Runs started from a shifted first box (`tacf eval --shifts`) go to <out>/shifted/<dx><dy>/ in the same layout.
+Runs started from a shifted first box (`tacf eval --shifts`) go to <out>/shifted/<dx><dy>/, runs started at a
+later frame (`tacf eval --tre`) to <out>/tre/<segment>of<segments>/, in the same layout.
 Timing covers the init/update calls only (time.perf_counter), never the image decoding.
 """
 from __future__ import annotations
@@ -81,9 +82,59 @@ def track_sequence(tracker: BoxTracker, seq: Sequence, shift: tuple[int, int] = 
     return track_frames(tracker, iter_frames(seq.frames), seq.gt[0] + [shift[0], shift[1], 0, 0])
 
 
-def start_dir(out_dir: Path, shift: tuple[int, int]) -> Path:
-    """The result tree of the runs started from the first box moved by shift: out_dir itself for no shift."""
-    return Path(out_dir) if shift == (0, 0) else Path(out_dir) / "shifted" / f"{shift[0]:+d}{shift[1]:+d}"
+@dataclass(frozen=True)
+class Start:
+    """Where the runs of one pass start. One-pass evaluation starts on frame 1 from its ground-truth box; `shift`
+    moves that box by (dx, dy) pixels (OTB's spatial robustness); `segment` of `segments` starts at frame
+    segment * N // segments of each sequence, from the first ground-truth box there or later (OTB's temporal
+    robustness, TRE), and scores the frames from there on."""
+
+    shift: tuple[int, int] = (0, 0)
+    segment: int = 0
+    segments: int = 1
+
+    @property
+    def label(self) -> str:
+        return f"{self.segment}/{self.segments}" if self.segments > 1 else f"{self.shift[0]:+d},{self.shift[1]:+d}"
+
+    def describe(self) -> str:
+        """For messages; empty for the one-pass start."""
+        if self.segment:
+            return f"started at {self.label} of the sequence"
+        return f"first box moved by {self.shift}" if self.shift != (0, 0) else ""
+
+    def directory(self, out_dir: Path) -> Path:
+        """The result tree of these runs: out_dir itself for the one-pass start."""
+        if self.segment:
+            return Path(out_dir) / "tre" / f"{self.segment}of{self.segments}"
+        if self.shift != (0, 0):
+            return Path(out_dir) / "shifted" / f"{self.shift[0]:+d}{self.shift[1]:+d}"
+        return Path(out_dir)
+
+    def sequence(self, seq: Sequence) -> Sequence | None:
+        """The part of `seq` these runs track; None when no box at or after the start frame leaves 2 frames."""
+        if not self.segment:
+            return seq
+        segment_start = self.segment * len(seq) // self.segments
+        startable = np.isfinite(seq.gt).all(axis=1) & (seq.gt[:, 2] > 0) & (seq.gt[:, 3] > 0)
+        candidates = np.flatnonzero(startable[segment_start:len(seq) - 1])
+        if not len(candidates):
+            return None
+        first = segment_start + int(candidates[0])
+        return Sequence(seq.name, seq.frames[first:], seq.gt[first:])
+
+    def sequences(self, seqs: list[Sequence]) -> list[Sequence]:
+        return [part for part in map(self.sequence, seqs) if part is not None]
+
+
+def shifted_starts(pixels: int) -> list[Start]:
+    """The given start, then the 8 first boxes `pixels` away (size kept)."""
+    return [Start()] + [Start((dx * pixels, dy * pixels)) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
+
+
+def temporal_starts(segments: int) -> list[Start]:
+    """Starts at frames 0, N // segments, 2 N // segments, ... of each sequence."""
+    return [Start(segment=i, segments=segments) for i in range(segments)]
 
 
 def result_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
@@ -117,7 +168,7 @@ class Job:
     tracker: str
     seq: Sequence
     out_dir: Path
-    shift: tuple[int, int] = (0, 0)
+    start: Start = Start()
 
 
 @dataclass(frozen=True)
@@ -135,25 +186,24 @@ def run_job(job: Job) -> JobOutcome:
         import cv2
 
         cv2.setNumThreads(1)  # one core per job: fair per-stream numbers and no oversubscription
-        run = track_sequence(make_tracker(job.tracker), job.seq, job.shift)
+        run = track_sequence(make_tracker(job.tracker), job.seq, job.start.shift)
         write_run(job.out_dir, job.tracker, job.seq.name, run)
         return JobOutcome(job.tracker, job.seq.name, len(run.boxes), float(run.times.sum()))
     except Exception as exc:  # noqa: BLE001 - one failed pair must not stop the others
-        start = f" (first box moved by {job.shift})" if job.shift != (0, 0) else ""
+        start = f" ({job.start.describe()})" if job.start.describe() else ""
         log.exception("%s on %s%s failed", job.tracker, job.seq.name, start)
         return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}{start}")
 
 
 def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, force: bool = False,
-                 shift: tuple[int, int] = (0, 0)) -> list[Job]:
-    """The (tracker, sequence) pairs without a recorded result (all of them with `force`), for runs started from
-    the first box moved by shift."""
-    out_dir = start_dir(out_dir, shift)
+                 start: Start = Start()) -> list[Job]:
+    """The (tracker, sequence) pairs without a recorded result (all of them with `force`), for runs from `start`."""
+    out_dir = start.directory(out_dir)
     jobs = []
     for name in trackers:
-        for seq in sequences:
+        for seq in start.sequences(sequences):
             if force or not result_path(out_dir, name, seq.name).is_file():
-                jobs.append(Job(name, seq, out_dir, shift))
+                jobs.append(Job(name, seq, out_dir, start))
             else:
                 log.debug("%s/%s already recorded; skipped", name, seq.name)
     return jobs
