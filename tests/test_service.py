@@ -382,5 +382,21 @@ def test_too_many_sessions(endpoint, client, tmp_path):
         assert time.monotonic() - started < 2.0
 
 
+def test_probe_tells_nobody_serving_from_a_late_reply(client):
+    with pytest.raises(ControlError) as err:
+        call(client, "nobody", "list", timeout=5.0)
+    assert err.value.code == "no_service" and "'nobody'" in err.value.message
+    # A queryable that never answers (declared on the client's own session, which its gets reach too): Zenoh's
+    # own error reply at the deadline.
+    silent = client.declare_queryable(control_key("mute", "list"), zenoh.handlers.FifoChannel(4))
+    try:
+        started = time.monotonic()
+        with pytest.raises(ControlError) as err:
+            call(client, "mute", "list", timeout=0.5)
+        assert err.value.code == "timeout" and time.monotonic() - started >= 0.45
+    finally:
+        silent.undeclare()
+
+
 def test_control_keys_layout():
     assert control_key(NODE, "list") == f"tacf/{NODE}/control/list"
