@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from tacf.cli import main
+from tacf.config import TrackerConfig
 from tacf.eval import trackers
 from tacf.eval.runner import track_frames
 
@@ -58,6 +59,23 @@ def test_registry_names():
     only_ca = trackers.tacf_config("kcc+ca")
     assert only_ca.context_attention and not only_ca.dimensional_attention and not only_ca.spatiotemporal_attention
     assert trackers.tacf_config("tacf-paper").profile_name == "paper"
+
+
+def test_names_with_settings():
+    heavy = trackers.tacf_config("kcc+ca@context_lambda2=16@context_interval=2@fast_resize=false")
+    assert heavy.context_attention and not heavy.dimensional_attention and heavy.profile_name == "kcc"
+    assert (heavy.context_lambda2, heavy.context_interval, heavy.fast_resize) == (16.0, 2, False)
+    assert type(heavy.context_interval) is int and type(heavy.context_lambda2) is float
+    paper = trackers.tacf_config("tacf-paper@lambda1=1e-4")
+    assert paper.profile_name == "paper" and paper.lambda1 == 1e-4 and paper.context_lambda2 == 0.0625
+    assert trackers.tacf_config("tacf@use_colour_names=False") == TrackerConfig.profile(use_colour_names=False)
+    for bad, says in [("tacf@nonsense=1", "bad setting"), ("tacf@lambda1", "bad setting"),
+                      ("tacf@lambda1=", "bad setting"), ("tacf@profile_name=paper", "bad setting"),
+                      ("kcc@fast_fft=yes", "true or false"), ("kcc@num_scales=3.5", "an integer"),
+                      ("kcc@lambda1=1@lambda1=2", "set twice"), ("kcc@num_scales=4", "must be odd"),
+                      ("kcc@lambda1=nan", "finite"), ("kcc+xx@lambda1=1", "module list")]:
+        with pytest.raises(ValueError, match=says):
+            trackers.check_name(bad)
 
 
 @pytest.mark.parametrize("name", trackers.OPENCV_TRACKERS + ("identity",))

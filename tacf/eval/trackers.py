@@ -9,6 +9,8 @@ Names:
   tacf-<profile>        TACF with a named profile: tacf-paper, tacf-authors, tacf-kcc
   kcc                   the ablation baseline (all three attentions off)
   kcc+sa, kcc+da+ca...  kcc with the named attentions on: sa = spatiotemporal, da = dimensional, ca = context
+  <any of those>@field=value[@field=value...]   with TrackerConfig fields replaced (parameter studies):
+                        kcc+ca@context_lambda2=16, tacf@lambda1=5e-5@fast_resize=false
   opencv-csrt, opencv-kcf, opencv-mosse, opencv-mil   OpenCV's trackers (opencv-contrib)
   identity              returns the first box every frame (smoke tests)
 """
@@ -111,17 +113,47 @@ def tacf_config(name: str):
     """The TrackerConfig a TACF-family name stands for; ValueError for other names."""
     from tacf.config import TrackerConfig
 
-    if name == "tacf":
-        return TrackerConfig.profile()
-    if name.startswith("tacf-"):
-        return TrackerConfig.profile(name[len("tacf-"):])
-    parts = name.split("+")
+    base, *settings = name.split("@")
+    overrides = _overrides(settings, name)
+    if base == "tacf":
+        return TrackerConfig.profile(**overrides)
+    if base.startswith("tacf-"):
+        return TrackerConfig.profile(base[len("tacf-"):], **overrides)
+    parts = base.split("+")
     if parts[0] != "kcc":
         raise ValueError(f"not a TACF tracker name: {name!r}")
     unknown = [p for p in parts[1:] if p not in ATTENTIONS]
     if unknown or len(set(parts[1:])) != len(parts[1:]):
         raise ValueError(f"bad module list in {name!r}: use kcc followed by +sa, +da, +ca (each once)")
-    return TrackerConfig.profile("kcc", **{ATTENTIONS[p]: True for p in parts[1:]})
+    return TrackerConfig.profile("kcc", **{ATTENTIONS[p]: True for p in parts[1:]}, **overrides)
+
+
+def _overrides(settings: list[str], name: str) -> dict:
+    """'field=value' strings as TrackerConfig overrides, each value read as its field's type."""
+    import dataclasses
+
+    from tacf.config import TrackerConfig
+
+    types = {f.name: f.type for f in dataclasses.fields(TrackerConfig) if f.type in ("bool", "int", "float")}
+    overrides = {}
+    for setting in settings:
+        field, _, text = setting.partition("=")
+        if field not in types or not text:
+            raise ValueError(f"bad setting {setting!r} in {name!r}: use @field=value with a TrackerConfig field")
+        if field in overrides:
+            raise ValueError(f"{field} set twice in {name!r}")
+        kind = types[field]
+        if kind == "bool":
+            if text.lower() not in ("true", "false"):
+                raise ValueError(f"{field} in {name!r} must be true or false, got {text!r}")
+            overrides[field] = text.lower() == "true"
+        else:
+            try:
+                overrides[field] = int(text) if kind == "int" else float(text)
+            except ValueError:
+                expected = "an integer" if kind == "int" else "a number"
+                raise ValueError(f"{field} in {name!r} must be {expected}, got {text!r}") from None
+    return overrides
 
 
 def check_name(name: str) -> str:
@@ -132,6 +164,7 @@ def check_name(name: str) -> str:
         tacf_config(name)
     except ValueError as exc:
         raise ValueError(f"unknown tracker {name!r} ({exc}); known: tacf, tacf-<profile>, kcc[+sa][+da][+ca], "
+                         "each optionally followed by @field=value settings, "
                          f"{', '.join(OPENCV_TRACKERS)}, identity") from None
     return name
 
