@@ -69,6 +69,7 @@ def test_names_with_settings():
     paper = trackers.tacf_config("tacf-paper@lambda1=1e-4")
     assert paper.profile_name == "paper" and paper.lambda1 == 1e-4 and paper.context_lambda2 == 0.0625
     assert trackers.tacf_config("tacf@use_colour_names=False") == TrackerConfig.profile(use_colour_names=False)
+    assert not trackers.tacf_config("kcc+ca@context_attention=false").context_attention     # the setting wins
     for bad, says in [("tacf@nonsense=1", "bad setting"), ("tacf@lambda1", "bad setting"),
                       ("tacf@lambda1=", "bad setting"), ("tacf@profile_name=paper", "bad setting"),
                       ("kcc@fast_fft=yes", "true or false"), ("kcc@num_scales=3.5", "an integer"),

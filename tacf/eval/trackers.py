@@ -125,7 +125,7 @@ def tacf_config(name: str):
     unknown = [p for p in parts[1:] if p not in ATTENTIONS]
     if unknown or len(set(parts[1:])) != len(parts[1:]):
         raise ValueError(f"bad module list in {name!r}: use kcc followed by +sa, +da, +ca (each once)")
-    return TrackerConfig.profile("kcc", **{ATTENTIONS[p]: True for p in parts[1:]}, **overrides)
+    return TrackerConfig.profile("kcc", **{**{ATTENTIONS[p]: True for p in parts[1:]}, **overrides})
 
 
 def _overrides(settings: list[str], name: str) -> dict:
