@@ -114,13 +114,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.tre < 0 or args.tre == 1:
         log.error("--tre must be 0 (off) or at least 2 segments, got %d", args.tre)
         return 2
-    protocols = {}  # summary.json key: the starts of that robustness protocol, the one-pass start first
+    protocols = {}  # robustness protocol: its starts, the one-pass start first
     if args.shifts:
-        protocols["robustness"] = ("shifts", shifted_starts(args.shifts))
+        protocols["shifts"] = shifted_starts(args.shifts)
     if args.tre:
-        protocols["temporal_robustness"] = ("tre", temporal_starts(args.tre))
+        protocols["tre"] = temporal_starts(args.tre)
     # Every protocol begins with the one-pass start (results in out_dir itself): it runs once.
-    starts = [Start()] + [start for _, its_starts in protocols.values() for start in its_starts[1:]]
+    starts = [Start()] + [start for its_starts in protocols.values() for start in its_starts[1:]]
     jobs = [job for start in starts for job in pending_jobs(trackers, seqs, args.out, args.force, start)]
     skipped = sum(len(trackers) * len(start.sequences(seqs)) for start in starts) - len(jobs)
     if skipped:
@@ -131,10 +131,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
     summary, reports = report.summarize(args.out, trackers, seqs)
-    for key, (protocol, its_starts) in protocols.items():
+    for protocol, its_starts in protocols.items():
         per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs))[0]
                      for start in its_starts}
-        summary[key] = report.robustness(per_start, trackers, protocol)
+        summary[report.ROBUSTNESS_KEYS[protocol]] = report.robustness(per_start, trackers, protocol)
     paths = report.write_reports(args.out, summary, reports)
     table = report.markdown_table(summary)
     if args.ablation:

@@ -214,18 +214,18 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
     return paths
 
 
-ROBUSTNESS_KEYS = ("robustness", "temporal_robustness")  # the summary.json keys of --shifts and --tre
+ROBUSTNESS_KEYS = {"shifts": "robustness", "tre": "temporal_robustness"}  # protocol: its summary.json key
 
 
 def robustness_tables(summary: dict) -> str:
     """The robustness tables a summary holds, each after a blank line; empty when it holds none."""
-    return "".join("\n" + robustness_table(summary[key]) for key in ROBUSTNESS_KEYS
+    return "".join("\n" + robustness_table(summary[key]) for key in ROBUSTNESS_KEYS.values()
                    if summary.get(key, {}).get("trackers"))
 
 
 def plot_robustness(result: dict, out_dir: Path) -> Path:
-    """robustness_plot.png (temporal_robustness_plot.png for TRE): each tracker's mean AUC from every start (dots;
-    the one-pass start ringed) and their mean."""
+    """<summary key>_plot.png (robustness_plot.png, temporal_robustness_plot.png): each tracker's mean AUC from
+    every start (dots; the one-pass start ringed) and their mean."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -245,7 +245,7 @@ def plot_robustness(result: dict, out_dir: Path) -> Path:
            ylabel="Success AUC", xlabel="dots: one start each (ringed: the one-pass start); bar: their mean")
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    path = Path(out_dir) / ("temporal_robustness_plot.png" if result["protocol"] == "tre" else "robustness_plot.png")
+    path = Path(out_dir) / f"{ROBUSTNESS_KEYS[result['protocol']]}_plot.png"
     fig.savefig(path)
     plt.close(fig)
     return path
@@ -272,7 +272,7 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) ->
     md.write_text(markdown_table(summary) + robustness_tables(summary))
     success, precision = plot_curves(reports, out_dir)
     paths = {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}
-    for key in ROBUSTNESS_KEYS:
+    for key in ROBUSTNESS_KEYS.values():
         if summary.get(key, {}).get("trackers"):
             paths[f"{key}_plot"] = plot_robustness(summary[key], out_dir)
     return paths
