@@ -2,7 +2,8 @@
 
 Foreground and background histograms (32 bins per channel) are learnt on the normalised patch; at detection
 the per-pixel foreground likelihood, min-max normalised and floored, multiplies the cosine window so that
-features on background-coloured pixels count less. It is not merged into the response.
+features on background-coloured pixels count less. TACF does not merge it into the response; the Staple peer
+(tacf.staple) does, as Staple itself did.
 """
 from __future__ import annotations
 
@@ -71,13 +72,16 @@ class ColourModel:
         self.fg_hist = (1 - rate) * self.fg_hist + rate * fg_hist
         self.bg_hist = (1 - rate) * self.bg_hist + rate * bg_hist
 
-    def likelihood_window(self, patch: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
-        """Foreground likelihood on the feature grid, normalised to [floor, 1]."""
+    def pixel_likelihood(self, patch: np.ndarray) -> np.ndarray:
+        """P(foreground | colour) of every pixel, fg / (fg + bg) of its bin (0 for colours never seen), float32."""
         total = self.fg_hist + self.bg_hist  # per bin, then one lookup per pixel
         per_bin = np.divide(self.fg_hist, total, out=np.zeros_like(total), where=total > 0).astype(np.float32)
         bits = self.bins.bit_length() - 1
-        pixels = _per_pixel(per_bin, patch.reshape(*patch.shape[:2], -1), 8 - bits, bits)
-        likelihood = cv2.resize(pixels, (grid_hw[1], grid_hw[0]), interpolation=cv2.INTER_AREA)
+        return _per_pixel(per_bin, patch.reshape(*patch.shape[:2], -1), 8 - bits, bits)
+
+    def likelihood_window(self, patch: np.ndarray, grid_hw: tuple[int, int]) -> np.ndarray:
+        """Foreground likelihood on the feature grid, normalised to [floor, 1]."""
+        likelihood = cv2.resize(self.pixel_likelihood(patch), (grid_hw[1], grid_hw[0]), interpolation=cv2.INTER_AREA)
         low, high = likelihood.min(), likelihood.max()
         if high <= low:
             return np.ones(grid_hw, np.float32)

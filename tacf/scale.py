@@ -109,7 +109,9 @@ class _RecentSample:
 class ScaleFilter:
     """The DSST scale filter of one sequence (section 11).
 
-    `features` is the per-patch feature function; it exists so tests can inject a cheap stand-in (see FeatureFn).
+    `cfg` is a TrackerConfig, or any config with its cell_size, fast_resize and scale fields (tacf.staple's
+    StapleConfig). `features` is the per-patch feature function; it exists so tests can inject a cheap stand-in
+    (see FeatureFn).
     By default all scale patches of a sample go through the project's fHOG in one batch call (`fhog_batch`),
     which gives the same values as one `fhog` call per patch at a fraction of the per-call overhead.
     """

@@ -40,7 +40,7 @@ class TrackResult:
     scale: float  # current size relative to the initial box
 
 
-def _check_frame(frame, expected_shape=None) -> np.ndarray:
+def check_frame(frame, expected_shape=None) -> np.ndarray:
     if not isinstance(frame, np.ndarray):
         raise ValueError(f"frame must be a numpy array, got {type(frame).__name__}")
     if frame.ndim == 3 and frame.shape[2] == 1:
@@ -71,7 +71,7 @@ class Tracker:
     def init(self, frame: np.ndarray, box) -> None:
         """Start (or restart) tracking the target in box = (x, y, w, h) of this frame."""
         cfg = self.config
-        frame = _check_frame(frame)
+        frame = check_frame(frame)
         x, y, w, h = check_box(box, frame.shape)
         self._frame_shape = frame.shape
         self._to_learn = None
@@ -129,7 +129,7 @@ class Tracker:
         """
         if self._frame_shape is None:
             raise RuntimeError("call init(frame, box) before update(frame)")
-        frame = _check_frame(frame, self._frame_shape)
+        frame = check_frame(frame, self._frame_shape)
         self.learn()
         self.frame_number += 1
 

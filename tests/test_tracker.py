@@ -5,31 +5,7 @@ import pytest
 
 from tacf import Tracker, TrackerConfig, TrackResult
 from tacf.eval.metrics import box_iou
-
-
-def _texture(rng, shape, blur=3):
-    noise = rng.integers(0, 256, size=shape, dtype=np.uint8)
-    return cv2.GaussianBlur(noise, (0, 0), blur)
-
-
-def moving_target_sequence(frames=40, size=(240, 320), target=(30, 24), velocity=(2.0, 3.0), gray=False):
-    """A textured target sliding over a textured background; returns frames and 0-based (x, y, w, h) truth."""
-    rng = np.random.default_rng(7)
-    channels = () if gray else (3,)
-    background = _texture(rng, size + channels, blur=4)
-    sprite = _texture(rng, target + channels, blur=1)
-    sprite = cv2.add(sprite, 60)  # brighter than the background, as a vehicle on a road
-    y, x = 60.0, 50.0
-    images, boxes = [], []
-    for _ in range(frames):
-        image = background.copy()
-        top, left = int(round(y)), int(round(x))
-        visible = image[top:top + target[0], left:left + target[1]]  # clipped at the image border
-        visible[...] = sprite[:visible.shape[0], :visible.shape[1]]
-        images.append(image)
-        boxes.append((left, top, target[1], target[0]))
-        y, x = y + velocity[0], x + velocity[1]
-    return images, np.array(boxes, dtype=float)
+from synthetic import moving_target_sequence, texture
 
 
 def _track(config, images, first_box):
@@ -68,8 +44,8 @@ def test_grayscale_frames():
 
 def test_scale_estimate_follows_a_growing_target():
     rng = np.random.default_rng(3)
-    background = _texture(rng, (300, 300, 3), blur=4)
-    sprite = cv2.add(_texture(rng, (40, 40, 3), blur=2), 50)
+    background = texture(rng, (300, 300, 3), blur=4)
+    sprite = cv2.add(texture(rng, (40, 40, 3), blur=2), 50)
     images, sizes = [], []
     for k in range(30):
         side = int(round(40 * 1.01**k))
@@ -272,7 +248,7 @@ def test_tracker_keeps_freed_memory_for_reuse():
 def test_fast_context_cuts_the_four_context_patches_from_one_sample():
     """Where the grid is the image's own (normalised area = search area, no resize), the four windows cut from the
     covering sample hold the separate context patches' fHOG, border cells aside (they see the pixels beyond)."""
-    image = _texture(np.random.default_rng(5), (320, 360, 3), blur=2)
+    image = texture(np.random.default_rng(5), (320, 360, 3), blur=2)
     box = (100, 80, 32, 32)  # padding 3: a 128 x 128 search area, the normalised one with fixed_area = 128^2
     trackers = {}
     for fast in (True, False):

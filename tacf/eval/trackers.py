@@ -11,6 +11,7 @@ Names:
   kcc+sa, kcc+da+ca...  kcc with the named attentions on: sa = spatiotemporal, da = dimensional, ca = context
   <any of those>@field=value[@field=value...]   with TrackerConfig fields replaced (parameter studies):
                         kcc+ca@context_lambda2=16, tacf@lambda1=5e-5@fast_resize=false
+  staple                Staple with its own parameters, the scaffolding of the paper's KCC baseline (tacf.staple)
   opencv-csrt, opencv-kcf, opencv-mosse, opencv-mil   OpenCV's trackers (opencv-contrib)
   identity              returns the first box every frame (smoke tests)
 """
@@ -51,14 +52,13 @@ class IdentityTracker:
         return self._box
 
 
-class TACFAdapter:
-    """tacf.Tracker behind the evaluation interface."""
+class LibraryAdapter:
+    """A tracker of this library (tacf.Tracker, tacf.staple.Staple: update returns a TrackResult) behind the
+    evaluation interface."""
 
-    def __init__(self, name: str, config) -> None:
-        from tacf import Tracker
-
-        self.name, self.config, self.ok, self.pme = name, config, True, math.nan
-        self._tracker = Tracker(config)
+    def __init__(self, name: str, tracker) -> None:
+        self.name, self.ok, self.pme = name, True, math.nan
+        self._tracker = tracker
 
     def init(self, frame, box: Box) -> None:
         self._tracker.init(frame, tuple(float(v) for v in box))
@@ -158,14 +158,14 @@ def _overrides(settings: list[str], name: str) -> dict:
 
 def check_name(name: str) -> str:
     """`name` if it is a known tracker name (without building the tracker), else ValueError."""
-    if name == "identity" or name in OPENCV_TRACKERS:
+    if name in ("identity", "staple") or name in OPENCV_TRACKERS:
         return name
     try:
         tacf_config(name)
     except ValueError as exc:
         raise ValueError(f"unknown tracker {name!r} ({exc}); known: tacf, tacf-<profile>, kcc[+sa][+da][+ca], "
                          "each optionally followed by @field=value settings, "
-                         f"{', '.join(OPENCV_TRACKERS)}, identity") from None
+                         f"staple, {', '.join(OPENCV_TRACKERS)}, identity") from None
     return name
 
 
@@ -175,4 +175,10 @@ def make_tracker(name: str) -> BoxTracker:
         return IdentityTracker()
     if name in OPENCV_TRACKERS:
         return OpenCVAdapter(name, name.split("-", 1)[1])
-    return TACFAdapter(name, tacf_config(check_name(name)))
+    if name == "staple":
+        from tacf.staple import Staple
+
+        return LibraryAdapter(name, Staple())
+    from tacf import Tracker
+
+    return LibraryAdapter(name, Tracker(tacf_config(check_name(name))))

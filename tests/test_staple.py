@@ -1,0 +1,82 @@
+"""The Staple peer (tacf.staple): its colour response, following a generated target, real sequences, bad input."""
+import cv2
+import numpy as np
+import pytest
+from synthetic import moving_target_sequence
+from test_sequences import _load, _mean_iou
+
+from tacf.eval.metrics import box_iou
+from tacf.eval.trackers import check_name, make_tracker
+from tacf.staple import Staple, window_means
+
+
+def test_window_means_are_the_means_of_every_window():
+    values = np.random.default_rng(3).random((9, 12)).astype(np.float32)
+    means = window_means(values, (4, 5))
+    assert means.shape == (6, 8)
+    expected = [[values[i:i + 4, j:j + 5].mean() for j in range(8)] for i in range(6)]
+    np.testing.assert_allclose(means, expected, rtol=1e-6)
+
+
+def test_window_means_peak_where_the_likelihood_block_is():
+    likelihood = np.zeros((30, 30), np.float32)
+    likelihood[12:18, 7:13] = 1.0  # a 6x6 target-coloured block whose top-left pixel is (12, 7)
+    means = window_means(likelihood, (6, 6))
+    assert np.unravel_index(np.argmax(means), means.shape) == (12, 7)
+    assert means.max() == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("gray", [False, True])
+def test_follows_a_moving_textured_target(gray):
+    images, truth = moving_target_sequence(gray=gray)
+    tracker = Staple()
+    tracker.init(images[0], truth[0])
+    results = [tracker.update(image) for image in images[1:]]
+    overlaps = [box_iou(r.box, t) for r, t in zip(results, truth[1:])]
+    assert np.mean(overlaps) > 0.6, overlaps
+    assert min(overlaps[-10:]) > 0.4
+    assert all(r.ok and np.isfinite(r.pme) for r in results)
+
+
+def test_bad_input_is_refused():
+    images, truth = moving_target_sequence(frames=2)
+    tracker = Staple()
+    with pytest.raises(RuntimeError, match="init"):
+        tracker.update(images[0])
+    with pytest.raises(ValueError, match="positive"):
+        tracker.init(images[0], (10, 10, 0, 5))
+    tracker.init(images[0], truth[0])
+    with pytest.raises(ValueError, match="differs"):
+        tracker.update(cv2.resize(images[1], (100, 80)))
+
+
+def test_a_target_leaving_the_image_does_not_crash():
+    images, truth = moving_target_sequence(frames=60, velocity=(3.0, 5.0))  # leaves through the right border
+    tracker = Staple()
+    tracker.init(images[0], truth[0])
+    for image in images[1:]:
+        x, y, w, h = tracker.update(image).box
+        assert np.isfinite([x, y, w, h]).all() and w > 0 and h > 0
+
+
+def test_is_a_tracker_of_the_evaluation():
+    assert check_name("staple") == "staple"
+    tracker = make_tracker("staple")
+    images, truth = moving_target_sequence(frames=5)
+    tracker.init(images[0], tuple(truth[0]))
+    box = tracker.update(images[1])
+    assert len(box) == 4 and tracker.ok
+
+
+# mean IoU floors a little under what Staple measured (README "Accuracy": the paper's baseline)
+STAPLE_FLOORS = {"UAV123_10fps/building5": 0.75, "UAV123_10fps/person12_1": 0.65, "OTB100/Crossing": 0.70}
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name", sorted(STAPLE_FLOORS))
+def test_reaches_its_floor_on_real_sequences(name):
+    frames, truth = _load(name)
+    tracker = Staple()
+    tracker.init(frames[0], truth[0])
+    boxes = np.array([truth[0]] + [tracker.update(frame).box for frame in frames[1:]])
+    assert _mean_iou(boxes, truth) > STAPLE_FLOORS[name]
