@@ -194,8 +194,9 @@ class ScaleFilter:
         self._recent = _RecentSample(image, rects, vectors, spectrum)
         return spectrum
 
-    def _sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
-        """Xs transposed: row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
+    def sample(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
+        """Xs transposed, computed afresh (for inspection; the filter uses its spectrum, with what it can reuse):
+        row i is the flattened feature vector of scale i times scale_window[i] (section 11)."""
         rects = self._rects(pos, scale_factor)
         return self._windowed(self._feature_vectors(image, rects, {}), rects)
 

@@ -158,7 +158,7 @@ def test_filter_algebra_matches_the_full_complex_fft_formulation():
     pos = np.array([118.3, 161.9])
     sf = make_filter([40, 50], image.shape[:2])
     sf.update_model(image, pos, 1.0)
-    train, test = np.fft.fft(sf._sample(image, pos, 1.0), axis=0), np.fft.fft(sf._sample(probe, pos, 1.0), axis=0)
+    train, test = np.fft.fft(sf.sample(image, pos, 1.0), axis=0), np.fft.fft(sf.sample(probe, pos, 1.0), axis=0)
     label_hat = np.fft.fft(scale_label(33, 0.5))
     num = label_hat[:, None] * np.conj(train)
     den = np.sum(train * np.conj(train), axis=1)
@@ -186,7 +186,7 @@ def test_a_sample_shifted_along_the_scale_axis_moves_the_peak_the_other_way(shif
 def test_sample_rows_are_windowed_and_the_zero_weight_scales_are_zero():
     image = textured_image((240, 320))
     sf = make_filter([40, 50], image.shape[:2])
-    sample = sf._sample(image, np.array([120.0, 160.0]), 1.0)
+    sample = sf.sample(image, np.array([120.0, 160.0]), 1.0)
     cells = sf.model_size // CFG.cell_size
     assert sample.shape == (33, 3 * cells[0] * cells[1])
     assert not sample[0].any() and not sample[32].any()
@@ -234,8 +234,8 @@ def test_default_batched_fhog_equals_fhog_patch_by_patch(channels):
         norm_target_sz = default_norm_sz if norm_target_sz is None else norm_target_sz
         batched, by_patch = (ScaleFilter(CFG, image.shape[:2], np.asarray(target_sz, float), norm_target_sz,
                                          bg_area, features=features) for features in (None, fhog))
-        np.testing.assert_array_equal(batched._sample(image, np.array(pos), scale_factor),
-                                      by_patch._sample(image, np.array(pos), scale_factor))
+        np.testing.assert_array_equal(batched.sample(image, np.array(pos), scale_factor),
+                                      by_patch.sample(image, np.array(pos), scale_factor))
     assert np.array_equal(batched.model_size, [6, 80])
 
 
