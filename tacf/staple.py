@@ -9,6 +9,10 @@ section 15 lists as the baseline's): a linear correlation filter with one denomi
 filter's (0.3) rather than used as a window. Scale is Staple's DSST (33 scales, step 1.02), not KCC's kernel
 scale correlator: the one departure from the paper's baseline.
 
+Two details follow this project's TACF rather than Staple's code: the box is reported at the current frame's
+scale (Staple's lags one frame), and the histogram masks keep the first frame's proportions of the normalised
+patch (Staple redraws them each frame from areas whose proportions barely change).
+
 Per frame: LOCALISE (filter response, cropped and upsampled; the mean foreground likelihood of every target-sized
 window around the last position; their blend's peak), SCALE (DSST), UPDATE (filter, histograms, scale model).
 """

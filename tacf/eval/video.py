@@ -15,7 +15,7 @@ from .trackers import BoxTracker
 log = logging.getLogger(__name__)
 
 BOXES_HEADER = ("# x,y,w,h,pme,ok - one line per frame, line 1 = the initial box; x,y,w,h in 0-based pixels "
-                "(x,y = top-left corner); pme = peak-to-mean energy of the response (nan when the tracker has "
+                "(x,y = top-left corner); pme = peak-to-median energy of the response (nan when the tracker has "
                 "none); ok = 1 tracked, 0 target lost")
 
 
