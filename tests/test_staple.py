@@ -50,13 +50,17 @@ def test_bad_input_is_refused():
         tracker.update(cv2.resize(images[1], (100, 80)))
 
 
-def test_a_target_leaving_the_image_does_not_crash():
-    images, truth = moving_target_sequence(frames=60, velocity=(3.0, 5.0))  # leaves through the right border
+def test_tiny_target_leaving_the_image_and_a_target_larger_than_most_of_the_frame():
+    images, truth = moving_target_sequence(frames=60, target=(9, 10), velocity=(0.0, 5.0))  # leaves at frame ~54
     tracker = Staple()
     tracker.init(images[0], truth[0])
     for image in images[1:]:
         x, y, w, h = tracker.update(image).box
         assert np.isfinite([x, y, w, h]).all() and w > 0 and h > 0
+    images, _ = moving_target_sequence(frames=8, size=(100, 120), target=(80, 100), velocity=(0.3, 0.3))
+    tracker.init(images[0], (5, 5, 110, 90))
+    for image in images[1:]:
+        assert np.isfinite(tracker.update(image).box).all()
 
 
 def test_is_a_tracker_of_the_evaluation():
