@@ -25,3 +25,9 @@ def check_box(box, frame_shape) -> np.ndarray:
         # tolist(): plain numbers in the message, which reaches service clients (not numpy 2's np.float64(...))
         raise ValueError(f"box {tuple(values.tolist())} lies outside the {width}x{height} image")
     return values
+
+
+def box_around(pos, size_hw) -> tuple[float, float, float, float]:
+    """(x, y, w, h) of the box of size (height, width) centred on pos (row, col): what the trackers report."""
+    height, width = size_hw
+    return (float(pos[1] - width / 2), float(pos[0] - height / 2), float(width), float(height))

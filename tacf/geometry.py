@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.fft as sfft
+from scipy.signal.windows import hann
 
 
 def round_half_up(x):
@@ -64,6 +65,11 @@ class NormalisedGrid:
     response_size: int  # norm_delta: side of the square, upsampled response in normalised pixels
     crop_cells: int  # side of the cropped square response in cells (odd)
     sample_growth: np.ndarray  # how much larger than bg_area the sampled area is (1 unless fast_fft)
+
+    def cosine_window(self) -> np.ndarray:
+        """MATLAB's hann(rows) * hann(cols)' over the filter grid (symmetric: zero at the borders), float32."""
+        rows, cols = self.filter_hw
+        return np.outer(hann(rows, sym=True), hann(cols, sym=True)).astype(np.float32)
 
     @classmethod
     def from_areas(cls, areas: TargetAreas, cell_size: int, fast_fft: bool = False) -> "NormalisedGrid":

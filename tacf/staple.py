@@ -23,10 +23,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import scipy.fft
-from scipy.signal.windows import hann
 
 from tacf.attention import pme
-from tacf.boxes import check_box
+from tacf.boxes import box_around, check_box
 from tacf.colour import ColourModel
 from tacf.correlator import gaussian_label
 from tacf.features import fhog
@@ -89,8 +88,7 @@ class Staple:
         self.scale_factor = 1.0
         self.areas = self._areas_around(self.target_hw)
         self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size)
-        rows, cols = self.grid.filter_hw
-        self.cosine_window = np.outer(hann(rows, sym=True), hann(cols, sym=True)).astype(np.float32)
+        self.cosine_window = self.grid.cosine_window()
         sigma = np.sqrt(np.prod(self.grid.target_hw)) * cfg.output_sigma_factor / cfg.cell_size
         self.label_hat = scipy.fft.rfft2(gaussian_label(self.grid.filter_hw, sigma)).astype(np.complex64)
         # The colour response covers every target-sized window whose centre lies in the response square.
@@ -134,8 +132,7 @@ class Staple:
 
     @property
     def box(self) -> tuple[float, float, float, float]:
-        height, width = self.target_hw
-        return (float(self.pos[1] - width / 2), float(self.pos[0] - height / 2), float(width), float(height))
+        return box_around(self.pos, self.target_hw)
 
     def _areas_around(self, target_hw: np.ndarray) -> TargetAreas:
         cfg = self.config

@@ -16,12 +16,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal.windows import hann
 
 from tacf.allocator import keep_freed_memory
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.spatiotemporal import to_response_origin
-from tacf.boxes import check_box
+from tacf.boxes import box_around, check_box
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
 from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
@@ -87,7 +86,7 @@ class Tracker:
         self.areas = self._areas_around(self.target_hw)
         self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size, cfg.fast_fft)
         grid_hw = self.grid.filter_hw
-        self.cosine_window = np.outer(hann(grid_hw[0], sym=True), hann(grid_hw[1], sym=True)).astype(np.float32)
+        self.cosine_window = self.grid.cosine_window()
         # The paper's spatial attention windows the response with hann alone, centred on zero displacement.
         self.response_window = to_response_origin(self.cosine_window)
 
@@ -160,8 +159,7 @@ class Tracker:
 
     @property
     def box(self) -> tuple[float, float, float, float]:
-        height, width = self.target_hw
-        return (float(self.pos[1] - width / 2), float(self.pos[0] - height / 2), float(width), float(height))
+        return box_around(self.pos, self.target_hw)
 
     # ------------------------------------------------------------------------------------------------------
     def _areas_around(self, target_hw: np.ndarray) -> TargetAreas:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from tacf import Tracker, TrackerConfig
+from tacf.boxes import box_around
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REFERENCE = DATA / "reference" / "authors_tacf"
@@ -40,10 +41,9 @@ class CodeLikeTracker(Tracker):
         self.response_window = self.cosine_window  # centred, not rolled to the response's origin
 
     def locate(self, frame: np.ndarray):
-        height, width = self.target_hw  # the size before this frame's scale step
+        size_hw = self.target_hw.copy()  # the size before this frame's scale step
         result = super().locate(frame)
-        box = (float(self.pos[1] - width / 2), float(self.pos[0] - height / 2), float(width), float(height))
-        return dataclasses.replace(result, box=box)
+        return dataclasses.replace(result, box=box_around(self.pos, size_hw))
 
 
 def reference_boxes(sequence: str) -> np.ndarray:
