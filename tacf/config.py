@@ -19,6 +19,34 @@ LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_st
           "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256}
 
 
+def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> None:
+    """Validate a frozen config dataclass: each field of its declared type and finite, the `positive` ones > 0,
+    the `rates` in [0, 1], the scale filter's step > 1 and count odd, and every field named in LIMITS under it."""
+    name = type(config).__name__
+    for f in dataclasses.fields(config):
+        v = getattr(config, f.name)
+        expected = {"bool": bool, "int": int, "float": (int, float), "str": str}[f.type]
+        # bool is an int in Python: num_scales=True must not pass as 1, nor a float switch as True
+        if not isinstance(v, expected) or (isinstance(v, bool) and f.type != "bool"):
+            raise ValueError(f"{name}.{f.name} must be {f.type}, got {v!r}")
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{name}.{f.name} must be finite, got {v}")
+    for field in positive:
+        if getattr(config, field) <= 0:
+            raise ValueError(f"{name}.{field} must be > 0, got {getattr(config, field)}")
+    for field in rates:
+        if not 0.0 <= getattr(config, field) <= 1.0:
+            raise ValueError(f"{name}.{field} must be in [0, 1], got {getattr(config, field)}")
+    if config.scale_step <= 1.0:
+        raise ValueError(f"{name}.scale_step must be > 1, got {config.scale_step}")
+    if config.num_scales % 2 == 0:
+        raise ValueError(f"{name}.num_scales must be odd, got {config.num_scales}")
+    # Upper bounds: overrides arrive from the network, and a huge area or scale count is a memory bomb.
+    for field, high in LIMITS.items():
+        if hasattr(config, field) and getattr(config, field) > high:
+            raise ValueError(f"{name}.{field} must be <= {high:g}, got {getattr(config, field)}")
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     profile_name: str = DEFAULT_PROFILE  # not `profile`: that name is the constructor below
@@ -92,33 +120,11 @@ class TrackerConfig:
     lost_pme: float = 20.0
 
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):
-            v = getattr(self, f.name)
-            expected = {"bool": bool, "int": int, "float": (int, float), "str": str}[f.type]
-            # bool is an int in Python: num_scales=True must not pass as 1, nor a float switch as True
-            if not isinstance(v, expected) or (isinstance(v, bool) and f.type != "bool"):
-                raise ValueError(f"TrackerConfig.{f.name} must be {f.type}, got {v!r}")
-            if isinstance(v, float) and not math.isfinite(v):
-                raise ValueError(f"TrackerConfig.{f.name} must be finite, got {v}")
-        positive = ("cell_size", "fixed_area", "hog_kernel_sigma", "hog_output_sigma_factor",
-                    "cn_output_sigma_factor", "lambda1", "context_interval", "hist_bins", "num_scales",
-                    "scale_sigma_factor", "scale_lambda", "scale_model_max_area")
-        for name in positive:
-            if getattr(self, name) <= 0:
-                raise ValueError(f"TrackerConfig.{name} must be > 0, got {getattr(self, name)}")
-        rates = ("learning_rate", "context_penalty_rate", "dim_learning_rate", "spatial_learning_rate",
-                 "hist_learning_rate", "scale_learning_rate")
-        for name in rates:
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"TrackerConfig.{name} must be in [0, 1], got {getattr(self, name)}")
-        if self.scale_step <= 1.0:
-            raise ValueError(f"TrackerConfig.scale_step must be > 1, got {self.scale_step}")
-        if self.num_scales % 2 == 0:
-            raise ValueError(f"TrackerConfig.num_scales must be odd, got {self.num_scales}")
-        # Upper bounds: overrides arrive from the network, and a huge area or scale count is a memory bomb.
-        for name, high in LIMITS.items():
-            if getattr(self, name) > high:
-                raise ValueError(f"TrackerConfig.{name} must be <= {high:g}, got {getattr(self, name)}")
+        check_fields(self, positive=("cell_size", "fixed_area", "hog_kernel_sigma", "hog_output_sigma_factor",
+                                     "cn_output_sigma_factor", "lambda1", "context_interval", "hist_bins",
+                                     "num_scales", "scale_sigma_factor", "scale_lambda", "scale_model_max_area"),
+                     rates=("learning_rate", "context_penalty_rate", "dim_learning_rate", "spatial_learning_rate",
+                            "hist_learning_rate", "scale_learning_rate"))
 
     @classmethod
     def profile_names(cls) -> tuple[str, ...]:

@@ -27,6 +27,7 @@ import scipy.fft
 from tacf.attention import pme
 from tacf.boxes import box_around, check_box
 from tacf.colour import ColourModel
+from tacf.config import check_fields
 from tacf.correlator import gaussian_label
 from tacf.features import fhog
 from tacf.geometry import NormalisedGrid, TargetAreas, resize_auto, round_half_up, subwindow
@@ -59,6 +60,12 @@ class StapleConfig:
     scale_lambda: float = 1e-3
     scale_model_max_area: float = 32.0 * 16
     fast_resize: bool = False
+
+    def __post_init__(self) -> None:
+        check_fields(self, positive=("cell_size", "fixed_area", "padding", "output_sigma_factor", "lambda1",
+                                     "hist_bins", "num_scales", "scale_sigma_factor", "scale_lambda",
+                                     "scale_model_max_area"),
+                     rates=("learning_rate", "merge_factor", "hist_learning_rate", "scale_learning_rate"))
 
 
 def window_means(likelihood: np.ndarray, window_hw) -> np.ndarray:

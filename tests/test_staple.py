@@ -7,7 +7,7 @@ from synthetic import moving_target_sequence
 
 from tacf.eval.metrics import box_iou
 from tacf.eval.trackers import check_name, make_tracker
-from tacf.staple import Staple, window_means
+from tacf.staple import Staple, StapleConfig, window_means
 
 
 def test_window_means_are_the_means_of_every_window():
@@ -48,6 +48,14 @@ def test_bad_input_is_refused():
     tracker.init(images[0], truth[0])
     with pytest.raises(ValueError, match="differs"):
         tracker.update(cv2.resize(images[1], (100, 80)))
+
+
+@pytest.mark.parametrize("change", [{"padding": 0.0}, {"merge_factor": 1.5}, {"num_scales": 32},
+                                    {"scale_step": 1.0}, {"lambda1": float("nan")}, {"hist_bins": 1000},
+                                    {"cell_size": True}])
+def test_bad_parameters_are_refused(change):
+    with pytest.raises(ValueError, match="StapleConfig." + next(iter(change))):
+        StapleConfig(**change)
 
 
 def test_tiny_target_leaving_the_image_and_a_target_larger_than_most_of_the_frame():
