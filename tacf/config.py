@@ -114,6 +114,11 @@ class TrackerConfig:
     fast_resize: bool = True
     fast_context: bool = True  # the four context patches cut from one sample covering them (Tracker._context_features)
 
+    # The peak refined between cells by a parabola on each axis of the cell-level fused response (README
+    # "Decisions"). False is the paper's and the code's peak: the upsampled response's, which bilinear upsampling
+    # keeps on whole cells.
+    subcell_peak: bool = True
+
     # Output: the target counts as lost when the PME of the fused response falls under this floor. Measured on
     # the 10 UAV sequences (1,282 frames): under 20 flags 25 % of the frames with IoU < 0.1 and none of the frames
     # with IoU > 0.5; 25 flags 45 % of lost frames but 0.1 % of good ones.

@@ -40,17 +40,24 @@ def fusion_weight(response: np.ndarray) -> float:
     return float(1.0 - np.exp(-((peak - float(response.mean())) ** 2) / (2 * variance)))
 
 
-def fuse(responses: list[np.ndarray]) -> np.ndarray:
-    """sum_M p_M R_M / max(R_M), with the fusion weights p_M normalised to sum to 1."""
+def fusion_coefficients(responses: list[np.ndarray]) -> np.ndarray:
+    """p_M / max(R_M) for each response, the fusion weights p_M normalised to sum to 1 (0 for a non-positive peak)."""
     weights = np.array([fusion_weight(r) for r in responses])
     if weights.sum() <= 0:
         weights = np.ones(len(responses))
     weights /= weights.sum()
+    peaks = np.array([float(r.max()) for r in responses])
+    return np.where((weights > 0) & (peaks > 0), weights / np.where(peaks > 0, peaks, 1.0), 0.0)
+
+
+def fuse(responses: list[np.ndarray], coefficients: np.ndarray | None = None) -> np.ndarray:
+    """sum_M p_M R_M / max(R_M); `coefficients` (fusion_coefficients of some other maps) replace the responses' own."""
+    if coefficients is None:
+        coefficients = fusion_coefficients(responses)
     fused = np.zeros_like(responses[0])
-    for weight, response in zip(weights, responses):
-        peak = float(response.max())
-        if weight > 0 and peak > 0:
-            fused += (weight / peak) * response
+    for coefficient, response in zip(coefficients, responses):
+        if coefficient > 0:
+            fused += coefficient * response
     return fused
 
 
@@ -60,3 +67,23 @@ def peak_offset(response: np.ndarray) -> np.ndarray:
     col, row = divmod(flat, response.shape[0])
     centre = (np.asarray(response.shape) - 1) / 2
     return np.array([row, col], dtype=np.float64) - centre
+
+
+def subcell_peak_offset(response: np.ndarray) -> np.ndarray:
+    """(row, col) of the maximum relative to the centre, refined by a parabola through it and its two neighbours on
+    each axis (in the response's own units, e.g. cells). A bilinear upsampling cannot do this: its maximum always
+    sits on an original sample, so the displacement stays whole cells."""
+    offset = peak_offset(response)
+    peak = tuple(int(i) for i in offset + (np.asarray(response.shape) - 1) / 2)
+    refined = offset.copy()
+    for axis in (0, 1):
+        index = peak[axis]
+        if 0 < index < response.shape[axis] - 1:
+            before, after = list(peak), list(peak)
+            before[axis] -= 1
+            after[axis] += 1
+            low, centre, high = response[tuple(before)], response[peak], response[tuple(after)]
+            curvature = low - 2 * centre + high
+            if curvature < 0:
+                refined[axis] += float(np.clip(0.5 * (low - high) / curvature, -0.5, 0.5))
+    return refined

@@ -5,7 +5,7 @@ Per frame (ALGORITHM.md section 7, with the decisions of section B):
   LOCALISE  sample the search area at the last position; colour-weighted cosine window; per-channel kernel
             correlators for fHOG and Color Names; dimensional attention weights the channels; spatiotemporal
             attention multiplies the channel sum; crop; context penalties from PME ratios on context frames;
-            upsample, fuse the two feature types, take the peak.
+            upsample, fuse the two feature types, take the peak (refined between cells).
   SCALE     DSST scale filter at the new position.
   UPDATE    train fresh filters (with context patches as hard negatives on context frames), blend them into
             the model, update the channel weights, colour histograms and scale model.
@@ -26,7 +26,7 @@ from tacf.config import TrackerConfig
 from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
 from tacf.features import color_names, fhog, fhog_batch
 from tacf.geometry import NormalisedGrid, TargetAreas, round_half_up, search_padding, subwindow
-from tacf.response import crop_centre, fuse, peak_offset, upsample
+from tacf.response import crop_centre, fuse, fusion_coefficients, peak_offset, subcell_peak_offset, upsample
 from tacf.scale import ScaleFilter
 
 
@@ -133,8 +133,8 @@ class Tracker:
         self.frame_number += 1
 
         # ------- LOCALISE -------
-        fused, object_response = self._localise(frame)
-        self.displacement = peak_offset(fused) / self.areas.resize_factor
+        fused, offset, object_response = self._localise(frame)
+        self.displacement = offset / self.areas.resize_factor
         self.pos = np.clip(self.pos + self.displacement, 0, np.asarray(frame.shape[:2]) - 1)
 
         # ------- SCALE -------
@@ -189,9 +189,10 @@ class Tracker:
         patch = self._sample(frame, self.pos)
         return patch, self._features(patch, self.banks)
 
-    def _localise(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Fused, upsampled response over the search square (its centre is 'no motion'), and the cropped HOG
-        response, the reference for the context challenge factors."""
+    def _localise(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fused, upsampled response over the search square (its centre is 'no motion'), the displacement of its
+        peak in normalised pixels, and the cropped HOG response, the reference for the context challenge
+        factors."""
         cfg = self.config
         patch, features = self._patch_and_features(frame)
         self._detection_sample = frame, self.pos.copy(), self.areas.bg_area, patch, features
@@ -207,7 +208,16 @@ class Tracker:
                 response = response * self.spatiotemporal[name].update(
                     response, self.response_window, motion, self.target_hw)
             cropped[name] = crop_centre(response, self.grid.crop_cells)
-        return fuse([upsample(r, self.grid.response_size) for r in cropped.values()]), cropped["hog"]
+        size = self.grid.response_size
+        upsampled = [upsample(r, size) for r in cropped.values()]
+        coefficients = fusion_coefficients(upsampled)
+        fused = fuse(upsampled, coefficients)
+        if cfg.subcell_peak:
+            # Upsampling is linear: the same coefficients fuse the cell-level maps into the map fused was drawn from.
+            offset = subcell_peak_offset(fuse(list(cropped.values()), coefficients)) * size / self.grid.crop_cells
+        else:
+            offset = peak_offset(fused)
+        return fused, offset, cropped["hog"]
 
     def _context_features(self, frame: np.ndarray) -> np.ndarray:
         """Windowed fHOG of the four context patches around the current position: (4, 31, H, W).

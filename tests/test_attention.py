@@ -5,7 +5,7 @@ import pytest
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.contextual import median
 from tacf.attention.spatiotemporal import add_motion, attention_map, to_response_origin
-from tacf.response import crop_centre, fuse, fusion_weight, peak_offset
+from tacf.response import crop_centre, fuse, fusion_coefficients, fusion_weight, peak_offset, subcell_peak_offset, upsample
 
 
 def test_pme_on_a_hand_made_map():
@@ -137,3 +137,27 @@ def test_fusion_prefers_the_confident_response():
     fused = fuse([sharp, noisy])
     np.testing.assert_array_equal(peak_offset(fused), [0, 0])
     assert fusion_weight(np.zeros((5, 5))) == 0.0
+
+
+@pytest.mark.parametrize("true_offset", [(0.0, 0.0), (0.3, -0.2), (-0.45, 0.4), (2.25, -1.7)])
+def test_subcell_peak_finds_a_peak_between_cells(true_offset):
+    grid = np.arange(-7, 8, dtype=float)
+    rows, cols = np.meshgrid(grid, grid, indexing="ij")
+    response = np.exp(-((rows - true_offset[0]) ** 2 + (cols - true_offset[1]) ** 2) / (2 * 1.5**2))
+    np.testing.assert_array_equal(peak_offset(response), np.round(true_offset))  # whole cells only
+    np.testing.assert_allclose(subcell_peak_offset(response), true_offset, atol=0.1)
+
+
+def test_subcell_peak_on_the_border_stays_whole():
+    response = np.zeros((5, 5))
+    response[0, 2], response[1, 2], response[0, 3] = 1.0, 0.5, 0.9
+    np.testing.assert_allclose(subcell_peak_offset(response), [-2.0, 0.0 + 0.5 * (0 - 0.9) / (0 - 2 + 0.9)])
+
+
+def test_upsampling_commutes_with_fusion():
+    """The tracker refines the peak on the cell-level fused map, which the upsampled fused map is drawn from."""
+    rng = np.random.default_rng(1)
+    cells = [rng.random((11, 11)).astype(np.float32) for _ in range(2)]
+    upsampled = [upsample(c, 45) for c in cells]
+    coefficients = fusion_coefficients(upsampled)
+    np.testing.assert_allclose(upsample(fuse(cells, coefficients), 45), fuse(upsampled), rtol=1e-5, atol=1e-6)

@@ -172,7 +172,8 @@ def test_training_reuses_the_detection_patch_when_the_target_stays(monkeypatch):
     calls = []
     fhog = tracker_module.fhog
     monkeypatch.setattr(tracker_module, "fhog", lambda *a, **k: calls.append(1) or fhog(*a, **k))
-    config = TrackerConfig.profile("authors", context_attention=False)  # context patches take fhog_batch
+    # context patches take fhog_batch; a sub-cell peak is rarely exactly where the target was sampled
+    config = TrackerConfig.profile("authors", context_attention=False, subcell_peak=False)
     reused = Tracker(config)
     reused.init(images[0], boxes[0])
     calls.clear()
