@@ -306,7 +306,7 @@ def test_ablation_table_rows_and_gains():
 
     entry = lambda auc: {"auc": auc, "precision20": 0.5, "fps": 100.0, "frames": 10, "sequences": {}}  # noqa: E731
     summary = {"trackers": {"kcc": entry(0.40), "kcc+sa": entry(0.45), "kcc+da": entry(0.38),
-                            "kcc+ca": entry(0.42), "tacf": entry(0.50)}}
+                            "kcc+ca": entry(0.42), "tacf-authors": entry(0.50)}}
     lines = ablation_table(summary).splitlines()
     assert [line.split("|")[2].strip() for line in lines[2:]] == list(trackers.ABLATION)
     assert "| +0.050 |" in lines[3] and "| -0.020 |" in lines[4] and "| +0.100 |" in lines[6]

@@ -154,7 +154,7 @@ def test_config_validation_and_profiles():
 
 def test_config_refuses_wrong_types_and_memory_bombs():
     """Overrides arrive over the network (start requests): wrong types and absurd sizes are refused up front."""
-    assert TrackerConfig().profile_name == TrackerConfig.profile().profile_name == "authors"
+    assert TrackerConfig().profile_name == "authors" and TrackerConfig.profile().profile_name == "paper"
     for bad, message in [(dict(cell_size=1e-300), "cell_size must be int"), (dict(num_scales=True), "must be int"),
                          (dict(context_attention=1), "must be bool"), (dict(fixed_area=2.0**62), "<= 1e\\+06"),
                          (dict(scale_step=2.0**62), "scale_step must be <= 2")]:

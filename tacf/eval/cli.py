@@ -12,7 +12,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TRACKERS = "tacf,kcc,opencv-csrt,opencv-kcf,opencv-mosse,opencv-mil"
+DEFAULT_TRACKERS = "tacf,tacf-authors,kcc,opencv-csrt,opencv-kcf,opencv-mosse,opencv-mil"
 DEFAULT_OUT = Path("results/eval")
 DEFAULT_DATA = Path("../shared/data/sequences")
 

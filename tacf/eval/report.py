@@ -23,7 +23,7 @@ from .runner import read_run, result_path
 log = logging.getLogger(__name__)
 
 ABLATION_LABELS = {"kcc": "KCC (baseline)", "kcc+sa": "KCC + SA", "kcc+da": "KCC + DA", "kcc+ca": "KCC + CA",
-                   "tacf": "TACF (SA + DA + CA)"}
+                   "tacf-authors": "TACF (SA + DA + CA)"}
 
 
 @dataclass
