@@ -1,7 +1,7 @@
 """TACF: tri-attentional correlation filters for UAV tracking (He, Fu, Lin, Li, Lu; IROS 2020).
 
     from tacf import Tracker, TrackerConfig
-    trk = Tracker(TrackerConfig.profile("authors"))
+    trk = Tracker(TrackerConfig.profile("paper"))   # the default profile
     trk.init(frame_bgr, (x, y, w, h))
     result = trk.update(frame_bgr)      # TrackResult(box, pme, score, ok, scale)
 

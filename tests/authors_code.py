@@ -71,7 +71,8 @@ def _parity_table() -> None:
             continue
         frames = [read_frame(path) for path in seq.frames]
         reference = reference_boxes(seq.name)
-        for label, tracker in (("tacf", Tracker()), ("code-like", CodeLikeTracker())):
+        for label, tracker in (("tacf-authors", Tracker(TrackerConfig.profile("authors"))),
+                               ("code-like", CodeLikeTracker())):
             tracker.init(frames[0], tuple(seq.gt[0]))
             boxes = np.array([tracker.box] + [tracker.update(frame).box for frame in frames[1:]])
             distances = centre_distances(boxes, reference[: len(boxes)])
