@@ -5,7 +5,8 @@ import pytest
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.contextual import median
 from tacf.attention.spatiotemporal import add_motion, attention_map, to_response_origin
-from tacf.response import crop_centre, fuse, fusion_coefficients, fusion_weight, peak_offset, subcell_peak_offset, upsample
+from tacf.response import (crop_centre, fuse, fusion_coefficients, fusion_weight, peak_offset, subcell_peak_offset,
+                           upsample)
 
 
 def test_pme_on_a_hand_made_map():
@@ -148,10 +149,11 @@ def test_subcell_peak_finds_a_peak_between_cells(true_offset):
     np.testing.assert_allclose(subcell_peak_offset(response), true_offset, atol=0.1)
 
 
-def test_subcell_peak_on_the_border_stays_whole():
+def test_subcell_peak_on_the_border_is_refined_only_along_it():
     response = np.zeros((5, 5))
-    response[0, 2], response[1, 2], response[0, 3] = 1.0, 0.5, 0.9
-    np.testing.assert_allclose(subcell_peak_offset(response), [-2.0, 0.0 + 0.5 * (0 - 0.9) / (0 - 2 + 0.9)])
+    response[0, 2], response[1, 2], response[0, 3] = 1.0, 0.5, 0.9  # top row: no neighbour above
+    # rows: none (whole cell, -2); columns: 0, 1, 0.9 around the peak -> vertex at 0.5 * 0.9 / 1.1 = +0.409
+    np.testing.assert_allclose(subcell_peak_offset(response), [-2.0, 0.409], atol=1e-3)
 
 
 def test_upsampling_commutes_with_fusion():
