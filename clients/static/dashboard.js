@@ -7,6 +7,7 @@
 "use strict";
 
 const FRAME_HZ = 10;
+const BOX_HISTORY = 64;    // boxes kept per session: a frame poll lags the boxes by a few of them at most
 const CHART_REDRAW_MS = 1000;
 const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f7", fps: "#ffb74d",
                   grid: "#2c3644", text: "#8a96a8" };
@@ -14,6 +15,7 @@ const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f
 const state = {
   sessions: new Map(),     // id -> session JSON (see Dashboard.to_json)
   points: new Map(),       // id -> [{t, fps, pme, proc, age}]
+  boxes: new Map(),        // id -> Map(frame seq -> box): the last BOX_HISTORY boxes, to draw a frame's own box
   keys: [],                // watched image keys
   nodes: {},               // node -> max_sessions
   historyMs: 300000,
@@ -280,11 +282,13 @@ function paintCard(id) {
   const badge = $(".state", card.root);
   badge.textContent = session.state; badge.className = `state badge state-${session.state}`;
   if (painted && session.box) {
-    const ok = session.box.ok;
-    strokeBox(card.frame.getContext("2d"), session.box.box, ok ? COLOURS.ok : COLOURS.lost,
-              `${session.sid}  PME ${fmt(session.box.pme)}${ok ? "" : "  LOST"}`);
+    // Boxes arrive faster than frames are polled: draw the box computed on the frame shown, if it is known.
+    const box = (state.boxes.get(id) || new Map()).get(feed.seq) || session.box;
+    const ok = box.ok;
+    strokeBox(card.frame.getContext("2d"), box.box, ok ? COLOURS.ok : COLOURS.lost,
+              `${session.sid}  PME ${fmt(box.pme)}${ok ? "" : "  LOST"}`);
     const drawn = state.drawn[id] || { count: 0 };
-    state.drawn[id] = { count: drawn.count + 1, box: session.box.box, boxSeq: session.box.seq, frameSeq: feed.seq,
+    state.drawn[id] = { count: drawn.count + 1, box: box.box, boxSeq: box.seq, frameSeq: feed.seq,
                         colour: ok ? COLOURS.ok : COLOURS.lost };
   }
 }
@@ -371,8 +375,16 @@ function mergeSessions(sessions) {
     s.boxAt = s.box && old && old.box && old.box.seq === s.box.seq ? old.boxAt
             : s.box ? Date.now() - (s.box.age_ms || 0) : 0;
     state.sessions.set(s.id, s);
+    if (s.box) rememberBox(s.id, s.box);
     cardFor(s);
   }
+}
+
+function rememberBox(id, box) {
+  let boxes = state.boxes.get(id);
+  if (!boxes) { boxes = new Map(); state.boxes.set(id, boxes); }
+  boxes.set(box.seq, box);
+  if (boxes.size > BOX_HISTORY) boxes.delete(boxes.keys().next().value);   // Maps iterate oldest first
 }
 
 function mergePoints(points) {
@@ -392,7 +404,7 @@ function removeSession(id) {
     state.feeds.get(`${session.image_key}#${id}`).stopped = true;
     state.feeds.delete(`${session.image_key}#${id}`);
   }
-  state.sessions.delete(id); state.points.delete(id); delete state.drawn[id];
+  state.sessions.delete(id); state.points.delete(id); state.boxes.delete(id); delete state.drawn[id];
   const card = state.cards.get(id);
   if (card) { card.root.remove(); state.cards.delete(id); }
   if (state.reinit === id) setReinit(null);
