@@ -283,7 +283,7 @@ function paintCard(id) {
   badge.textContent = session.state; badge.className = `state badge state-${session.state}`;
   if (painted && session.box) {
     // Boxes arrive faster than frames are polled: draw the box computed on the frame shown, if it is known.
-    const box = (state.boxes.get(id) || new Map()).get(feed.seq) || session.box;
+    const box = state.boxes.get(id)?.get(feed.seq) || session.box;
     const ok = box.ok;
     strokeBox(card.frame.getContext("2d"), box.box, ok ? COLOURS.ok : COLOURS.lost,
               `${session.sid}  PME ${fmt(box.pme)}${ok ? "" : "  LOST"}`);
