@@ -41,8 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
     p.add_argument("--profile", help="tracker profile (service default if absent)")
     p.add_argument("--sid", help="session id (generated if absent)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="NAME=VALUE",
-                   help="tracker config override, repeatable")
+    p.add_argument("--set", dest="overrides", action="append", default=[], type=_setting, metavar="NAME=VALUE",
+                   help="tracker config override (a TrackerConfig field), repeatable")
     _common(p, add_zenoh_arguments, node_help="service (node id) to run it on, or 'auto' for the least-loaded "
                                               "one (fewest sessions, then least tracking load); default: the "
                                               "only service on the network")
@@ -157,24 +157,13 @@ def _quality(text: str) -> int:
     return value
 
 
-def _overrides(items: list[str]) -> dict[str, bool | int | float]:
-    result: dict[str, bool | int | float] = {}
-    for item in items:
-        name, sep, raw = item.partition("=")
-        if not sep or not name:
-            raise SystemExit(f"--set {item!r}: expected NAME=VALUE")
-        lowered = raw.strip().lower()
-        if lowered in ("true", "false"):
-            result[name] = lowered == "true"
-        else:
-            try:
-                result[name] = int(raw)
-            except ValueError:
-                try:
-                    result[name] = float(raw)
-                except ValueError:
-                    raise SystemExit(f"--set {item!r}: VALUE must be a number, true or false") from None
-    return result
+def _setting(text: str) -> tuple[str, bool | int | float]:
+    from tacf.config import parse_setting
+
+    try:
+        return parse_setting(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 @contextmanager
@@ -260,7 +249,7 @@ def _print_info(info, as_json: bool, verb: str = "") -> None:
 def cmd_start(args: argparse.Namespace) -> int:
     with _client(args) as client:
         info = client.start(args.key, args.box, seq=args.seq, profile=args.profile, sid=args.sid,
-                            overrides=_overrides(args.overrides), node=args.node)
+                            overrides=dict(args.overrides), node=args.node)
         _print_info(info, args.json, "started")
     return 0
 

@@ -160,3 +160,23 @@ class TrackerConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def parse_setting(setting: str) -> tuple[str, bool | int | float]:
+    """'field=value' (eval's `@field=value`, the client's `--set`) as a TrackerConfig field and its value, read
+    as the field's type: true / false, an integer or a number."""
+    types = {f.name: f.type for f in dataclasses.fields(TrackerConfig) if f.type in ("bool", "int", "float")}
+    field, _, text = setting.partition("=")
+    text = text.strip()
+    if field not in types or not text:
+        raise ValueError(f"bad setting {setting!r}: use field=value with a numeric or true/false TrackerConfig field")
+    kind = types[field]
+    if kind == "bool":
+        if text.lower() not in ("true", "false"):
+            raise ValueError(f"{field} must be true or false, got {text!r}")
+        return field, text.lower() == "true"
+    try:
+        return field, int(text) if kind == "int" else float(text)
+    except ValueError:
+        expected = "an integer" if kind == "int" else "a number"
+        raise ValueError(f"{field} must be {expected}, got {text!r}") from None

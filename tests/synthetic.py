@@ -2,6 +2,8 @@
 import cv2
 import numpy as np
 
+from tacf.eval.metrics import box_iou
+
 
 def texture(rng, shape, blur=3):
     noise = rng.integers(0, 256, size=shape, dtype=np.uint8)
@@ -26,3 +28,10 @@ def moving_target_sequence(frames=40, size=(240, 320), target=(30, 24), velocity
         boxes.append((left, top, target[1], target[0]))
         y, x = y + velocity[0], x + velocity[1]
     return images, np.array(boxes, dtype=float)
+
+
+def assert_follows(results, truth):
+    """The boxes of results (one per frame after the first) stay on the generated target, to its last frames."""
+    overlaps = [box_iou(r.box, t) for r, t in zip(results, truth[1:])]
+    assert np.mean(overlaps) > 0.6, overlaps
+    assert min(overlaps[-10:]) > 0.4, overlaps

@@ -203,14 +203,18 @@ def test_command_line_start_list_status_stop(service, camera, capsys):
     from tacf.cli import main
 
     zenoh_args = ["--connect", service.endpoint]
+    with pytest.raises(SystemExit) as exc:      # a bad --set is refused before anything is sent
+        main(["start", "--key", camera.key, "--box", "148,167,25,19", "--set", "num_scales=many", *zenoh_args])
+    assert exc.value.code == 2 and "num_scales must be an integer" in capsys.readouterr().err
     assert main(["start", "--key", camera.key, "--box", "148,167,25,19", "--sid", "cli1", "--seq",
-                 str(camera.last_seq), *zenoh_args]) == 0
+                 str(camera.last_seq), "--set", "lambda1=2e-4", "--set", "subcell_peak=false", *zenoh_args]) == 0
     assert f"started cli1 on {service.node}" in capsys.readouterr().out
     assert main(["list", *zenoh_args]) == 0
     out = capsys.readouterr().out
     assert "cli1" in out and service.node in out and "SID" in out
     assert main(["status", "cli1", "--json", *zenoh_args]) == 0
-    assert SessionInfo.model_validate_json(capsys.readouterr().out).sid == "cli1"
+    info = SessionInfo.model_validate_json(capsys.readouterr().out)
+    assert info.sid == "cli1" and info.overrides == {"lambda1": 2e-4, "subcell_peak": False}
     assert main(["watch", "cli1", "--duration", "1.5", "--interval", "0.5", *zenoh_args]) == 0
     assert "cli1" in capsys.readouterr().out
     assert main(["stop", "cli1", *zenoh_args]) == 0

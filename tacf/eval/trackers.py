@@ -132,29 +132,17 @@ def tacf_config(name: str):
 
 def _overrides(settings: list[str], name: str) -> dict:
     """'field=value' strings as TrackerConfig overrides, each value read as its field's type."""
-    import dataclasses
+    from tacf.config import parse_setting
 
-    from tacf.config import TrackerConfig
-
-    types = {f.name: f.type for f in dataclasses.fields(TrackerConfig) if f.type in ("bool", "int", "float")}
     overrides = {}
     for setting in settings:
-        field, _, text = setting.partition("=")
-        if field not in types or not text:
-            raise ValueError(f"bad setting {setting!r} in {name!r}: use @field=value with a TrackerConfig field")
+        try:
+            field, value = parse_setting(setting)
+        except ValueError as exc:
+            raise ValueError(f"{exc} (in {name!r})") from None
         if field in overrides:
             raise ValueError(f"{field} set twice in {name!r}")
-        kind = types[field]
-        if kind == "bool":
-            if text.lower() not in ("true", "false"):
-                raise ValueError(f"{field} in {name!r} must be true or false, got {text!r}")
-            overrides[field] = text.lower() == "true"
-        else:
-            try:
-                overrides[field] = int(text) if kind == "int" else float(text)
-            except ValueError:
-                expected = "an integer" if kind == "int" else "a number"
-                raise ValueError(f"{field} in {name!r} must be {expected}, got {text!r}") from None
+        overrides[field] = value
     return overrides
 
 
