@@ -62,7 +62,6 @@ class Tracker:
     def __init__(self, config: TrackerConfig | None = None):
         self.config = config or TrackerConfig.profile()
         self._frame_shape = None
-        self._detection_sample = None  # (frame, pos, bg_area, patch, features) of this frame's detection
         self._to_learn = None  # (frame, object_response) of a locate() not yet followed by learn()
         keep_freed_memory()  # per-frame temporaries are megabytes: reuse them, don't map them anew (allocator.py)
 
@@ -179,13 +178,7 @@ class Tracker:
         return {name: extractors[name](patch) for name in names}
 
     def _patch_and_features(self, frame: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """The sample at the current position and area, and its features. When training finds the target where
-        detection sampled it (same position and area: about a quarter of the UAV frames), the detection's
-        patch and features are the training's too, so they are taken, not computed again."""
-        recent = self._detection_sample
-        if (recent is not None and recent[0] is frame and np.array_equal(recent[1], self.pos)
-                and np.array_equal(recent[2], self.areas.bg_area)):
-            return recent[3], recent[4]
+        """The sample at the current position and area, and its features."""
         patch = self._sample(frame, self.pos)
         return patch, self._features(patch, self.banks)
 
@@ -195,7 +188,6 @@ class Tracker:
         factors."""
         cfg = self.config
         patch, features = self._patch_and_features(frame)
-        self._detection_sample = frame, self.pos.copy(), self.areas.bg_area, patch, features
         window = self.cosine_window
         if self.colour is not None:
             window = window * self.colour.likelihood_window(patch, self.grid.filter_hw)
@@ -260,7 +252,6 @@ class Tracker:
         four fHOGs per context frame, and the boxes on the ten UAV sequences come out identical."""
         cfg = self.config
         patch, features = self._patch_and_features(frame)
-        self._detection_sample = None  # only this frame's training may reuse it
         context_energy = None
         if cfg.context_attention and self.contextual.is_context_frame(self.frame_number):
             hog = self.banks["hog"]

@@ -175,38 +175,6 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
 
 
-def test_training_reuses_the_detection_patch_when_the_target_stays(monkeypatch):
-    """A still target is found where it was sampled: training then takes detection's features (one fHOG per
-    frame instead of two) and learns exactly what sampling anew would give."""
-    import tacf.tracker as tracker_module
-
-    images, boxes = moving_target_sequence(frames=6, velocity=(0.0, 0.0))
-    calls = []
-    fhog = tracker_module.fhog
-    monkeypatch.setattr(tracker_module, "fhog", lambda *a, **k: calls.append(1) or fhog(*a, **k))
-    # context patches take fhog_batch; a sub-cell peak is rarely exactly where the target was sampled
-    config = TrackerConfig.profile("authors", context_attention=False, subcell_peak=False)
-    reused = Tracker(config)
-    reused.init(images[0], boxes[0])
-    calls.clear()
-    results = [reused.update(image) for image in images[1:]]
-    assert len(calls) == len(results)  # detection only
-    assert all(result.box == pytest.approx(tuple(boxes[0]), abs=0.5) for result in results)
-
-    fresh = Tracker(config)  # the same frames, with the cache emptied before every training
-    fresh.init(images[0], boxes[0])
-    localise = fresh._localise
-
-    def localise_without_cache(frame):
-        output = localise(frame)
-        fresh._detection_sample = None
-        return output
-
-    fresh._localise = localise_without_cache
-    assert [fresh.update(image) for image in images[1:]] == results
-
-
-
 def test_locate_then_learn_gives_the_boxes_of_update():
     """update() is locate() then learn(): split, the boxes are the same, whether learn() is called after each
     locate() or left to the next locate(); learn() twice learns once."""
