@@ -175,6 +175,13 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
 
 
+def test_a_still_target_stays_put_with_whole_cell_peaks():
+    """A target that does not move is found where it was: every box of a still sequence is the first one."""
+    images, boxes = moving_target_sequence(frames=6, velocity=(0.0, 0.0))
+    results = _track(TrackerConfig.profile("authors", context_attention=False, subcell_peak=False), images, boxes[0])
+    assert all(result.box == pytest.approx(tuple(boxes[0]), abs=0.5) for result in results)
+
+
 def test_locate_then_learn_gives_the_boxes_of_update():
     """update() is locate() then learn(): split, the boxes are the same, whether learn() is called after each
     locate() or left to the next locate(); learn() twice learns once."""
