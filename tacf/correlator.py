@@ -228,5 +228,5 @@ class CorrelatorBank:
         cross = self._ifft((z_hat * self.model_x_hat.conj()).mean(axis=-3))
         kernel = self.kernel(cross, _sq_norms(z).mean(axis=-3), _sq_norms(self.model_x).mean(axis=-3))
         weights = np.ones(len(self.model_filter_hat)) if channel_weights is None else channel_weights
-        weighted_filter = np.tensordot(weights.astype(np.float32), self.model_filter_hat, axes=1)
+        weighted_filter = (weights.astype(np.float32)[:, None, None] * self.model_filter_hat).sum(axis=-3)
         return self._ifft(self.spectrum(kernel) * weighted_filter)

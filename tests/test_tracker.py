@@ -232,6 +232,41 @@ def test_tracker_keeps_freed_memory_for_reuse():
     assert run("tracker") == "reused"
 
 
+_ONE_CORE_CHECK = """
+import resource, sys, time
+sys.path.insert(0, sys.argv[1])
+from synthetic import moving_target_sequence
+from tacf import Tracker, TrackerConfig
+images, truth = moving_target_sequence(frames=60, size=(480, 640), target=(60, 48))
+for profile in ("paper", "authors"):
+    tracker = Tracker(TrackerConfig.profile(profile))
+    tracker.init(images[0], truth[0])
+    start, wall = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+    for image in images[1:]:
+        tracker.update(image)
+    end, wall = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter() - wall
+    print(profile, (end.ru_utime - start.ru_utime + end.ru_stime - start.ru_stime) / wall)
+"""
+
+
+def test_a_tracker_keeps_to_one_core():
+    """A stream costs one core: nothing on the per-frame path may wake a threaded BLAS, whose idle threads spin
+    on the other cores (one np.tensordot on the context frames once doubled the tracker's CPU time for nothing,
+    and in the service took those cores from the other sessions). Process CPU time over wall time, in a fresh
+    process so that no other test's threads count."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one core: a second thread could not show")
+    out = subprocess.run([sys.executable, "-c", _ONE_CORE_CHECK, str(Path(__file__).parent)], capture_output=True,
+                         text=True, check=True).stdout.split()
+    cores = dict(zip(out[::2], map(float, out[1::2])))
+    assert set(cores) == {"paper", "authors"} and max(cores.values()) < 1.3, cores
+
+
 
 def test_fast_context_cuts_the_four_context_patches_from_one_sample():
     """Where the grid is the image's own (normalised area = search area, no resize), the four windows cut from the
