@@ -109,8 +109,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "charts, the session list; draw a box on a live frame to start a "
                                           "session. Also /metrics (Prometheus) and /healthz.")
     p.add_argument("--host", default="127.0.0.1",
-                   help="address to serve on (default 127.0.0.1; 0.0.0.0 exposes start/stop to the network)")
+                   help="address to serve on (default 127.0.0.1; any other address asks for a token)")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 = any free port)")
+    p.add_argument("--token-file", metavar="FILE",
+                   help="the access token, from this file (default: $TACF_DASHBOARD_TOKEN; on an address that is "
+                        "not loopback a new one is made up; the printed address carries it)")
+    p.add_argument("--allow-host", dest="allow_hosts", action="append", default=[], metavar="NAME",
+                   help="a host name the page may be served under besides loopback ones, repeatable (e.g. a "
+                        "reverse proxy's); without a token other names are refused, against DNS rebinding")
     p.add_argument("--key", "-k", dest="keys", action="append", default=[], metavar="IMAGE_KEY",
                    help="image key to show from the start, repeatable (the keys of running sessions are added "
                         "by themselves, and more can be added on the page)")
@@ -355,16 +361,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
+    import os
+    from pathlib import Path
+
     from tacf.zenoh_options import options_from_args
+    from tacf_clients.dashboard_access import TOKEN_ENV, DashboardAccess
     from tacf_clients.dashboard_http import serve
 
     def ready(url: str) -> None:
         print(f"tacf dashboard: open {url} in a browser (Ctrl-C to stop)", flush=True)
 
+    try:
+        token = (Path(args.token_file).read_text().strip() if args.token_file else os.environ.get(TOKEN_ENV)) or None
+        access = DashboardAccess.for_address(args.host, token, args.allow_hosts)
+    except (OSError, ValueError) as exc:
+        print(f"tacf dashboard: {exc}", file=sys.stderr)
+        return 2
     with stop_on_signals() as stop:
         try:
             return serve(options_from_args(args), host=args.host, port=args.port, image_keys=args.keys,
-                         node=args.node, history_s=args.history * 60, stop=stop, on_ready=ready)
+                         node=args.node, history_s=args.history * 60, access=access, stop=stop, on_ready=ready)
         except OSError as exc:
             print(f"tacf dashboard: cannot serve on {args.host}:{args.port}: {exc}", file=sys.stderr)
             return 2

@@ -17,7 +17,8 @@ Latest-only and rate-capped: each /events connection wakes at most `events_hz` t
 what changed since its previous message (newest box and health per session, new chart points), read from the
 Dashboard's slots; nothing is queued per browser. A browser that stops reading only blocks its own handler
 thread until the socket write times out, then the connection is dropped. POSTs need a JSON content type (a
-cross-site form cannot send one), so another web page cannot start or stop sessions through a user's browser.
+cross-site form cannot send one), so another web page cannot start or stop sessions through a user's browser;
+every request first passes dashboard_access.py (the Host header on loopback, a token elsewhere).
 """
 from __future__ import annotations
 
@@ -30,9 +31,10 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
 from pathlib import Path
-from urllib.parse import parse_qs, unquote, urlsplit
+from urllib.parse import parse_qs, unquote, urlencode, urlsplit
 
 from tacf_clients import dashboard_metrics
+from tacf_clients.dashboard_access import DashboardAccess
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, DuplicateSession, InvalidRequest, NoService,
                                  RequestTimeout, ServiceUnavailable, TacfError, TooManySessions, UnknownSession)
@@ -69,8 +71,10 @@ class DashboardServer(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
 
-    def __init__(self, address: tuple[str, int], dashboard: Dashboard, *, events_hz: float = EVENTS_HZ):
+    def __init__(self, address: tuple[str, int], dashboard: Dashboard, *, events_hz: float = EVENTS_HZ,
+                 access: DashboardAccess | None = None):
         self.dashboard = dashboard
+        self.access = access or DashboardAccess.for_address(address[0])
         self.events_hz = events_hz
         self.static = static_dir()
         self.event_clients = 0
@@ -79,9 +83,16 @@ class DashboardServer(ThreadingHTTPServer):
         super().__init__(address, DashboardHandler)
 
     @property
-    def url(self) -> str:
+    def base_url(self) -> str:
         host, port = self.server_address[:2]
-        return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{port}/"
+        host = "127.0.0.1" if host in ("0.0.0.0", "") else f"[{host}]" if ":" in host else host
+        return f"http://{host}:{port}/"
+
+    @property
+    def url(self) -> str:
+        """The address to open in a browser: base_url, with the token when one is needed."""
+        token = self.access.token
+        return self.base_url if token is None else f"{self.base_url}?{urlencode({'token': token})}"
 
     def count_client(self, delta: int) -> None:
         with self._clients_lock:
@@ -107,6 +118,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:
         path = urlsplit(self.path).path
         try:
+            if not self._admitted():
+                return
             if path in ("/", "/index.html"):
                 self._static("index.html")
             elif path.startswith("/static/"):
@@ -137,6 +150,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
                    "/api/watch": self._watch}
         action = actions.get(path)
         try:
+            if not self._admitted():
+                return
             if action is None:
                 self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such action: {path}")
                 return
@@ -151,6 +166,29 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", str(exc) or type(exc).__name__)
         except (BrokenPipeError, ConnectionResetError, TimeoutError):
             self.close_connection = True
+
+    def _admitted(self) -> bool:
+        """Whether dashboard_access lets this request in; if not, the refusal (or the token's login) is sent."""
+        access = self.server.access
+        host = self.headers.get("Host")
+        if not access.host_allowed(host):
+            self._error(HTTPStatus.FORBIDDEN, "host_not_allowed",
+                        f"this dashboard does not answer to the host name {host!r} (see tacf dashboard --allow-host)")
+            return False
+        if access.is_token(access.presented(self.headers)):
+            return True
+        url = urlsplit(self.path)
+        query = parse_qs(url.query)
+        if self.command == "GET" and access.is_token((query.pop("token", None) or [None])[-1]):
+            # a browser's first visit: keep the token as a cookie, and out of the address bar and history
+            rest = urlencode(query, doseq=True)
+            self._send(HTTPStatus.SEE_OTHER, b"", None,
+                       {"Location": url.path + (f"?{rest}" if rest else ""), "Set-Cookie": access.cookie()})
+            return False
+        self._error(HTTPStatus.UNAUTHORIZED, "unauthorized", "open the address tacf dashboard printed (it carries "
+                    "?token=...), or send Authorization: Bearer TOKEN",
+                    {"WWW-Authenticate": 'Bearer realm="tacf dashboard"'})
+        return False
 
     # --- actions ----------------------------------------------------------------------------------------------
     def _start(self, body: dict) -> dict:
@@ -316,11 +354,12 @@ class DashboardHandler(BaseHTTPRequestHandler):
             return None
         return body
 
-    def _json(self, status: HTTPStatus, body: dict) -> None:
-        self._send(status, json.dumps(body).encode(), "application/json", {"Cache-Control": "no-cache"})
+    def _json(self, status: HTTPStatus, body: dict, headers: dict[str, str] | None = None) -> None:
+        self._send(status, json.dumps(body).encode(), "application/json",
+                   {"Cache-Control": "no-cache", **(headers or {})})
 
-    def _error(self, status: HTTPStatus, code: str, message: str) -> None:
-        self._json(status, {"error": code, "message": message})
+    def _error(self, status: HTTPStatus, code: str, message: str, headers: dict[str, str] | None = None) -> None:
+        self._json(status, {"error": code, "message": message}, headers)
 
     def _send(self, status: HTTPStatus, body: bytes, ctype: str | None, headers: dict[str, str]) -> None:
         self.send_response(status)
@@ -375,10 +414,11 @@ class DashboardApp:
     """A Dashboard plus its HTTP server on a thread: `with DashboardApp(options, port=0) as app: app.url`."""
 
     def __init__(self, options=None, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, session=None,
-                 image_keys=(), node: str | None = None, history_s: float = 300.0, events_hz: float = EVENTS_HZ):
+                 image_keys=(), node: str | None = None, history_s: float = 300.0, events_hz: float = EVENTS_HZ,
+                 access: DashboardAccess | None = None):
         self.dashboard = Dashboard(options, session=session, image_keys=image_keys, node=node, history_s=history_s)
         try:
-            self.server = DashboardServer((host, port), self.dashboard, events_hz=events_hz)
+            self.server = DashboardServer((host, port), self.dashboard, events_hz=events_hz, access=access)
         except Exception:
             self.dashboard.close()
             raise
@@ -403,9 +443,11 @@ class DashboardApp:
 
 
 def serve(options=None, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, image_keys=(), node: str | None = None,
-          history_s: float = 300.0, stop: threading.Event, on_ready=None) -> int:
+          history_s: float = 300.0, access: DashboardAccess | None = None, stop: threading.Event,
+          on_ready=None) -> int:
     """Run the dashboard until `stop` is set (tacf dashboard). on_ready(url) is called once it serves."""
-    with DashboardApp(options, host=host, port=port, image_keys=image_keys, node=node, history_s=history_s) as app:
+    with DashboardApp(options, host=host, port=port, image_keys=image_keys, node=node, history_s=history_s,
+                      access=access) as app:
         if on_ready is not None:
             on_ready(app.url)
         while not stop.wait(0.5):

@@ -7,6 +7,7 @@ Set TACF_DASHBOARD_SCREENSHOT=docs/dashboard.png to keep the browser's screensho
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -26,6 +27,7 @@ import zenoh
 from tacf.eval.metrics import box_iou
 from tacf_clients import dashboard_metrics
 from tacf_clients.client import TrackingClient
+from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir
 from tacf_clients.demo import HoldingPublisher
 from tacf_clients.local_service import LocalService, free_port
@@ -78,9 +80,10 @@ def _get(url: str, headers: dict | None = None) -> tuple[int, dict, bytes]:
         return exc.code, dict(exc.headers), exc.read()
 
 
-def _post(url: str, body, content_type: str = "application/json") -> tuple[int, dict]:
+def _post(url: str, body, content_type: str = "application/json", headers: dict | None = None) -> tuple[int, dict]:
     data = body if isinstance(body, bytes) else json.dumps(body).encode()
-    request = urllib.request.Request(url, data=data, method="POST", headers={"Content-Type": content_type})
+    request = urllib.request.Request(url, data=data, method="POST",
+                                     headers={"Content-Type": content_type, **(headers or {})})
     try:
         with urllib.request.urlopen(request, timeout=20) as response:
             return response.status, json.loads(response.read())
@@ -176,7 +179,7 @@ def test_event_stream_is_latest_only_and_rate_capped(stack):
     stalled = socket.socket()                       # a browser that asks for the stream and never reads it
     stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
     stalled.connect(app.server.server_address[:2])
-    stalled.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+    stalled.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
     with stalled, urllib.request.urlopen(app.url + "events", timeout=10) as stream:
         assert stream.headers["Content-Type"].startswith("text/event-stream")
         started = time.monotonic()
@@ -214,6 +217,79 @@ def test_healthz_without_any_service():
         assert status == 200 and "tacf_dashboard_up 1" in text.decode()
 
 
+def _no_service_options() -> ZenohOptions:
+    return ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
+
+
+def test_on_loopback_only_loopback_host_names_are_answered():
+    """DNS rebinding: a page at evil.example whose name now resolves to 127.0.0.1 is same-origin with the
+    dashboard in the browser's eyes; its requests carry Host: evil.example and are refused, POSTs included."""
+    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess(allow_hosts=["ground.lan"])) as app:
+        port = app.server.server_address[1]
+        base = app.url.rstrip("/")
+        assert app.url == f"http://127.0.0.1:{port}/"
+        for host in (f"127.0.0.1:{port}", f"localhost:{port}", "ground.lan", f"GROUND.lan:{port}"):
+            assert _get(base + "/api/state", {"Host": host})[0] == 200, host
+        for host in (f"evil.example:{port}", "127.0.0.1.evil.example", "", "10.0.0.5"):
+            status, _, body = _get(base + "/api/state", {"Host": host})
+            assert status == 403 and json.loads(body)["error"] == "host_not_allowed", (host, body)
+        status, body = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]},
+                             headers={"Host": "evil.example"})
+        assert status == 403 and body["error"] == "host_not_allowed", body
+
+
+def test_a_token_guards_every_page_and_a_browser_logs_in_once():
+    token = "k9-Xr2_vQ8mPz3LtW7yB"
+    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess(token)) as app:
+        base = app.server.base_url.rstrip("/")
+        assert app.url == f"{base}/?token={token}"
+        for path in ("/", "/events", "/api/state", "/metrics", "/healthz", "/frame/" + KEY, "/static/dashboard.js"):
+            status, headers, body = _get(base + path, {"Authorization": "Bearer " + token + "x"})
+            assert status == 401 and json.loads(body)["error"] == "unauthorized", path
+            assert headers["WWW-Authenticate"].startswith("Bearer"), path
+        status, body = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]})
+        assert status == 401, "refused before the service is even asked (there is none: it would say 503)"
+        status, body = _post(base + "/api/start?token=" + token, {"image_key": KEY, "box": [1, 2, 30, 40]})
+        assert status == 401, "the URL's token only logs a browser in, with a GET"
+
+        bearer = {"Authorization": "Bearer " + token}
+        assert _get(base + "/api/state", bearer)[0] == 200
+        assert _get(base + "/api/state", {"Host": "evil.example", **bearer})[0] == 200   # the token decides
+        assert _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]}, headers=bearer)[0] == 503
+
+        opener = urllib.request.build_opener(_NoRedirect)
+        try:
+            opener.open(f"{base}/?token={token}&view=grid", timeout=10)
+            raise AssertionError("expected a redirect")
+        except urllib.error.HTTPError as exc:
+            assert exc.code == 303 and exc.headers["Location"] == "/?view=grid"
+            cookie = exc.headers["Set-Cookie"]
+        assert cookie.startswith(f"{COOKIE}={token};") and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+        status, _, page = _get(base + "/", {"Cookie": "other=1; " + cookie.split(";")[0]})
+        assert status == 200 and b"TACF ground station" in page
+        assert _get(base + "/", {"Cookie": f"{COOKIE}=wrong-wrong-wrong-wrong"})[0] == 401
+
+
+def test_any_other_address_gets_a_token_of_its_own():
+    assert DashboardAccess.for_address("127.0.0.1").token is None
+    assert DashboardAccess.for_address("::1").token is None
+    assert DashboardAccess.for_address("localhost").token is None
+    made = {DashboardAccess.for_address(host).token for host in ("0.0.0.0", "10.0.0.5", "::", "edge-box")}
+    assert None not in made and len(made) == 4 and all(len(t) >= 32 for t in made)
+    assert DashboardAccess.for_address("0.0.0.0", "given-token-0123456789").token == "given-token-0123456789"
+    for bad in ("short", "has space in it 0123", "semi;colon-0123456789", "x" * 257):
+        with pytest.raises(ValueError, match="token"):
+            DashboardAccess(bad)
+    with DashboardApp(_no_service_options(), host="0.0.0.0", port=0) as app:
+        assert "?token=" in app.url and app.server.access.token in app.url
+        assert _get(app.server.base_url + "api/state")[0] == 401
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *args, **kwargs):
+        return None
+
+
 def test_metrics_text_escapes_labels():
     class View:
         node, sid, image_key, state, box, box_received_ns, health = "n", "s", 'cam/"a"\\b\nc', "lost", None, None, None
@@ -237,14 +313,13 @@ def test_page_is_offline_and_the_dashboard_never_loads_the_tracker():
     assert done.returncode == 0, done.stderr
 
 
-def test_tacf_dashboard_command_serves_until_sigterm():
-    """What a user runs: `tacf dashboard --port P`; it prints the URL, serves, and exits 0 on SIGTERM."""
-    import signal
-
-    port = free_port()
-    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "dashboard", "--port", str(port),
+@contextlib.contextmanager
+def _dashboard_command(*args: str, env: dict | None = None):
+    """`tacf dashboard ARGS` as a user runs it; yields the process and the address it printed."""
+    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "dashboard", *args,
                                 "--connect", f"tcp/127.0.0.1:{free_port()}", "--key", KEY],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               env={**os.environ, **(env or {})})
     try:
         lines = []
         deadline = time.monotonic() + 60
@@ -253,18 +328,49 @@ def test_tacf_dashboard_command_serves_until_sigterm():
             if not line:
                 break
             lines.append(line)
-        assert f"open http://127.0.0.1:{port}/ in a browser" in "".join(lines), "".join(lines)
-        status, headers, page = _get(f"http://127.0.0.1:{port}/")
-        assert status == 200 and b"TACF ground station" in page
-        status, _, body = _get(f"http://127.0.0.1:{port}/healthz")
-        assert status == 200 and KEY in json.loads(body)["image_keys"]
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=15) == 0
+        printed = re.search(r"open (http://\S+) in a browser", "".join(lines))
+        assert printed, "".join(lines)
+        yield process, printed.group(1)
     finally:
         if process.poll() is None:
             process.kill()
             process.wait(timeout=5)
         process.stdout.close()
+
+
+def test_tacf_dashboard_command_serves_until_sigterm():
+    """What a user runs: `tacf dashboard --port P`; it prints the URL, serves, and exits 0 on SIGTERM."""
+    import signal
+
+    port = free_port()
+    with _dashboard_command("--port", str(port)) as (process, url):
+        assert url == f"http://127.0.0.1:{port}/"
+        status, headers, page = _get(url)
+        assert status == 200 and b"TACF ground station" in page
+        status, _, body = _get(f"http://127.0.0.1:{port}/healthz")
+        assert status == 200 and KEY in json.loads(body)["image_keys"]
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+
+
+def test_tacf_dashboard_command_on_the_network_asks_for_a_token(tmp_path):
+    port = free_port()
+    with _dashboard_command("--host", "0.0.0.0", "--port", str(port)) as (_, url):
+        made = re.fullmatch(rf"http://127\.0\.0\.1:{port}/\?token=([A-Za-z0-9_-]{{32}})", url)
+        assert made, url
+        assert _get(f"http://127.0.0.1:{port}/api/state")[0] == 401
+        assert _get(f"http://127.0.0.1:{port}/api/state", {"Authorization": "Bearer " + made.group(1)})[0] == 200
+    token_file = tmp_path / "token"
+    token_file.write_text("from-the-file-0123456789\n")
+    port = free_port()
+    with _dashboard_command("--port", str(port), "--token-file", str(token_file),
+                            env={"TACF_DASHBOARD_TOKEN": "from-the-environment-0123"}) as (_, url):
+        assert url == f"http://127.0.0.1:{port}/?token=from-the-file-0123456789"
+        assert _get(url.split("?")[0])[0] == 401
+    token_file.write_text("short")
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "dashboard", "--token-file", str(token_file)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "token needs 16 to 256 characters" in done.stderr, done.stderr
 
 
 # ------------------------------------------------------------------------------------------------ real browser
@@ -337,12 +443,23 @@ def _drag_box(driver, canvas, box) -> None:
         .move_by_offset(half_x, half_y).move_by_offset(x1 - x0 - half_x, y1 - y0 - half_y).release().perform()
 
 
-def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, browser, tmp_path):
+@pytest.fixture
+def guarded_dashboard(stack):
+    """A second dashboard on the stack's service, behind a token, as one served to the network would be."""
+    access = DashboardAccess("browser-token-0123456789")
+    with DashboardApp(stack[3].options, port=0, image_keys=[KEY], access=access) as app:
+        yield app
+
+
+def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, guarded_dashboard, browser, tmp_path):
+    """All through a dashboard behind a token: the browser logs in once from the printed address, then its
+    page, event stream, frames and actions go by the cookie."""
     from selenium.webdriver.common.by import By
 
-    app, client, camera, service = stack
+    _, client, camera, service = stack
     pre = f"{service.node}/pre"
-    browser.get(app.url)
+    browser.get(guarded_dashboard.url)
+    assert browser.current_url == guarded_dashboard.server.base_url, "the token leaves the address bar"
     assert _wait(lambda: browser.execute_script("return window.tacf && window.tacf.connected"), timeout=20), \
         "the event stream connects"
 
@@ -422,3 +539,14 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, brows
     assert browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="pre"]'), "the other session stays"
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"] if hasattr(browser, "get_log") else []
     assert not errors, errors
+
+
+def test_browser_that_lost_its_token_is_told_what_to_do(browser):
+    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess("lost-token-0123456789")) as app:
+        browser.get(app.url)
+        assert _wait(lambda: browser.execute_script("return window.tacf && window.tacf.connected"), timeout=20)
+        browser.delete_all_cookies()
+        app.server.stopping.set()                   # ends the event stream; the browser reconnects without a token
+        conn = _wait(lambda: "signed out" in (t := browser.execute_script("return document.querySelector('#conn')"
+                                                                          ".textContent")) and t, timeout=20)
+        assert conn == "signed out: open the address tacf dashboard printed", conn

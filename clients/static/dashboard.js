@@ -450,7 +450,15 @@ function connect() {
   const source = new EventSource("/events");
   const conn = $("#conn");
   source.addEventListener("open", () => { state.connected = true; conn.textContent = "live"; conn.className = "conn up"; });
-  source.addEventListener("error", () => { state.connected = false; conn.textContent = "reconnecting…"; conn.className = "conn down"; });
+  source.addEventListener("error", async () => {
+    state.connected = false; conn.textContent = "reconnecting…"; conn.className = "conn down";
+    // EventSource hides the status: ask once, so that a lost token (a restarted dashboard) says what to do
+    const probe = await fetch("/api/state").catch(() => null);
+    if (probe && probe.status === 401) {
+      source.close();
+      conn.textContent = "signed out: open the address tacf dashboard printed";
+    }
+  });
   const received = (handler) => (e) => {
     const data = JSON.parse(e.data);
     state.events += 1; state.clockOffsetMs = data.t - Date.now();
