@@ -23,13 +23,13 @@ from dataclasses import dataclass
 import pydantic
 import zenoh
 
-from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest, NoService,
-                                 ProtocolError, RequestTimeout, TacfError, TooManySessions, UnknownSession,
+from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest,
+                                 NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions, UnknownSession,
                                  error_from_wire)
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
-from tacf_schemas.codec import MSGPACK_ENCODING, DecodeError, decode, encode
+from tacf_schemas.codec import MSGPACK_ENCODING, DecodeError, decode, decode_error_reply, encode, is_deadline_reply
 from tacf_schemas.models import (BoxResult, Error, Health, ListRequest, ReinitRequest, SessionInfo, SessionList,
                                  StartRequest, StatusRequest, StopRequest, WireModel)
 
@@ -342,16 +342,12 @@ def _parse_reply(reply: zenoh.Reply, reply_model: type[WireModel], key: str, tim
             return _Reply(node, decode(sample.payload.to_bytes(), reply_model), None)
         except DecodeError as exc:
             return _Reply(node, None, ProtocolError(f"bad {reply_model.__name__} reply on {key}: {exc}", node))
-    err = reply.err
-    payload = err.payload.to_bytes()
-    try:
-        error = decode(payload, Error)
-    except DecodeError:
-        text = payload.decode("utf-8", "replace")
-        if text.strip().lower() == "timeout":
-            return _Reply(None, None, RequestTimeout(f"no reply on {key} within {timeout:g} s"))
-        return _Reply(None, None, ProtocolError(f"undecodable error reply on {key}: {text[:200]!r}"))
-    return _Reply(error.node, None, error_from_wire(error.code, error.message, error.node))
+    error = decode_error_reply(reply.err.payload.to_bytes())
+    if isinstance(error, Error):
+        return _Reply(error.node, None, error_from_wire(error.code, error.message, error.node))
+    if is_deadline_reply(error):
+        return _Reply(None, None, RequestTimeout(f"no reply on {key} within {timeout:g} s"))
+    return _Reply(None, None, ProtocolError(f"undecodable error reply on {key}: {error[:200]!r}"))
 
 
 def _node_from_key(key: str) -> str | None:

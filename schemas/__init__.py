@@ -8,7 +8,7 @@ Image decoding (numpy/OpenCV) lives in tacf_schemas.images so that this package 
 """
 from __future__ import annotations
 
-from .codec import MSGPACK_ENCODING, DecodeError, decode, encode
+from .codec import MSGPACK_ENCODING, DecodeError, decode, decode_error_reply, encode, is_deadline_reply
 from .keys import (ALL_LIVELINESS, InvalidIdError, InvalidKeyError, box_key, control_key, health_key,
                    is_valid_id, parse_control_key, parse_liveliness_key, parse_session_key, sanitise_id,
                    service_liveliness_key, session_key, session_liveliness_key, validate_id, validate_image_key)
@@ -18,7 +18,8 @@ from .models import (CONTROL_OPS, CONTROL_REPLIES, CONTROL_REQUESTS, ENCODINGS, 
                      SessionList, StartRequest, StatusRequest, StopRequest, WireModel)
 
 __all__ = [
-    "SCHEMA_VERSION", "MSGPACK_ENCODING", "DecodeError", "decode", "encode",
+    "SCHEMA_VERSION", "MSGPACK_ENCODING", "DecodeError", "decode", "decode_error_reply", "encode",
+    "is_deadline_reply",
     "ALL_LIVELINESS", "InvalidIdError", "InvalidKeyError", "box_key", "control_key", "health_key", "is_valid_id",
     "parse_control_key", "parse_liveliness_key", "parse_session_key", "sanitise_id", "service_liveliness_key",
     "session_key", "session_liveliness_key", "validate_id", "validate_image_key",

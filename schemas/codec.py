@@ -11,7 +11,7 @@ import msgpack
 import pydantic
 
 from .limits import MAX_FRAME_BYTES, MAX_PAYLOAD_BYTES
-from .models import WireModel
+from .models import Error, WireModel
 
 M = TypeVar("M", bound=WireModel)
 
@@ -53,6 +53,20 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
         raise DecodeError("invalid", f"{model.__name__}: {_summarise(exc)}") from None
     except (TypeError, ValueError, RecursionError) as exc:  # e.g. unhashable keys deep inside
         raise DecodeError("invalid", f"{model.__name__}: {type(exc).__name__}: {str(exc)[:200]}") from None
+
+
+def decode_error_reply(payload: bytes | bytearray | memoryview) -> Error | str:
+    """A control op's error reply: the service's Error, or, when it is not one, the text of a reply Zenoh made
+    itself. At a get's deadline Zenoh replies "timeout" (is_deadline_reply)."""
+    try:
+        return decode(payload, Error)
+    except DecodeError:
+        return bytes(payload).decode("utf-8", "replace")
+
+
+def is_deadline_reply(error: Error | str) -> bool:
+    """Whether decode_error_reply's result is Zenoh's own reply that no queryable answered in time."""
+    return isinstance(error, str) and error.strip().lower() == "timeout"
 
 
 def _summarise(exc: pydantic.ValidationError, limit: int = 3) -> str:

@@ -5,8 +5,8 @@
 """
 from __future__ import annotations
 
-from tacf_schemas import (CONTROL_REPLIES, MSGPACK_ENCODING, DecodeError, Error, ListRequest, WireModel, control_key,
-                          decode, encode)
+from tacf_schemas import (CONTROL_REPLIES, MSGPACK_ENCODING, Error, ListRequest, WireModel, control_key, decode,
+                          decode_error_reply, encode, is_deadline_reply)
 
 
 class ControlError(Exception):
@@ -39,12 +39,9 @@ def list_all(session, timeout: float = 3.0) -> list:
 def _reply_model(op: str, reply):
     if reply.ok is not None:
         return decode(reply.ok.payload.to_bytes(), CONTROL_REPLIES[op])
-    raw = reply.err.payload.to_bytes()
-    try:
-        error = decode(raw, Error)
-    except DecodeError:
-        text = raw.decode("utf-8", "replace")
-        if text.strip().lower() == "timeout":        # Zenoh's own reply at the get's deadline
-            raise ControlError("timeout", f"no reply to {op} in time") from None
-        raise ControlError("transport", text[:200]) from None
-    raise ControlError(error.code, error.message)
+    error = decode_error_reply(reply.err.payload.to_bytes())
+    if isinstance(error, Error):
+        raise ControlError(error.code, error.message)
+    if is_deadline_reply(error):
+        raise ControlError("timeout", f"no reply to {op} in time")
+    raise ControlError("transport", error[:200])

@@ -13,7 +13,8 @@ from hypothesis import strategies as st
 
 from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Frame, Health, InvalidIdError,
                           InvalidKeyError, ListRequest, SessionInfo, SessionList, StartRequest, StopRequest,
-                          box_key, control_key, decode, encode, health_key, parse_liveliness_key,
+                          box_key, control_key, decode, decode_error_reply, encode, health_key, is_deadline_reply,
+                          parse_liveliness_key,
                           parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
                           validate_id, validate_image_key)
 from tacf_schemas.export import drift
@@ -247,3 +248,12 @@ def test_image_decoder_fuzz(encoding, data):
 
 def test_control_ops():
     assert set(CONTROL_OPS) == {"start", "stop", "reinit", "list", "status"}
+
+
+def test_error_replies_are_the_services_or_zenohs_own():
+    error = decode_error_reply(encode(Error(code="unknown_session", message="no session 'x'", node="edge")))
+    assert isinstance(error, Error) and error.code == "unknown_session" and not is_deadline_reply(error)
+    assert is_deadline_reply(decode_error_reply(b"Timeout")), "what Zenoh replies at a get's deadline"
+    text = decode_error_reply(b"\xffsome transport error")
+    assert isinstance(text, str) and "transport error" in text and not is_deadline_reply(text)
+    assert not is_deadline_reply(decode_error_reply(encode(Error(code="internal", message="timeout"))))
