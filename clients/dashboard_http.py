@@ -34,8 +34,8 @@ from pathlib import Path
 from urllib.parse import parse_qs, unquote, urlencode, urlsplit
 
 from tacf_clients import dashboard_metrics
-from tacf_clients.dashboard_access import DashboardAccess
 from tacf_clients.dashboard import Dashboard
+from tacf_clients.dashboard_access import DashboardAccess
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, DuplicateSession, InvalidRequest, NoService,
                                  RequestTimeout, ServiceUnavailable, TacfError, TooManySessions, UnknownSession)
 
@@ -150,13 +150,14 @@ class DashboardHandler(BaseHTTPRequestHandler):
                    "/api/watch": self._watch}
         action = actions.get(path)
         try:
-            if not self._admitted():
-                return
-            if action is None:
-                self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such action: {path}")
-                return
-            body = self._read_json()
-            if body is None:
+            body = None
+            if self._admitted():
+                if action is None:
+                    self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such action: {path}")
+                else:
+                    body = self._read_json()
+            if body is None:                        # refused, maybe with the body unread: it is not a request
+                self.close_connection = True
                 return
             self._json(HTTPStatus.OK, action(body))
         except TacfError as exc:

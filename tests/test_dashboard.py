@@ -265,6 +265,13 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
             assert exc.code == 303 and exc.headers["Location"] == "/?view=grid"
             cookie = exc.headers["Set-Cookie"]
         assert cookie.startswith(f"{COOKIE}={token};") and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+        # A refused POST's body is never read as the next request on the same connection: the connection ends.
+        smuggled = f"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {token}\r\n\r\n".encode()
+        with socket.create_connection(app.server.server_address[:2], timeout=10) as raw:
+            raw.sendall(b"POST /api/stop HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                        b"Content-Length: %d\r\n\r\n%s" % (len(smuggled), smuggled))
+            reply = b"".join(iter(lambda: raw.recv(65536), b""))
+        assert reply.startswith(b"HTTP/1.1 401") and reply.count(b"HTTP/1.1 ") == 1, reply
         status, _, page = _get(base + "/", {"Cookie": "other=1; " + cookie.split(";")[0]})
         assert status == 200 and b"TACF ground station" in page
         assert _get(base + "/", {"Cookie": f"{COOKIE}=wrong-wrong-wrong-wrong"})[0] == 401
