@@ -114,6 +114,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--token-file", metavar="FILE",
                    help="the access token, from this file (default: $TACF_DASHBOARD_TOKEN; on an address that is "
                         "not loopback a new one is made up; the printed address carries it)")
+    p.add_argument("--certfile", metavar="PEM",
+                   help="serve HTTPS with this certificate (chain), e.g. make-certs.sh's service.pem")
+    p.add_argument("--keyfile", metavar="PEM", help="the certificate's private key (default: in --certfile)")
     p.add_argument("--allow-host", dest="allow_hosts", action="append", default=[], metavar="NAME",
                    help="a host name the page may be served under besides loopback ones, repeatable (e.g. a "
                         "reverse proxy's); without a token other names are refused, against DNS rebinding")
@@ -366,7 +369,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
     from tacf.zenoh_options import options_from_args
     from tacf_clients.dashboard_access import TOKEN_ENV, DashboardAccess
-    from tacf_clients.dashboard_http import serve
+    from tacf_clients.dashboard_http import serve, tls_context
 
     def ready(url: str) -> None:
         print(f"tacf dashboard: open {url} in a browser (Ctrl-C to stop)", flush=True)
@@ -374,13 +377,17 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     try:
         token = (Path(args.token_file).read_text().strip() if args.token_file else os.environ.get(TOKEN_ENV)) or None
         access = DashboardAccess.for_address(args.host, token, args.allow_hosts)
-    except (OSError, ValueError) as exc:
+        if args.keyfile and not args.certfile:
+            raise ValueError("--keyfile needs --certfile")
+        tls = tls_context(args.certfile, args.keyfile) if args.certfile else None
+    except (OSError, ValueError) as exc:       # ssl.SSLError is an OSError
         print(f"tacf dashboard: {exc}", file=sys.stderr)
         return 2
     with stop_on_signals() as stop:
         try:
             return serve(options_from_args(args), host=args.host, port=args.port, image_keys=args.keys,
-                         node=args.node, history_s=args.history * 60, access=access, stop=stop, on_ready=ready)
+                         node=args.node, history_s=args.history * 60, access=access, tls=tls, stop=stop,
+                         on_ready=ready)
         except OSError as exc:
             print(f"tacf dashboard: cannot serve on {args.host}:{args.port}: {exc}", file=sys.stderr)
             return 2

@@ -9,8 +9,8 @@ The page can start and stop sessions and shows every camera, so it is not left o
   the printed URL carries it. A browser that opens `/?token=T` gets it as an HttpOnly, SameSite=Strict cookie
   (which no other site's request carries) and is sent on to the page without it; programs send
   `Authorization: Bearer T` (Prometheus: `authorization: {credentials_file: ...}`).
-Plain HTTP shows the token to anyone on the path: across a network, serve it behind TLS (a reverse proxy, an
-SSH tunnel).
+Plain HTTP shows the token to anyone on the path: across a network, serve HTTPS (`--certfile`, `--keyfile`; the
+cookie is then Secure) or reach it through an SSH tunnel.
 """
 from __future__ import annotations
 
@@ -82,5 +82,6 @@ class DashboardAccess:
             return None
         return morsel.value if morsel is not None else None
 
-    def cookie(self) -> str:
-        return f"{COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict"
+    def cookie(self, secure: bool = False) -> str:
+        """The login cookie; `secure` (over HTTPS) keeps browsers from ever sending it over plain HTTP."""
+        return f"{COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict" + ("; Secure" if secure else "")

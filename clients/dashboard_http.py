@@ -25,6 +25,8 @@ from __future__ import annotations
 import json
 import logging
 import mimetypes
+import ssl
+import sys
 import threading
 import time
 from http import HTTPStatus
@@ -60,6 +62,13 @@ _ERROR_STATUS = (                # most specific first
 )
 
 
+def tls_context(certfile: str, keyfile: str | None = None) -> ssl.SSLContext:
+    """A server context for HTTPS from a PEM certificate (chain) and its key (TLS 1.2 or newer)."""
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    context.load_cert_chain(certfile, keyfile)
+    return context
+
+
 def static_dir() -> Path:
     """clients/static (installed as tacf_clients/static)."""
     return Path(str(resources.files("tacf_clients") / "static"))
@@ -72,21 +81,32 @@ class DashboardServer(ThreadingHTTPServer):
     allow_reuse_address = True
 
     def __init__(self, address: tuple[str, int], dashboard: Dashboard, *, events_hz: float = EVENTS_HZ,
-                 access: DashboardAccess | None = None):
+                 access: DashboardAccess | None = None, tls: ssl.SSLContext | None = None):
         self.dashboard = dashboard
         self.access = access or DashboardAccess.for_address(address[0])
+        self.tls = tls
         self.events_hz = events_hz
         self.static = static_dir()
         self.event_clients = 0
         self._clients_lock = threading.Lock()
         self.stopping = threading.Event()
         super().__init__(address, DashboardHandler)
+        if tls is not None:     # the handshake runs in each connection's own thread, so a slow one stalls no other
+            self.socket = tls.wrap_socket(self.socket, server_side=True, do_handshake_on_connect=False)
+
+    def handle_error(self, request, client_address) -> None:
+        """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say) is a line, not a trace."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, ssl.SSLError):
+            log.info("%s: TLS failed: %s", client_address[0], exc)
+        else:
+            super().handle_error(request, client_address)
 
     @property
     def base_url(self) -> str:
         host, port = self.server_address[:2]
         host = "127.0.0.1" if host in ("0.0.0.0", "") else f"[{host}]" if ":" in host else host
-        return f"http://{host}:{port}/"
+        return f"{'https' if self.tls else 'http'}://{host}:{port}/"
 
     @property
     def url(self) -> str:
@@ -184,7 +204,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
             # a browser's first visit: keep the token as a cookie, and out of the address bar and history
             rest = urlencode(query, doseq=True)
             self._send(HTTPStatus.SEE_OTHER, b"", None,
-                       {"Location": url.path + (f"?{rest}" if rest else ""), "Set-Cookie": access.cookie()})
+                       {"Location": url.path + (f"?{rest}" if rest else ""),
+                        "Set-Cookie": access.cookie(secure=self.server.tls is not None)})
             return False
         self._error(HTTPStatus.UNAUTHORIZED, "unauthorized", "open the address tacf dashboard printed (it carries "
                     "?token=...), or send Authorization: Bearer TOKEN",
@@ -416,10 +437,10 @@ class DashboardApp:
 
     def __init__(self, options=None, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, session=None,
                  image_keys=(), node: str | None = None, history_s: float = 300.0, events_hz: float = EVENTS_HZ,
-                 access: DashboardAccess | None = None):
+                 access: DashboardAccess | None = None, tls: ssl.SSLContext | None = None):
         self.dashboard = Dashboard(options, session=session, image_keys=image_keys, node=node, history_s=history_s)
         try:
-            self.server = DashboardServer((host, port), self.dashboard, events_hz=events_hz, access=access)
+            self.server = DashboardServer((host, port), self.dashboard, events_hz=events_hz, access=access, tls=tls)
         except Exception:
             self.dashboard.close()
             raise
@@ -444,11 +465,11 @@ class DashboardApp:
 
 
 def serve(options=None, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, image_keys=(), node: str | None = None,
-          history_s: float = 300.0, access: DashboardAccess | None = None, stop: threading.Event,
-          on_ready=None) -> int:
+          history_s: float = 300.0, access: DashboardAccess | None = None, tls: ssl.SSLContext | None = None,
+          stop: threading.Event, on_ready=None) -> int:
     """Run the dashboard until `stop` is set (tacf dashboard). on_ready(url) is called once it serves."""
     with DashboardApp(options, host=host, port=port, image_keys=image_keys, node=node, history_s=history_s,
-                      access=access) as app:
+                      access=access, tls=tls) as app:
         if on_ready is not None:
             on_ready(app.url)
         while not stop.wait(0.5):

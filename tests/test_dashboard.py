@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import http.client
 import json
 import os
 import re
@@ -28,7 +29,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients import dashboard_metrics
 from tacf_clients.client import TrackingClient
 from tacf_clients.dashboard_access import COOKIE, DashboardAccess
-from tacf_clients.dashboard_http import DashboardApp, static_dir
+from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
 from tacf_clients.demo import HoldingPublisher
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource
@@ -277,6 +278,36 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         assert _get(base + "/", {"Cookie": f"{COOKIE}=wrong-wrong-wrong-wrong"})[0] == 401
 
 
+def test_https_with_the_certificates_of_make_certs(tmp_path):
+    """--certfile/--keyfile: the page over TLS with make-certs.sh's service certificate, the login cookie Secure;
+    a plain-HTTP client on the HTTPS port fails its handshake and the server serves on."""
+    import ssl
+
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command to make certificates")
+    certs = tmp_path / "certs"
+    subprocess.run(["sh", str(Path(__file__).parents[1] / "docs/security/make-certs.sh"), str(certs)], check=True,
+                   capture_output=True)
+    token = "tls-token-0123456789abcdef"
+    tls = tls_context(str(certs / "service.pem"), str(certs / "service.key"))
+    trusted = ssl.create_default_context(cafile=str(certs / "ca.pem"))
+    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess(token), tls=tls) as app:
+        base = app.server.base_url
+        assert base.startswith("https://127.0.0.1:") and app.url == f"{base}?token={token}"
+        with pytest.raises(urllib.error.URLError):          # not our CA: refused by the client
+            urllib.request.urlopen(base + "healthz", timeout=10)
+        port = app.server.server_address[1]
+        with pytest.raises((urllib.error.URLError, ConnectionError, http.client.HTTPException)):
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/healthz", timeout=10)
+        request = urllib.request.Request(base + "api/state", headers={"Authorization": "Bearer " + token})
+        with urllib.request.urlopen(request, timeout=10, context=trusted) as response:
+            assert response.status == 200 and "sessions" in json.loads(response.read())
+        opener = urllib.request.build_opener(urllib.request.HTTPSHandler(context=trusted), _NoRedirect)
+        with pytest.raises(urllib.error.HTTPError) as login:
+            opener.open(app.url, timeout=10)
+        assert login.value.code == 303 and login.value.headers["Set-Cookie"].endswith("; Secure")
+
+
 def test_any_other_address_gets_a_token_of_its_own():
     assert DashboardAccess.for_address("127.0.0.1").token is None
     assert DashboardAccess.for_address("::1").token is None
@@ -375,9 +406,12 @@ def test_tacf_dashboard_command_on_the_network_asks_for_a_token(tmp_path):
         assert url == f"http://127.0.0.1:{port}/?token=from-the-file-0123456789"
         assert _get(url.split("?")[0])[0] == 401
     token_file.write_text("short")
-    done = subprocess.run([sys.executable, "-m", "tacf.cli", "dashboard", "--token-file", str(token_file)],
-                          capture_output=True, text=True, timeout=60)
-    assert done.returncode == 2 and "token needs 16 to 256 characters" in done.stderr, done.stderr
+    for args, said in ((["--token-file", str(token_file)], "token needs 16 to 256 characters"),
+                       (["--keyfile", str(token_file)], "--keyfile needs --certfile"),
+                       (["--certfile", str(token_file)], "PEM")):
+        done = subprocess.run([sys.executable, "-m", "tacf.cli", "dashboard", *args], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 2 and said in done.stderr, (args, done.stderr)
 
 
 # ------------------------------------------------------------------------------------------------ real browser
