@@ -1,5 +1,5 @@
-"""`tacf publish | start | stop | reinit | list | status | nodes | watch | demo | dashboard`: the client side from
-the shell.
+"""`tacf publish | start | stop | reinit | list | status | nodes | watch | demo | dashboard | mavlink`: the client
+side from the shell.
 
 Only argparse-level things are imported here; each command imports what it needs when it runs, so that
 `tacf --help` stays fast and nothing here ever loads the tracker.
@@ -102,6 +102,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--every", type=int, default=None, metavar="N",
                    help="print every Nth box (default: about 3 lines a second)")
     p.set_defaults(func=cmd_demo)
+
+    p = subparsers.add_parser("mavlink", help="MAVLink camera component: QGroundControl starts/stops tracking",
+                              description="Be a MAVLink camera component for one image key: a ground station that "
+                                          "speaks the camera tracking protocol (QGroundControl) starts a session "
+                                          "with MAV_CMD_CAMERA_TRACK_RECTANGLE, stops it with "
+                                          "MAV_CMD_CAMERA_STOP_TRACKING and gets CAMERA_TRACKING_IMAGE_STATUS. "
+                                          "Needs pymavlink: pip install 'tacf[mavlink]'.")
+    p.add_argument("--key", "-k", required=True, help="image key of the camera's frames")
+    p.add_argument("--link", required=True,
+                   help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT or a "
+                        "serial device")
+    p.add_argument("--baud", type=int, default=57600, help="serial baud rate (default 57600)")
+    p.add_argument("--system", type=int, default=1, help="MAVLink system id (default 1: the vehicle's)")
+    p.add_argument("--component", type=int, default=100, help="MAVLink component id (default 100, camera 1)")
+    p.add_argument("--sid", help="session id (default mavlink-<image key>)")
+    p.add_argument("--profile", help="tracker profile")
+    p.add_argument("--node", help="service (node id) to run the session on")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_mavlink)
 
     p = subparsers.add_parser("dashboard", help="ground-station web page: live frames, boxes, charts, start/stop",
                               description="Serve the ground-station dashboard on http://HOST:PORT/ (fully offline: "
@@ -361,6 +380,32 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                       encoding=args.encoding, profile=args.profile, every=args.every),
                           stop=stop)
     return 0 if report.ok else 1
+
+
+def cmd_mavlink(args: argparse.Namespace) -> int:
+    from tacf.zenoh_options import options_from_args
+    try:
+        from tacf_clients.mavlink import MavlinkCamera
+    except ImportError as exc:
+        print(f"tacf mavlink: {exc}; install it with: pip install 'tacf[mavlink]'", file=sys.stderr)
+        return 2
+    for name, value in (("--system", args.system), ("--component", args.component)):
+        if not 1 <= value <= 255:
+            print(f"tacf mavlink: {name} must be 1 to 255, got {value}", file=sys.stderr)
+            return 2
+    with stop_on_signals() as stop:
+        try:
+            camera = MavlinkCamera(args.link, args.key, options=options_from_args(args), sid=args.sid,
+                                   node=args.node, profile=args.profile, system=args.system,
+                                   component=args.component, baud=args.baud)
+        except (OSError, ValueError) as exc:
+            print(f"tacf mavlink: {exc}", file=sys.stderr)
+            return 2
+        with camera:
+            print(f"tacf mavlink: camera component {args.system}/{args.component} for {args.key} on {args.link} "
+                  "(Ctrl-C to stop)", flush=True)
+            camera.serve(stop)
+    return 0
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:

@@ -23,18 +23,17 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-import zenoh
 
 from tacf.eval.metrics import box_iou
 from tacf_clients import dashboard_metrics
 from tacf_clients.client import TrackingClient
 from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
-from tacf_clients.demo import HoldingPublisher
-from tacf_clients.local_service import LocalService, free_port
-from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.zconfig import ZenohOptions, make_config
+from tacf_clients.local_service import free_port
+from tacf_clients.scene import Scene
+from tacf_clients.zconfig import ZenohOptions
 from tacf_service.loopback import wait_until
+from camera_rig import service_and_camera
 
 pytestmark = pytest.mark.zenoh
 
@@ -50,23 +49,18 @@ CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
 @pytest.fixture(scope="module")
 def stack():
     """A service, a camera (moving scene at 20 fps) and a dashboard; session 'pre' tracks from the start."""
-    with LocalService(node=f"dash{free_port()}") as service:
-        with zenoh.open(make_config(service.options)) as session:
-            service.wait_ready(session)
-            camera = HoldingPublisher(session, SceneSource(SCENE), KEY, 20, "jpeg")
-            camera.start()                          # holds its first frame until 'pre' tracks, as in tacf demo
-            assert _wait(lambda: camera.last_seq >= 0)
-            client = TrackingClient(session=session, node=service.node, timeout=10.0)
-            with DashboardApp(service.options, port=0, image_keys=[KEY]) as app:
-                client.start(KEY, SCENE.box(0), seq=camera.last_seq, sid="pre")
-                try:
-                    assert next(client.iter_boxes("pre", timeout=60), None), "session 'pre' tracks"
-                    camera.hold.clear()
-                    yield app, client, camera, service
-                finally:
-                    for info in client.list():
-                        client.stop(info.sid)
-            camera.close()
+    with service_and_camera(SCENE, KEY, "dash") as (service, session, camera):
+        assert _wait(lambda: camera.last_seq >= 0)   # holds its first frame until 'pre' tracks, as in tacf demo
+        client = TrackingClient(session=session, node=service.node, timeout=10.0)
+        with DashboardApp(service.options, port=0, image_keys=[KEY]) as app:
+            client.start(KEY, SCENE.box(0), seq=camera.last_seq, sid="pre")
+            try:
+                assert next(client.iter_boxes("pre", timeout=60), None), "session 'pre' tracks"
+                camera.hold.clear()
+                yield app, client, camera, service
+            finally:
+                for info in client.list():
+                    client.stop(info.sid)
 
 
 _wait = functools.partial(wait_until, timeout=20.0, period=0.1)

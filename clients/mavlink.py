@@ -1,0 +1,239 @@
+"""`tacf mavlink`: a MAVLink camera component for one image key, so that a ground station that speaks MAVLink's
+camera tracking protocol (QGroundControl) starts and stops tracking on it and is shown the box.
+
+    tacf mavlink --key uav1/camera/front --link udpout:10.0.0.2:14550      # the ground station's address
+
+It announces itself with a HEARTBEAT (MAV_TYPE_CAMERA, component 100 by default) once a second and answers:
+- MAV_CMD_CAMERA_TRACK_RECTANGLE: starts a session on the image key with that rectangle (normalised 0..1,
+  converted with the size of the newest frame on the key and applied to that frame), or re-initialises the
+  running one. ACCEPTED once the service has the session; TEMPORARILY_REJECTED while no frame has been seen on
+  the key; DENIED for a rectangle that is not inside 0..1 or is empty; FAILED with the service's refusal.
+- MAV_CMD_CAMERA_STOP_TRACKING: stops it (ACCEPTED also when nothing runs).
+- MAV_CMD_SET_MESSAGE_INTERVAL for CAMERA_TRACKING_IMAGE_STATUS: its rate (-1 off, 0 the default 10 Hz).
+- MAV_CMD_REQUEST_MESSAGE (and the older MAV_CMD_REQUEST_CAMERA_INFORMATION) for CAMERA_INFORMATION, whose
+  flags say CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, or for one CAMERA_TRACKING_IMAGE_STATUS.
+- any other command addressed to it: UNSUPPORTED. Commands for other components are left alone.
+While a session runs it streams CAMERA_TRACKING_IMAGE_STATUS with the newest box (rectangle and centre, target
+data IN_STATUS): ACTIVE, plus COASTING while the tracker reports the target lost; one IDLE status follows a stop.
+Point tracking is not offered: a tracker needs the target's extent. The video itself stays the camera's own
+(QGroundControl shows its RTSP/UDP stream); only the box travels here.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+
+import zenoh
+
+from tacf_clients.client import TrackingClient
+from tacf_clients.consumer import BoxConsumer, TrackedBox
+from tacf_clients.errors import TacfError
+from tacf_clients.zconfig import ZenohOptions, open_session
+from tacf_schemas import keys
+from tacf_schemas.codec import DecodeError, decode
+from tacf_schemas.models import Frame
+
+os.environ.setdefault("MAVLINK20", "1")             # MAVLink 2: CAMERA_TRACKING_IMAGE_STATUS has a 2-only id
+from pymavlink import mavutil  # noqa: E402  (after MAVLINK20 is set)
+from pymavlink.dialects.v20 import common as mav  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STATUS_HZ = 10.0
+HEARTBEAT_S = 1.0
+VENDOR, MODEL = b"tacf", b"TACF tracker"
+
+
+def _ascii_field(text: bytes, size: int = 32) -> list[int]:
+    return list(text[:size].ljust(size, b"\0"))
+
+
+def _message_id(param: float) -> int | None:
+    return int(param) if math.isfinite(param) else None
+
+
+class MavlinkCamera:
+    """The camera component: `serve(stop)` runs it until `stop` is set; close() ends the session it holds.
+
+    link: a pymavlink connection string (`udpout:HOST:PORT` towards a ground station, `udpin:0.0.0.0:PORT`,
+    `tcp:HOST:PORT`, or a serial device `/dev/ttyUSB0` with `baud`). session: a zenoh.Session to use (not
+    closed here), else one is opened from `options`.
+    """
+
+    def __init__(self, link: str, image_key: str, *, options: ZenohOptions | None = None,
+                 session: zenoh.Session | None = None, sid: str | None = None, node: str | None = None,
+                 profile: str | None = None, system: int = 1, component: int = mav.MAV_COMP_ID_CAMERA,
+                 baud: int = 57600, timeout: float = 5.0):
+        self.image_key = keys.validate_image_key(image_key)
+        self.sid = keys.validate_id(sid or "mavlink-" + keys.sanitise_id(image_key), "session id")
+        self.profile = profile
+        self.component = component
+        self.status_interval_s = 1.0 / DEFAULT_STATUS_HZ
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(options)
+        self._frames = self._boxes = None
+        try:
+            self.client = TrackingClient(session=self.session, node=node, timeout=timeout)
+            self._frames = self.session.declare_subscriber(self.image_key, zenoh.handlers.RingChannel(1))
+            self._boxes = BoxConsumer(self.session, sid=self.sid, latest_only=True)
+            self.mav = mavutil.mavlink_connection(link, baud=baud, source_system=system, source_component=component,
+                                                  dialect="common", autoreconnect=True)
+        except Exception:
+            self.close()
+            raise
+        self.tracking = False
+        self._newest_frame: zenoh.Sample | None = None
+        self._box: TrackedBox | None = None
+        self._first_seq = 0                          # the frame the session was last (re)started on
+        self._started = time.monotonic()
+
+    # --- the loop ----------------------------------------------------------------------------------------------
+    def serve(self, stop: threading.Event) -> None:
+        next_heartbeat = next_status = 0.0
+        while not stop.is_set():
+            now = time.monotonic()
+            if now >= next_heartbeat:
+                self.mav.mav.heartbeat_send(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
+                next_heartbeat = now + HEARTBEAT_S
+            self._newest_frame = self._frames.try_recv() or self._newest_frame
+            while (box := self._boxes.get(timeout=0)) is not None:
+                if box.seq >= self._first_seq:      # not a box from before the last (re)start
+                    self._box = box
+            if self.tracking and self.status_interval_s > 0 and now >= next_status:
+                self._send_status()
+                next_status = now + self.status_interval_s
+            message = self.mav.recv_match(type="COMMAND_LONG", blocking=True, timeout=0.02)
+            if message is not None:
+                self._command(message)
+
+    def _command(self, message) -> None:
+        if message.target_system not in (0, self.mav.mav.srcSystem) or \
+                message.target_component not in (0, self.component):
+            return                                   # for another system or component
+        command, requested = message.command, None
+        if command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
+            result = self._track_rectangle(message)
+        elif command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
+            result = self._stop_tracking()
+        elif command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result = self._set_interval(message)
+        elif command in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_CAMERA_INFORMATION):
+            requested = (mav.MAVLINK_MSG_ID_CAMERA_INFORMATION if command == mav.MAV_CMD_REQUEST_CAMERA_INFORMATION
+                         else _message_id(message.param1))
+            known = (mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS)
+            result = mav.MAV_RESULT_ACCEPTED if requested in known else mav.MAV_RESULT_UNSUPPORTED
+        else:
+            result = mav.MAV_RESULT_UNSUPPORTED
+        self.mav.mav.command_ack_send(command, result, target_system=message.get_srcSystem(),
+                                      target_component=message.get_srcComponent())
+        if result != mav.MAV_RESULT_ACCEPTED:
+            return
+        if requested == mav.MAVLINK_MSG_ID_CAMERA_INFORMATION:
+            self._send_camera_information()
+        elif requested is not None or command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
+            self._send_status()                      # after a stop: IDLE, so that the ground station clears its box
+
+    # --- commands ------------------------------------------------------------------------------------------------
+    def _track_rectangle(self, message) -> int:
+        corners = (message.param1, message.param2, message.param3, message.param4)
+        x1, y1, x2, y2 = corners
+        if not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in corners) or not (x1 < x2 and y1 < y2):
+            log.warning("refused TRACK_RECTANGLE %s: not a rectangle inside 0..1", corners)
+            return mav.MAV_RESULT_DENIED
+        frame = self._frame_header()
+        if frame is None:
+            return mav.MAV_RESULT_TEMPORARILY_REJECTED
+        box = (x1 * frame.width, y1 * frame.height, (x2 - x1) * frame.width, (y2 - y1) * frame.height)
+        try:
+            if self.tracking:
+                self.client.reinit(self.sid, box, seq=frame.seq)
+            else:
+                self.client.start(self.image_key, box, seq=frame.seq, profile=self.profile, sid=self.sid)
+        except TacfError as exc:
+            log.warning("TRACK_RECTANGLE: the service refused: %s", exc)
+            return mav.MAV_RESULT_FAILED
+        self.tracking, self._box, self._first_seq = True, None, frame.seq
+        log.info("tracking %s on %s from box %s (frame %d)", self.sid, self.image_key, box, frame.seq)
+        return mav.MAV_RESULT_ACCEPTED
+
+    def _stop_tracking(self) -> int:
+        if self.tracking:
+            try:
+                self.client.stop(self.sid)
+            except TacfError as exc:
+                log.warning("STOP_TRACKING: %s", exc)
+                return mav.MAV_RESULT_FAILED
+            self.tracking, self._box = False, None
+        return mav.MAV_RESULT_ACCEPTED
+
+    def _set_interval(self, message) -> int:
+        if int(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:
+            return mav.MAV_RESULT_UNSUPPORTED
+        interval_us = message.param2
+        if not math.isfinite(interval_us) or interval_us < -1:
+            return mav.MAV_RESULT_DENIED
+        self.status_interval_s = (0.0 if interval_us == -1 else
+                                  1.0 / DEFAULT_STATUS_HZ if interval_us == 0 else interval_us / 1e6)
+        return mav.MAV_RESULT_ACCEPTED
+
+    # --- messages -----------------------------------------------------------------------------------------------
+    def _send_camera_information(self) -> None:
+        frame = self._frame_header()
+        width, height = (frame.width, frame.height) if frame is not None else (0, 0)
+        nan = float("nan")
+        self.mav.mav.camera_information_send(
+            int((time.monotonic() - self._started) * 1000) & 0xFFFFFFFF, _ascii_field(VENDOR), _ascii_field(MODEL), 0, nan, nan, nan,
+            width, height, 0, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, 0, b"")
+
+    def _send_status(self) -> None:
+        nan = float("nan")
+        box = self._box
+        if not self.tracking or box is None:
+            status = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE if self.tracking else mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE
+            mode = mav.CAMERA_TRACKING_MODE_RECTANGLE if self.tracking else mav.CAMERA_TRACKING_MODE_NONE
+            self.mav.mav.camera_tracking_image_status_send(status, mode, 0, nan, nan, nan, nan, nan, nan, nan)
+            return
+        status = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+        if not box.ok:
+            status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
+        (cx, cy), (x1, y1, x2, y2) = box.center_norm, box.corners_normalised
+        self.mav.mav.camera_tracking_image_status_send(status, mav.CAMERA_TRACKING_MODE_RECTANGLE,
+                                                       mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS, cx, cy, nan,
+                                                       x1, y1, x2, y2)
+
+    def _frame_header(self) -> Frame | None:
+        """The newest frame seen on the image key (its seq and size), or None."""
+        if self._newest_frame is None:
+            return None
+        try:
+            return decode(self._newest_frame.payload.to_bytes(), Frame)
+        except DecodeError as exc:
+            log.warning("the newest frame on %s is malformed: %s", self.image_key, exc)
+            return None
+
+    # --- lifetime ------------------------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop the session this component started, and let go of everything."""
+        if getattr(self, "tracking", False):
+            try:
+                self.client.stop(self.sid)
+            except TacfError as exc:
+                log.warning("could not stop %s: %s", self.sid, exc)
+            self.tracking = False
+        if getattr(self, "mav", None) is not None:
+            self.mav.close()
+        if self._boxes is not None:
+            self._boxes.close()
+        if self._frames is not None:
+            self._frames.undeclare()
+        if self._own_session:
+            self.session.close()
+
+    def __enter__(self) -> "MavlinkCamera":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

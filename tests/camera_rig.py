@@ -1,0 +1,26 @@
+"""A real service with a camera in front of it, shared by the tests of the client-side tools."""
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+import zenoh
+
+from tacf_clients.demo import HoldingPublisher
+from tacf_clients.local_service import LocalService, free_port
+from tacf_clients.scene import Scene, SceneSource
+from tacf_clients.zconfig import make_config
+
+
+@contextmanager
+def service_and_camera(scene: Scene, key: str, node_prefix: str, fps: float = 20):
+    """`tacf serve` in a child process, a session on it, and a camera publishing the generated scene on `key` as
+    JPEG (started, holding its first frame until `camera.hold` is cleared): yields (service, session, camera)."""
+    with LocalService(node=f"{node_prefix}{free_port()}") as service:
+        with zenoh.open(make_config(service.options)) as session:
+            service.wait_ready(session)
+            camera = HoldingPublisher(session, SceneSource(scene), key, fps, "jpeg")
+            camera.start()
+            try:
+                yield service, session, camera
+            finally:
+                camera.close()

@@ -1,0 +1,221 @@
+"""`tacf mavlink` against a ground station made of pymavlink on loopback UDP: a real `tacf serve`, a camera
+publishing the generated scene, the camera component in between. The ground station drags a rectangle
+(MAV_CMD_CAMERA_TRACK_RECTANGLE), is shown the box (CAMERA_TRACKING_IMAGE_STATUS) and stops tracking, as
+QGroundControl does."""
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+
+import pytest
+
+from tacf.eval.metrics import box_iou
+from tacf_clients.client import TrackingClient
+from tacf_clients.local_service import LocalService, free_port
+from tacf_clients.scene import Scene
+from camera_rig import service_and_camera
+
+pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mav  # noqa: E402
+
+from tacf_clients.mavlink import MavlinkCamera  # noqa: E402
+
+pytestmark = pytest.mark.zenoh
+
+SCENE = Scene.from_spec("scene:320x240")
+KEY = "test/mavlink/cam"
+SID = "mavlink-test-mavlink-cam"
+GCS_SYSTEM, GCS_COMPONENT = 255, 190
+
+
+@pytest.fixture(scope="module")
+def rig():
+    """Service, camera (held still until a test lets it move), camera component and ground station."""
+    with service_and_camera(SCENE, KEY, "mav") as (service, session, camera):
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        component = MavlinkCamera(f"udpout:127.0.0.1:{port}", KEY, options=service.options)
+        stop = threading.Event()
+        loop = threading.Thread(target=component.serve, args=(stop,), name="mavlink-camera")
+        loop.start()
+        try:
+            # udpin learns its peer from the first packet: the ground station can talk once it heard one
+            assert _receive(gcs, "HEARTBEAT") is not None, "the camera component announces itself"
+            yield gcs, camera, TrackingClient(session=session, node=service.node, timeout=10.0), component
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+            component.close()
+            gcs.close()
+
+
+def _receive(gcs, kind: str, timeout: float = 10.0, where=lambda m: True):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        message = gcs.recv_match(type=kind, blocking=True, timeout=0.2)
+        if message is not None and where(message):
+            return message
+    return None
+
+
+def _command(gcs, command: int, *params: float, component: int = mav.MAV_COMP_ID_CAMERA, timeout: float = 20.0):
+    """Send COMMAND_LONG and return its COMMAND_ACK's result (None: no ACK)."""
+    params = list(params) + [0.0] * (7 - len(params))
+    gcs.mav.command_long_send(1, component, command, 0, *params)
+    ack = _receive(gcs, "COMMAND_ACK", timeout, where=lambda m: m.command == command)
+    return None if ack is None else ack.result
+
+
+def _normalised_corners(box):
+    x, y, w, h = box
+    return x / SCENE.width, y / SCENE.height, (x + w) / SCENE.width, (y + h) / SCENE.height
+
+
+def _status_box(status):
+    return (status.rec_top_x * SCENE.width, status.rec_top_y * SCENE.height,
+            (status.rec_bottom_x - status.rec_top_x) * SCENE.width,
+            (status.rec_bottom_y - status.rec_top_y) * SCENE.height)
+
+
+def test_announces_a_camera_that_tracks_rectangles(rig):
+    gcs, camera, client, _ = rig
+    heartbeat = _receive(gcs, "HEARTBEAT", where=lambda m: m.get_srcComponent() == mav.MAV_COMP_ID_CAMERA)
+    assert heartbeat is not None and heartbeat.type == mav.MAV_TYPE_CAMERA
+    assert _receive(gcs, "HEARTBEAT", timeout=3) is not None, "a heartbeat every second"
+    for request in ((mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION),
+                    (mav.MAV_CMD_REQUEST_CAMERA_INFORMATION, 1)):
+        assert _command(gcs, *request) == mav.MAV_RESULT_ACCEPTED
+        info = _receive(gcs, "CAMERA_INFORMATION")
+        assert info is not None and info.flags & mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
+        assert not info.flags & mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
+        assert (info.resolution_h, info.resolution_v) == (SCENE.width, SCENE.height)
+        assert bytes(info.model_name).rstrip(b"\0") == b"TACF tracker"
+
+
+def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):
+    gcs, _, client, _ = rig
+    for corners in ((0.6, 0.2, 0.4, 0.5), (0.1, 0.1, 0.1, 0.3), (-0.1, 0.2, 0.3, 0.4), (0.1, 0.2, 1.5, 0.4),
+                    (math.nan, 0.2, 0.3, 0.4)):
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *corners) == mav.MAV_RESULT_DENIED, corners
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.1) == mav.MAV_RESULT_UNSUPPORTED
+    assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HEARTBEAT) == mav.MAV_RESULT_UNSUPPORTED
+    assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, math.nan) == mav.MAV_RESULT_UNSUPPORTED
+    assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_HEARTBEAT, 1e6) == \
+        mav.MAV_RESULT_UNSUPPORTED
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.3, 0.3, component=101, timeout=1.5) is None
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED, "nothing to stop is fine"
+    assert SID not in {info.sid for info in client.list()}
+
+
+def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
+    gcs, camera, client, component = rig
+    camera.hold.set()                                   # a still camera: the target is where the operator drags
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and camera.index_of(camera.last_seq) is None:
+        time.sleep(0.1)
+    held = camera.index_of(camera.last_seq)
+    while time.monotonic() < deadline and (component._frame_header() is None or
+                                           camera.index_of(component._frame_header().seq) != held):
+        time.sleep(0.1)
+    target = SCENE.box(held)
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+        mav.MAV_RESULT_ACCEPTED
+    info = client.status(SID)
+    assert info.image_key == KEY
+    status = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                      where=lambda m: m.target_data == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
+    assert status is not None and status.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+    assert status.tracking_mode == mav.CAMERA_TRACKING_MODE_RECTANGLE
+    assert box_iou(_status_box(status), target) > 0.5, (_status_box(status), target)
+    assert abs(status.point_x - (status.rec_top_x + status.rec_bottom_x) / 2) < 1e-4
+
+    # The target moves; the boxes follow it, at the rate the ground station asks for.
+    camera.hold.clear()
+    moved = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=20,
+                     where=lambda m: m.target_data and box_iou(_status_box(m), target) < 0.3)
+    assert moved is not None, "the box moves with the target"
+    assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS,
+                    500_000) == mav.MAV_RESULT_ACCEPTED
+    started, count = time.monotonic(), 0
+    while time.monotonic() - started < 3.0:
+        count += _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=0.2) is not None
+    assert 2 <= count <= 8, f"{count} statuses in 3 s at 2 Hz"
+    assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS,
+                    -1) == mav.MAV_RESULT_ACCEPTED
+    _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=0.5)                   # one may be on its way
+    assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1.5) is None, "off means off"
+    assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS) == \
+        mav.MAV_RESULT_ACCEPTED
+    assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=5) is not None, "one on request"
+    assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS,
+                    0) == mav.MAV_RESULT_ACCEPTED
+
+    # Dragging again re-targets the same session.
+    camera.hold.set()
+    time.sleep(0.5)
+    again = SCENE.box(camera.index_of(camera.last_seq))
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(again)) == \
+        mav.MAV_RESULT_ACCEPTED
+    assert client.status(SID).init_seq is not None and client.status(SID).init_seq > info.init_seq
+
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+    idle = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                    where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE)
+    assert idle is not None and idle.tracking_mode == mav.CAMERA_TRACKING_MODE_NONE and math.isnan(idle.rec_top_x)
+    assert SID not in {s.sid for s in client.list()}
+    camera.hold.clear()
+
+
+def test_no_frame_yet_is_a_temporary_refusal():
+    """Before any frame arrives on the key, the rectangle cannot be placed: TEMPORARILY_REJECTED, not a crash."""
+    with LocalService(node=f"mav{free_port()}") as service:
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        stop = threading.Event()
+        with MavlinkCamera(f"udpout:127.0.0.1:{port}", "test/mavlink/silent", options=service.options) as component:
+            loop = threading.Thread(target=component.serve, args=(stop,))
+            loop.start()
+            try:
+                assert _receive(gcs, "HEARTBEAT") is not None
+                assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.3, 0.3) == \
+                    mav.MAV_RESULT_TEMPORARILY_REJECTED
+            finally:
+                stop.set()
+                loop.join(timeout=10)
+                gcs.close()
+
+
+def test_tacf_mavlink_command_announces_itself_until_sigterm():
+    import signal
+    import subprocess
+    import sys
+
+    port = free_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                     source_component=GCS_COMPONENT, dialect="common")
+    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link",
+                                f"udpout:127.0.0.1:{port}", "--component", "101",
+                                "--connect", f"tcp/127.0.0.1:{free_port()}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert "camera component 1/101 for test/mavlink/cam" in process.stdout.readline()
+        heartbeat = _receive(gcs, "HEARTBEAT", timeout=30)
+        assert heartbeat is not None and heartbeat.get_srcComponent() == 101
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, component=101) == mav.MAV_RESULT_ACCEPTED
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=5)
+        process.stdout.close()
+        gcs.close()
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link", "udpout:x:1",
+                           "--component", "0"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "--component must be 1 to 255" in done.stderr, done.stderr
