@@ -30,7 +30,7 @@ import zenoh
 
 from tacf_clients.client import TrackingClient
 from tacf_clients.consumer import BoxConsumer, TrackedBox
-from tacf_clients.errors import TacfError
+from tacf_clients.errors import TacfError, UnknownSession
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
 from tacf_schemas.codec import DecodeError, decode
@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_STATUS_HZ = 10.0
 HEARTBEAT_S = 1.0
+SESSION_CHECK_S = 2.0       # how often a running session is asked whether it still runs
 VENDOR, MODEL = b"tacf", b"TACF tracker"
 
 
@@ -92,12 +93,15 @@ class MavlinkCamera:
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def serve(self, stop: threading.Event) -> None:
-        next_heartbeat = next_status = 0.0
+        next_heartbeat = next_status = next_check = 0.0
         while not stop.is_set():
             now = time.monotonic()
             if now >= next_heartbeat:
                 self.mav.mav.heartbeat_send(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
                 next_heartbeat = now + HEARTBEAT_S
+            if self.tracking and now >= next_check:
+                self._check_session()
+                next_check = now + SESSION_CHECK_S
             self._newest_frame = self._frames.try_recv() or self._newest_frame
             while (box := self._boxes.get(timeout=0)) is not None:
                 if box.seq >= self._first_seq:      # not a box from before the last (re)start
@@ -168,6 +172,20 @@ class MavlinkCamera:
                 return mav.MAV_RESULT_FAILED
             self.tracking, self._box = False, None
         return mav.MAV_RESULT_ACCEPTED
+
+    def _check_session(self) -> None:
+        """A session stopped elsewhere (the dashboard, `tacf stop`) or failed ends the tracking here too."""
+        try:
+            state = self.client.status(self.sid).state
+        except UnknownSession:
+            state = "stopped"
+        except TacfError as exc:                     # the service out of reach for now: ask again later
+            log.warning("status of %s: %s", self.sid, exc)
+            return
+        if state in ("stopped", "failed"):
+            log.info("session %s is %s: tracking ended", self.sid, state)
+            self.tracking, self._box = False, None
+            self._send_status()
 
     def _set_interval(self, message) -> int:
         if int(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:

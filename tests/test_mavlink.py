@@ -168,6 +168,14 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
                     where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE)
     assert idle is not None and idle.tracking_mode == mav.CAMERA_TRACKING_MODE_NONE and math.isnan(idle.rec_top_x)
     assert SID not in {s.sid for s in client.list()}
+
+    # A session stopped elsewhere (the dashboard, tacf stop) ends the tracking the ground station sees.
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(again)) == \
+        mav.MAV_RESULT_ACCEPTED
+    client.stop(SID)
+    idle = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                    where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE)
+    assert idle is not None, "an IDLE status once the session is gone"
     camera.hold.clear()
 
 
