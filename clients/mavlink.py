@@ -118,19 +118,23 @@ class MavlinkCamera:
                 message.target_component not in (0, self.component):
             return                                   # for another system or component
         command, requested = message.command, None
-        if command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
-            result = self._track_rectangle(message)
-        elif command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
-            result = self._stop_tracking()
-        elif command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-            result = self._set_interval(message)
-        elif command in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_CAMERA_INFORMATION):
-            requested = (mav.MAVLINK_MSG_ID_CAMERA_INFORMATION if command == mav.MAV_CMD_REQUEST_CAMERA_INFORMATION
-                         else _message_id(message.param1))
-            known = (mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS)
-            result = mav.MAV_RESULT_ACCEPTED if requested in known else mav.MAV_RESULT_UNSUPPORTED
-        else:
-            result = mav.MAV_RESULT_UNSUPPORTED
+        try:
+            if command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
+                result = self._track_rectangle(message)
+            elif command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
+                result = self._stop_tracking()
+            elif command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+                result = self._set_interval(message)
+            elif command in (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAV_CMD_REQUEST_CAMERA_INFORMATION):
+                requested = (mav.MAVLINK_MSG_ID_CAMERA_INFORMATION
+                             if command == mav.MAV_CMD_REQUEST_CAMERA_INFORMATION else _message_id(message.param1))
+                known = (mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS)
+                result = mav.MAV_RESULT_ACCEPTED if requested in known else mav.MAV_RESULT_UNSUPPORTED
+            else:
+                result = mav.MAV_RESULT_UNSUPPORTED
+        except Exception:                            # a command never ends the component: FAILED, and on we go
+            log.exception("command %d failed", command)
+            result = mav.MAV_RESULT_FAILED
         self.mav.mav.command_ack_send(command, result, target_system=message.get_srcSystem(),
                                       target_component=message.get_srcComponent())
         if result != mav.MAV_RESULT_ACCEPTED:

@@ -112,6 +112,31 @@ def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):
     assert SID not in {info.sid for info in client.list()}
 
 
+def test_any_command_gets_an_answer_and_the_component_lives_on(rig):
+    """Hostile or garbled commands (any id, NaN, infinities, huge and negative values): each gets a COMMAND_ACK,
+    no session appears, and the component keeps answering."""
+    import random
+
+    gcs, _, client, _ = rig
+    rng = random.Random(0)
+    specials = [math.nan, math.inf, -math.inf, -1.0, 0.0, 1.0, 0.5, 1e30, -1e30, 2 ** 31, 3.4e38]
+    commands = [mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, mav.MAV_CMD_CAMERA_STOP_TRACKING, mav.MAV_CMD_REQUEST_MESSAGE,
+                mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_CMD_REQUEST_CAMERA_INFORMATION, 0, 65535]
+    for _ in range(60):
+        command = rng.choice(commands + [rng.randrange(65536)])
+        params = [rng.choice(specials + [rng.uniform(-2, 2)]) for _ in range(7)]
+        if command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE and all(0 <= p <= 1 for p in params[:4]) \
+                and params[0] < params[2] and params[1] < params[3]:
+            params[2] = params[0]                   # a valid rectangle would start a session: not this test's
+        result = _command(gcs, command, *params)
+        assert result in (mav.MAV_RESULT_ACCEPTED, mav.MAV_RESULT_DENIED, mav.MAV_RESULT_UNSUPPORTED), \
+            (command, params, result)
+    assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS, 0) == \
+        mav.MAV_RESULT_ACCEPTED
+    assert SID not in {info.sid for info in client.list()}
+    assert _receive(gcs, "HEARTBEAT", timeout=3) is not None
+
+
 def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     gcs, camera, client, component = rig
     camera.hold.set()                                   # a still camera: the target is where the operator drags
