@@ -119,6 +119,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--sid", help="session id (default mavlink-<image key>)")
     p.add_argument("--profile", help="tracker profile")
     p.add_argument("--node", help="service (node id) to run the session on")
+    p.add_argument("--signing-passphrase-file", metavar="FILE",
+                   help="MAVLink 2 signing: sign what is sent and accept only commands signed with the key of "
+                        "this file's passphrase (its SHA-256, as MAVProxy's `signing setup` makes it)")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_mavlink)
 
@@ -383,9 +386,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_mavlink(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
     from tacf.zenoh_options import options_from_args
     try:
-        from tacf_clients.mavlink import MavlinkCamera
+        from tacf_clients.mavlink import MavlinkCamera, signing_key_from_passphrase
     except ImportError as exc:
         print(f"tacf mavlink: {exc}; install it with: pip install 'tacf[mavlink]'", file=sys.stderr)
         return 2
@@ -395,9 +400,12 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
             return 2
     with stop_on_signals() as stop:
         try:
+            key = None
+            if args.signing_passphrase_file:
+                key = signing_key_from_passphrase(Path(args.signing_passphrase_file).read_text().strip())
             camera = MavlinkCamera(args.link, args.key, options=options_from_args(args), sid=args.sid,
                                    node=args.node, profile=args.profile, system=args.system,
-                                   component=args.component, baud=args.baud)
+                                   component=args.component, baud=args.baud, signing_key=key)
         except (OSError, ValueError) as exc:
             print(f"tacf mavlink: {exc}", file=sys.stderr)
             return 2

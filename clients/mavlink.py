@@ -20,6 +20,7 @@ Point tracking is not offered: a tracker needs the target's extent. The video it
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
@@ -48,6 +49,13 @@ SESSION_CHECK_S = 2.0       # how often a running session is asked whether it st
 VENDOR, MODEL = b"tacf", b"TACF tracker"
 
 
+def signing_key_from_passphrase(passphrase: str) -> bytes:
+    """The 32-byte MAVLink 2 signing key of a passphrase: its SHA-256, as MAVProxy's `signing setup` makes it."""
+    if not passphrase:
+        raise ValueError("the signing passphrase is empty")
+    return hashlib.sha256(passphrase.encode()).digest()
+
+
 def _ascii_field(text: bytes, size: int = 32) -> list[int]:
     return list(text[:size].ljust(size, b"\0"))
 
@@ -61,13 +69,14 @@ class MavlinkCamera:
 
     link: a pymavlink connection string (`udpout:HOST:PORT` towards a ground station, `udpin:0.0.0.0:PORT`,
     `tcp:HOST:PORT`, or a serial device `/dev/ttyUSB0` with `baud`). session: a zenoh.Session to use (not
-    closed here), else one is opened from `options`.
+    closed here), else one is opened from `options`. signing_key: 32 bytes (signing_key_from_passphrase) to sign
+    what it sends and to accept only commands signed with the same key.
     """
 
     def __init__(self, link: str, image_key: str, *, options: ZenohOptions | None = None,
                  session: zenoh.Session | None = None, sid: str | None = None, node: str | None = None,
                  profile: str | None = None, system: int = 1, component: int = mav.MAV_COMP_ID_CAMERA,
-                 baud: int = 57600, timeout: float = 5.0):
+                 baud: int = 57600, signing_key: bytes | None = None, timeout: float = 5.0):
         self.image_key = keys.validate_image_key(image_key)
         self.sid = keys.validate_id(sid or "mavlink-" + keys.sanitise_id(image_key), "session id")
         self.profile = profile
@@ -82,6 +91,8 @@ class MavlinkCamera:
             self._boxes = BoxConsumer(self.session, sid=self.sid, latest_only=True)
             self.mav = mavutil.mavlink_connection(link, baud=baud, source_system=system, source_component=component,
                                                   dialect="common", autoreconnect=True)
+            if signing_key is not None:              # MAVLink 2 signing: unsigned or wrongly signed packets are dropped
+                self.mav.setup_signing(signing_key, sign_outgoing=True)
         except Exception:
             self.close()
             raise

@@ -15,6 +15,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
+from tacf_clients.zconfig import ZenohOptions
 from camera_rig import service_and_camera
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
@@ -22,7 +23,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from tacf_clients.mavlink import MavlinkCamera  # noqa: E402
+from tacf_clients.mavlink import MavlinkCamera, signing_key_from_passphrase  # noqa: E402
 
 pytestmark = pytest.mark.zenoh
 
@@ -252,3 +253,32 @@ def test_tacf_mavlink_command_announces_itself_until_sigterm():
     done = subprocess.run([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link", "udpout:x:1",
                            "--component", "0"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "--component must be 1 to 255" in done.stderr, done.stderr
+
+
+def test_with_signing_only_signed_commands_are_answered():
+    """MAVLink 2 signing: the component signs what it sends and answers only commands signed with its key."""
+    key = signing_key_from_passphrase("correct horse battery staple")
+    assert len(key) == 32 and key != signing_key_from_passphrase("correct horse battery stable")
+    options = ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
+    port = free_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                     source_component=GCS_COMPONENT, dialect="common")
+    stop = threading.Event()
+    with MavlinkCamera(f"udpout:127.0.0.1:{port}", KEY, options=options, signing_key=key) as component:
+        loop = threading.Thread(target=component.serve, args=(stop,))
+        loop.start()
+        try:
+            assert _receive(gcs, "HEARTBEAT") is not None      # a ground station without a key reads it
+            assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, timeout=1.5) is None, "unsigned: ignored"
+            gcs.setup_signing(signing_key_from_passphrase("wrong passphrase"), sign_outgoing=True)
+            assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, timeout=1.5) is None, "wrong key: ignored"
+            gcs.setup_signing(key, sign_outgoing=True)
+            heartbeat = _receive(gcs, "HEARTBEAT")
+            assert heartbeat is not None and heartbeat.get_signed(), "signed with the key"
+            assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+            gcs.close()
+    with pytest.raises(ValueError, match="empty"):
+        signing_key_from_passphrase("")
