@@ -304,12 +304,27 @@ def test_eval_and_track_with_tacf(tmp_path):
 def test_ablation_table_rows_and_gains():
     from tacf.eval.report import ablation_table
 
-    entry = lambda auc: {"auc": auc, "precision20": 0.5, "fps": 100.0, "frames": 10, "sequences": {}}  # noqa: E731
-    summary = {"trackers": {"kcc": entry(0.40), "kcc+sa": entry(0.45), "kcc+da": entry(0.38),
-                            "kcc+ca": entry(0.42), "tacf-authors": entry(0.50)}}
+    def entry(*aucs):
+        return {"auc": float(np.mean(aucs)), "precision20": 0.5, "fps": 100.0, "frames": 10,
+                "sequences": {f"s{i}": {"auc": a} for i, a in enumerate(aucs)}}
+
+    summary = {"trackers": {"kcc": entry(0.40, 0.40), "kcc+sa": entry(0.44, 0.46), "kcc+da": entry(0.38, 0.38),
+                            "kcc+ca": entry(0.42, 0.42), "tacf-authors": entry(0.40, 0.60),
+                            "tacf": entry(0.45, 0.45)}}
     lines = ablation_table(summary).splitlines()
     assert [line.split("|")[2].strip() for line in lines[2:]] == list(trackers.ABLATION)
-    assert "| +0.050 |" in lines[3] and "| -0.020 |" in lines[4] and "| +0.100 |" in lines[6]
+    assert "| +0.050 | +12.5% (+10.0% to +15.0%) |" in lines[3], lines[3]       # resamples of (s0, s1)
+    assert "| -0.020 | -5.0% (-5.0% to -5.0%) |" in lines[4], lines[4]
+    assert "| +0.100 | +25.0% (+0.0% to +50.0%) |" in lines[6], lines[6]        # all of it from one sequence
+    assert "| +0.050 | +12.5% (+12.5% to +12.5%) |" in lines[7], lines[7]
+
+
+def test_relative_gain_and_its_interval():
+    from tacf.eval.report import relative_gain
+
+    assert relative_gain([0.5, 0.5, 0.5], [0.4, 0.4, 0.4]) == pytest.approx((0.25, 0.25, 0.25))
+    gain, low, high = relative_gain([0.9, 0.4, 0.4, 0.4], [0.4, 0.4, 0.4, 0.4])
+    assert gain == pytest.approx(0.3125) and low == pytest.approx(0.0) and high > 0.6   # one sequence carries it
 
 
 def test_robustness_of_hand_made_scores():

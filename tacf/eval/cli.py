@@ -39,7 +39,8 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=1, metavar="N", help="processes (default %(default)s)")
     p.add_argument("--force", action="store_true", help="rerun pairs that already have a result file")
     p.add_argument("--ablation", action="store_true",
-                   help="the paper's ablation: kcc, kcc+sa, kcc+da, kcc+ca, tacf (ignores --trackers)")
+                   help="the paper's ablation: kcc, kcc+sa, kcc+da, kcc+ca, tacf-authors, and tacf, with the gains "
+                        "over kcc (ignores --trackers)")
     p.add_argument("--ranges", type=Path, metavar="FILE",
                    help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
     p.add_argument("--max-frames", type=int, metavar="N",

@@ -25,8 +25,8 @@ Box = tuple[float, float, float, float]
 ATTENTIONS = {"sa": "spatiotemporal_attention", "da": "dimensional_attention", "ca": "context_attention"}
 OPENCV_TRACKERS = ("opencv-csrt", "opencv-kcf", "opencv-mosse", "opencv-mil")
 # The attentions added to kcc one at a time, then all three: kcc carries the authors' values, so "all three" is
-# the `authors` profile (the default, `paper`, also changes lambda1 and the attentions' own parameters).
-ABLATION = ("kcc", "kcc+sa", "kcc+da", "kcc+ca", "tacf-authors")
+# the `authors` profile; then the default, `paper`, which also changes lambda1 and the attentions' own parameters.
+ABLATION = ("kcc", "kcc+sa", "kcc+da", "kcc+ca", "tacf-authors", "tacf")
 
 
 @runtime_checkable
