@@ -418,6 +418,7 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
     import os
+    import socket
     from pathlib import Path
 
     from tacf.zenoh_options import options_from_args
@@ -426,6 +427,9 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
     def ready(url: str) -> None:
         print(f"tacf dashboard: open {url} in a browser (Ctrl-C to stop)", flush=True)
+        if args.host in ("0.0.0.0", "", "::"):
+            print(f"tacf dashboard: from another machine: {url.replace('127.0.0.1', socket.gethostname(), 1)}",
+                  flush=True)
 
     try:
         token = (Path(args.token_file).read_text().strip() if args.token_file else os.environ.get(TOKEN_ENV)) or None

@@ -387,9 +387,11 @@ def test_tacf_dashboard_command_serves_until_sigterm():
 
 def test_tacf_dashboard_command_on_the_network_asks_for_a_token(tmp_path):
     port = free_port()
-    with _dashboard_command("--host", "0.0.0.0", "--port", str(port)) as (_, url):
+    with _dashboard_command("--host", "0.0.0.0", "--port", str(port)) as (process, url):
         made = re.fullmatch(rf"http://127\.0\.0\.1:{port}/\?token=([A-Za-z0-9_-]{{32}})", url)
         assert made, url
+        assert process.stdout.readline().strip() == \
+            f"tacf dashboard: from another machine: {url.replace('127.0.0.1', socket.gethostname())}"
         assert _get(f"http://127.0.0.1:{port}/api/state")[0] == 401
         assert _get(f"http://127.0.0.1:{port}/api/state", {"Authorization": "Bearer " + made.group(1)})[0] == 200
     token_file = tmp_path / "token"
