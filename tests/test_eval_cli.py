@@ -241,6 +241,7 @@ def test_bench_tracker_json(tmp_path):
     assert r["peers"]["opencv-csrt"]["fps"] > 0 and r["peers"]["opencv-csrt"]["frames"] == 10
     assert r["sequences"]["UAV123_10fps/wakeboard7"]["frames"] == 10
     assert r["opencv"] == cv2.__version__
+    assert 0 < r["cores"] < 1.5 and 0 < r["peers"]["opencv-csrt"]["cores"] < 1.5, "one core each"
 
 
 @needs_data

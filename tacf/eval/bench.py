@@ -1,7 +1,8 @@
 """`tacf bench tracker`: per-stream speed of a tracker on decoded frames, with OpenCV CSRT measured alongside.
 
 Each sequence is decoded into memory first; only init/update calls are timed (time.perf_counter), in this one
-process with OpenCV limited to one thread. fps = total frames / total tracker seconds. Before any timing, every
+process with OpenCV limited to one thread. `cores` is the process's CPU time over the wall time while a tracker
+ran: 1.0 is one core; more means threads working (or spinning) on other cores. fps = total frames / total tracker seconds. Before any timing, every
 tracker runs once, untimed, on the first frames of the first sequence: what a process pays once (loading the
 compiled fHOG from numba's cache, OpenCV's lazy set-up) is not a cost per stream, and would otherwise be
 charged to whichever sequence comes first.
@@ -9,6 +10,7 @@ charged to whichever sequence comes first.
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
@@ -44,6 +46,7 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     cv2.setNumThreads(1)
     names = list(dict.fromkeys(list(trackers) + [PEER]))
     times: dict[str, dict[str, np.ndarray]] = {n: {} for n in names}
+    cpu_and_wall = {n: np.zeros(2) for n in names}
     if sequences:
         warm_up = [read_frame(p) for p in sequences[0].frames[:WARM_UP_FRAMES]]
         for name in names:
@@ -52,7 +55,9 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
         n = len(seq) if max_frames is None else min(len(seq), max_frames)
         frames = [read_frame(p) for p in seq.frames[:n]]
         for name in names:
+            cpu, wall = time.process_time(), time.perf_counter()
             run = track_frames(make_tracker(name), frames, seq.gt[0])
+            cpu_and_wall[name] += (time.process_time() - cpu, time.perf_counter() - wall)
             times[name][seq.name] = run.times
             log.info("%s %s: %.1f fps", name, seq.name, n / run.times.sum())
         del frames
@@ -60,6 +65,8 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     def report(name: str) -> dict:
         allt = np.concatenate(list(times[name].values())) if times[name] else np.zeros(0)
         out = _stats(allt) if len(allt) else {"fps": float("nan"), "frames": 0}
+        cpu, wall = cpu_and_wall[name]
+        out["cores"] = float(cpu / wall) if wall > 0 else float("nan")
         out["sequences"] = {s: _stats(t) for s, t in times[name].items()}
         return out
 

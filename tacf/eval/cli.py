@@ -200,8 +200,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text)
-        log.info("%s: %.1f fps (%s %.1f fps); wrote %s", result["tracker"], result["fps"], "opencv-csrt",
-                 result["peers"].get("opencv-csrt", result)["fps"], args.json)
+        log.info("%s: %.1f fps on %.2f cores (%s %.1f fps); wrote %s", result["tracker"], result["fps"],
+                 result.get("cores", float("nan")), "opencv-csrt", result["peers"].get("opencv-csrt", result)["fps"],
+                 args.json)
     else:
         sys.stdout.write(text)
     return 0
