@@ -8,7 +8,8 @@ The page can start and stop sessions and shows every camera, so it is not left o
 - Served on any other address, a token is required, one is made up when none is given (as Jupyter does), and
   the printed URL carries it. A browser that opens `/?token=T` gets it as an HttpOnly, SameSite=Strict cookie
   (which no other site's request carries) and is sent on to the page without it; programs send
-  `Authorization: Bearer T` (Prometheus: `authorization: {credentials_file: ...}`).
+  `Authorization: Bearer T` (Prometheus: `authorization: {credentials_file: ...}`), or, if they cannot, add
+  `?token=T` to what they fetch (VLC on /mjpeg/...).
 Plain HTTP shows the token to anyone on the path: across a network, serve HTTPS (`--certfile`, `--keyfile`; the
 cookie is then Secure) or reach it through an SSH tunnel.
 """

@@ -201,6 +201,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
         url = urlsplit(self.path)
         query = parse_qs(url.query)
         if self.command == "GET" and access.is_token((query.pop("token", None) or [None])[-1]):
+            if url.path not in ("/", "/index.html"):
+                return True                          # a program that cannot send headers (VLC on /mjpeg/...)
             # a browser's first visit: keep the token as a cookie, and out of the address bar and history
             rest = urlencode(query, doseq=True)
             self._send(HTTPStatus.SEE_OTHER, b"", None,

@@ -248,6 +248,9 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         assert status == 401, "the URL's token only logs a browser in, with a GET"
 
         bearer = {"Authorization": "Bearer " + token}
+        for path in ("/api/state", "/metrics"):             # programs that cannot send headers (VLC on /mjpeg/)
+            assert _get(f"{base}{path}?token={token}")[0] == 200, path
+            assert _get(f"{base}{path}?token={token}x")[0] == 401, path
         assert _get(base + "/api/state", bearer)[0] == 200
         assert _get(base + "/api/state", {"Host": "evil.example", **bearer})[0] == 200   # the token decides
         assert _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]}, headers=bearer)[0] == 503
