@@ -203,7 +203,7 @@ class MavlinkCamera:
             self._send_status()
 
     def _set_interval(self, message) -> int:
-        if int(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:
+        if _message_id(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:
             return mav.MAV_RESULT_UNSUPPORTED
         interval_us = message.param2
         if not math.isfinite(interval_us) or interval_us < -1:
@@ -217,9 +217,9 @@ class MavlinkCamera:
         frame = self._frame_header()
         width, height = (frame.width, frame.height) if frame is not None else (0, 0)
         nan = float("nan")
-        self.mav.mav.camera_information_send(
-            int((time.monotonic() - self._started) * 1000) & 0xFFFFFFFF, _ascii_field(VENDOR), _ascii_field(MODEL), 0, nan, nan, nan,
-            width, height, 0, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, 0, b"")
+        boot_ms = int((time.monotonic() - self._started) * 1000) & 0xFFFFFFFF
+        self.mav.mav.camera_information_send(boot_ms, _ascii_field(VENDOR), _ascii_field(MODEL), 0, nan, nan, nan,
+                                             width, height, 0, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, 0, b"")
 
     def _send_status(self) -> None:
         nan = float("nan")

@@ -123,6 +123,9 @@ def test_any_command_gets_an_answer_and_the_component_lives_on(rig):
     specials = [math.nan, math.inf, -math.inf, -1.0, 0.0, 1.0, 0.5, 1e30, -1e30, 2 ** 31, 3.4e38]
     commands = [mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, mav.MAV_CMD_CAMERA_STOP_TRACKING, mav.MAV_CMD_REQUEST_MESSAGE,
                 mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_CMD_REQUEST_CAMERA_INFORMATION, 0, 65535]
+    for command, param in ((mav.MAV_CMD_SET_MESSAGE_INTERVAL, math.nan), (mav.MAV_CMD_SET_MESSAGE_INTERVAL, math.inf),
+                           (mav.MAV_CMD_REQUEST_MESSAGE, -math.inf)):
+        assert _command(gcs, command, param) == mav.MAV_RESULT_UNSUPPORTED, (command, param)
     for _ in range(60):
         command = rng.choice(commands + [rng.randrange(65536)])
         params = [rng.choice(specials + [rng.uniform(-2, 2)]) for _ in range(7)]
