@@ -1,11 +1,11 @@
 """`tacf bench tracker`: per-stream speed of a tracker on decoded frames, with OpenCV CSRT measured alongside.
 
 Each sequence is decoded into memory first; only init/update calls are timed (time.perf_counter), in this one
-process with OpenCV limited to one thread. `cores` is the process's CPU time over the wall time while a tracker
-ran: 1.0 is one core; more means threads working (or spinning) on other cores. fps = total frames / total tracker seconds. Before any timing, every
-tracker runs once, untimed, on the first frames of the first sequence: what a process pays once (loading the
-compiled fHOG from numba's cache, OpenCV's lazy set-up) is not a cost per stream, and would otherwise be
-charged to whichever sequence comes first.
+process with OpenCV limited to one thread. fps = total frames / total tracker seconds; `cores` = the process's
+CPU time over the wall time while a tracker ran (1.0 is one core; more means threads working, or spinning, on
+other cores). Before any timing, every tracker runs once, untimed, on the first frames of the first sequence:
+what a process pays once (loading the compiled fHOG from numba's cache, OpenCV's lazy set-up) is not a cost per
+stream, and would otherwise be charged to whichever sequence comes first.
 """
 from __future__ import annotations
 
