@@ -223,19 +223,17 @@ class MavlinkCamera:
 
     def _send_status(self) -> None:
         nan = float("nan")
-        box = self._box
-        if not self.tracking or box is None:
-            status = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE if self.tracking else mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE
-            mode = mav.CAMERA_TRACKING_MODE_RECTANGLE if self.tracking else mav.CAMERA_TRACKING_MODE_NONE
-            self.mav.mav.camera_tracking_image_status_send(status, mode, 0, nan, nan, nan, nan, nan, nan, nan)
-            return
-        status = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
-        if not box.ok:
-            status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
-        (cx, cy), (x1, y1, x2, y2) = box.center_norm, box.corners_normalised
-        self.mav.mav.camera_tracking_image_status_send(status, mav.CAMERA_TRACKING_MODE_RECTANGLE,
-                                                       mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS, cx, cy, nan,
-                                                       x1, y1, x2, y2)
+        status, mode, target_data = mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE, mav.CAMERA_TRACKING_MODE_NONE, 0
+        point, corners = (nan, nan), (nan, nan, nan, nan)
+        if self.tracking:
+            status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_RECTANGLE
+            box = self._box
+            if box is not None:
+                target_data = mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS
+                point, corners = box.center_norm, box.corners_normalised
+                if not box.ok:
+                    status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
+        self.mav.mav.camera_tracking_image_status_send(status, mode, target_data, *point, nan, *corners)
 
     def _frame_header(self) -> Frame | None:
         """The newest frame seen on the image key (its seq and size), or None."""
