@@ -8,7 +8,12 @@ import zenoh
 from tacf_clients.demo import HoldingPublisher
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.zconfig import make_config
+from tacf_clients.zconfig import ZenohOptions, make_config
+
+
+def no_service_options() -> ZenohOptions:
+    """Zenoh options of a session that listens on a free loopback port and reaches no service."""
+    return ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
 
 
 @contextmanager

@@ -31,9 +31,8 @@ from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from tacf_clients.zconfig import ZenohOptions
 from tacf_service.loopback import wait_until
-from camera_rig import service_and_camera
+from camera_rig import no_service_options, service_and_camera
 
 pytestmark = pytest.mark.zenoh
 
@@ -201,8 +200,7 @@ def test_event_stream_is_latest_only_and_rate_capped(stack):
 
 def test_healthz_without_any_service():
     """The dashboard serves (and says no service answered) before any service runs; start fails with 503."""
-    options = ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
-    with DashboardApp(options, port=0) as app:
+    with DashboardApp(no_service_options(), port=0) as app:
         base = app.url.rstrip("/")
         health = _wait(lambda: (h := json.loads(_get(base + "/healthz")[2])) and h["reason"] == "ok" and h)
         assert health["services"] == [] and health["status"] == "ok"
@@ -212,14 +210,10 @@ def test_healthz_without_any_service():
         assert status == 200 and "tacf_dashboard_up 1" in text.decode()
 
 
-def _no_service_options() -> ZenohOptions:
-    return ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
-
-
 def test_on_loopback_only_loopback_host_names_are_answered():
     """DNS rebinding: a page at evil.example whose name now resolves to 127.0.0.1 is same-origin with the
     dashboard in the browser's eyes; its requests carry Host: evil.example and are refused, POSTs included."""
-    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess(allow_hosts=["ground.lan"])) as app:
+    with DashboardApp(no_service_options(), port=0, access=DashboardAccess(allow_hosts=["ground.lan"])) as app:
         port = app.server.server_address[1]
         base = app.url.rstrip("/")
         assert app.url == f"http://127.0.0.1:{port}/"
@@ -235,7 +229,7 @@ def test_on_loopback_only_loopback_host_names_are_answered():
 
 def test_a_token_guards_every_page_and_a_browser_logs_in_once():
     token = "k9-Xr2_vQ8mPz3LtW7yB"
-    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess(token)) as app:
+    with DashboardApp(no_service_options(), port=0, access=DashboardAccess(token)) as app:
         base = app.server.base_url.rstrip("/")
         assert app.url == f"{base}/?token={token}"
         for path in ("/", "/events", "/api/state", "/metrics", "/healthz", "/frame/" + KEY, "/static/dashboard.js"):
@@ -288,7 +282,7 @@ def test_https_with_the_certificates_of_make_certs(tmp_path):
     token = "tls-token-0123456789abcdef"
     tls = tls_context(str(certs / "service.pem"), str(certs / "service.key"))
     trusted = ssl.create_default_context(cafile=str(certs / "ca.pem"))
-    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess(token), tls=tls) as app:
+    with DashboardApp(no_service_options(), port=0, access=DashboardAccess(token), tls=tls) as app:
         base = app.server.base_url
         assert base.startswith("https://127.0.0.1:") and app.url == f"{base}?token={token}"
         with pytest.raises(urllib.error.URLError):          # not our CA: refused by the client
@@ -315,7 +309,7 @@ def test_any_other_address_gets_a_token_of_its_own():
     for bad in ("short", "has space in it 0123", "semi;colon-0123456789", "x" * 257):
         with pytest.raises(ValueError, match="token"):
             DashboardAccess(bad)
-    with DashboardApp(_no_service_options(), host="0.0.0.0", port=0) as app:
+    with DashboardApp(no_service_options(), host="0.0.0.0", port=0) as app:
         assert "?token=" in app.url and app.server.access.token in app.url
         assert _get(app.server.base_url + "api/state")[0] == 401
 
@@ -582,7 +576,7 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, guard
 
 
 def test_browser_that_lost_its_token_is_told_what_to_do(browser):
-    with DashboardApp(_no_service_options(), port=0, access=DashboardAccess("lost-token-0123456789")) as app:
+    with DashboardApp(no_service_options(), port=0, access=DashboardAccess("lost-token-0123456789")) as app:
         browser.get(app.url)
         assert _wait(lambda: browser.execute_script("return window.tacf && window.tacf.connected"), timeout=20)
         browser.delete_all_cookies()

@@ -15,8 +15,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
-from tacf_clients.zconfig import ZenohOptions
-from camera_rig import service_and_camera
+from camera_rig import no_service_options, service_and_camera
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
 os.environ.setdefault("MAVLINK20", "1")
@@ -262,12 +261,11 @@ def test_with_signing_only_signed_commands_are_answered():
     """MAVLink 2 signing: the component signs what it sends and answers only commands signed with its key."""
     key = signing_key_from_passphrase("correct horse battery staple")
     assert len(key) == 32 and key != signing_key_from_passphrase("correct horse battery stable")
-    options = ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",))
     port = free_port()
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
                                      source_component=GCS_COMPONENT, dialect="common")
     stop = threading.Event()
-    with MavlinkCamera(f"udpout:127.0.0.1:{port}", KEY, options=options, signing_key=key) as component:
+    with MavlinkCamera(f"udpout:127.0.0.1:{port}", KEY, options=no_service_options(), signing_key=key) as component:
         loop = threading.Thread(target=component.serve, args=(stop,))
         loop.start()
         try:
