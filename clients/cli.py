@@ -1,5 +1,5 @@
-"""`tacf publish | start | stop | reinit | list | status | nodes | watch | demo | dashboard | mavlink`: the client
-side from the shell.
+"""`tacf publish | start | stop | reinit | list | status | nodes | watch | demo | dashboard | foxglove | mavlink`:
+the client side from the shell.
 
 Only argparse-level things are imported here; each command imports what it needs when it runs, so that
 `tacf --help` stays fast and nothing here ever loads the tracker.
@@ -124,6 +124,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "this file's passphrase (its SHA-256, as MAVProxy's `signing setup` makes it)")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_mavlink)
+
+    p = subparsers.add_parser("foxglove", help="Foxglove / Lichtblick live view: frames, boxes, health, start/stop",
+                              description="Serve every session to Foxglove (or Lichtblick) over Foxglove's WebSocket "
+                                          "protocol on ws://HOST:PORT: /<image key>/image, /<image key>/tracks "
+                                          "(the boxes as image annotations), /tacf/<node>/<sid> (JSON health), and "
+                                          "the services /tacf/start, /tacf/reinit, /tacf/stop and /tacf/list. "
+                                          "Needs foxglove-sdk: pip install 'tacf[foxglove]'.")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to serve on (default 127.0.0.1; on any other the services are off unless "
+                        "--control: the protocol has no authentication)")
+    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765, Foxglove's; 0 = any free)")
+    p.add_argument("--control", action=argparse.BooleanOptionalAction, default=None,
+                   help="offer the start/stop/reinit/list services (default: on loopback only)")
+    p.add_argument("--image-hz", type=_positive_float, default=10.0, metavar="HZ",
+                   help="images per second and image key at most (default 10: viewers keep what they get)")
+    p.add_argument("--certfile", metavar="PEM", help="serve wss:// only, with this certificate (chain)")
+    p.add_argument("--keyfile", metavar="PEM", help="the certificate's private key (default: in --certfile)")
+    p.add_argument("--key", "-k", dest="keys", action="append", default=[], metavar="IMAGE_KEY",
+                   help="image key to show from the start, repeatable (the keys of running sessions are added "
+                        "by themselves)")
+    p.add_argument("--node", help="only this service (default: every service on the network)")
+    add_zenoh_arguments(p)
+    p.set_defaults(func=cmd_foxglove)
 
     p = subparsers.add_parser("dashboard", help="ground-station web page: live frames, boxes, charts, start/stop",
                               description="Serve the ground-station dashboard on http://HOST:PORT/ (fully offline: "
@@ -413,6 +436,42 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
             print(f"tacf mavlink: camera component {args.system}/{args.component} for {args.key} on {args.link} "
                   "(Ctrl-C to stop)", flush=True)
             camera.serve(stop)
+    return 0
+
+
+def cmd_foxglove(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from tacf.zenoh_options import options_from_args
+    try:
+        from tacf_clients.foxglove_bridge import FoxgloveBridge
+    except ImportError as exc:
+        print(f"tacf foxglove: {exc}; install it with: pip install 'tacf[foxglove]'", file=sys.stderr)
+        return 2
+    from tacf_clients.dashboard import Dashboard
+
+    try:
+        if args.keyfile and not args.certfile:
+            raise ValueError("--keyfile needs --certfile")
+        cert = Path(args.certfile).read_bytes() if args.certfile else None
+        tls = (cert, Path(args.keyfile).read_bytes() if args.keyfile else cert) if cert else None
+    except (OSError, ValueError) as exc:
+        print(f"tacf foxglove: {exc}", file=sys.stderr)
+        return 2
+    with stop_on_signals() as stop:
+        try:
+            with Dashboard(options_from_args(args), image_keys=args.keys, node=args.node,
+                           max_frame_fps=args.image_hz) as board, \
+                 FoxgloveBridge(board, host=args.host, port=args.port, image_hz=args.image_hz,
+                                control=args.control, tls=tls) as bridge:
+                scheme = "wss" if tls else "ws"
+                services = "with" if bridge.control else "without"
+                print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove (Open connection > "
+                      f"Foxglove WebSocket), {services} the control services (Ctrl-C to stop)", flush=True)
+                bridge.serve(stop)
+        except (OSError, RuntimeError, ValueError) as exc:
+            print(f"tacf foxglove: {exc}", file=sys.stderr)
+            return 2
     return 0
 
 

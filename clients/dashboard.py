@@ -85,7 +85,7 @@ class SessionView:
             "id": self.id, "node": self.node, "sid": self.sid, "image_key": self.image_key,
             "profile": self.profile, "state": self.state, "version": self.version,
             "box": None if box is None else {
-                "seq": box.seq, "box": list(box.box), "ok": box.ok, "pme": box.pme, "score": box.score,
+                "seq": box.seq, "stamp_ns": box.stamp_ns, "box": list(box.box), "ok": box.ok, "pme": box.pme, "score": box.score,
                 "scale": box.scale, "processing_ms": box.processing_ms,
                 # capture -> dashboard latency of the newest box, and how long ago it arrived
                 "latency_ms": _ms(self.box_received_ns - box.stamp_ns) if self.box_received_ns else None,

@@ -15,7 +15,7 @@ import sys
 COMMAND_MODULES = (
     "tacf.eval.cli",         # eval, track, bench tracker
     "tacf_service.cli",      # serve
-    "tacf_clients.cli",      # publish, start, stop, reinit, list, status, watch, demo, dashboard
+    "tacf_clients.cli",      # publish, start, stop, reinit, list, status, watch, demo, dashboard, foxglove, mavlink
     "tacf_clients.bench",    # bench service
 )
 

@@ -1,0 +1,256 @@
+"""`tacf foxglove`: every tracking session in Foxglove (or its open fork Lichtblick), over Foxglove's WebSocket
+protocol (foxglove-sdk's server; no ROS).
+
+    tacf foxglove          # in Foxglove: Open connection > Foxglove WebSocket > ws://127.0.0.1:8765
+
+Topics, for each watched image key K (the key of every listed session, plus the ones given) and session N/S:
+- `/K/image` (foxglove.CompressedImage): the newest frame of K, at most `image_hz` a second, only while someone
+  subscribes; JPEG frames go as they came, raw ones are encoded once.
+- `/K/tracks` (foxglove.ImageAnnotations): the newest box of every session on K, a rectangle (green while the
+  tracker holds the target, red while it reports it lost) labelled with the session id and PME; its timestamp is
+  the stamp of the frame the box was computed on, so the Image panel's "sync annotations" pairs the two. Each
+  rectangle's metadata carries node, sid, seq, ok and pme.
+- `/tacf/N/S` (JSON): the session as the dashboard's /api/state shows it (box, PME, health: fps, latency, frame
+  counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
+Services (JSON, e.g. from the Service Call panel): `/tacf/start` (the fields of a start request: image_key, box,
+and optionally seq, sid, profile, node), `/tacf/reinit` (sid, box, seq, node), `/tacf/stop` (sid, node) and
+`/tacf/list`; replies are SessionInfo JSON (a list for /tacf/list), failures the service's error message. Foxglove's
+protocol has no authentication, so the services are offered on a loopback address only, unless `control=True`.
+
+The data side is the dashboard's (Dashboard: latest-only, never blocking a Zenoh thread); this module only turns
+its state into Foxglove messages, from one thread.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter
+
+import foxglove
+from foxglove.channels import CompressedImageChannel, ImageAnnotationsChannel
+from foxglove.messages import (Color, CompressedImage, ImageAnnotations, KeyValuePair, Point2, PointsAnnotation,
+                               PointsAnnotationType, TextAnnotation, Timestamp)
+from pydantic import ValidationError
+
+from tacf_clients.dashboard import Dashboard
+from tacf_clients.dashboard_access import is_loopback
+from tacf_schemas.models import ReinitRequest, StartRequest, StopRequest
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PORT = 8765                 # Foxglove's default WebSocket port
+DEFAULT_IMAGE_HZ = 10.0             # viewers keep every image they get: a cap keeps a long session's memory bounded
+MESSAGE_BACKLOG = 64                # messages queued per client before the oldest are dropped (SDK default: 1024)
+TRACKING, LOST = Color(r=0.2, g=0.9, b=0.3, a=1.0), Color(r=1.0, g=0.25, b=0.2, a=1.0)
+LABEL_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
+
+
+def _timestamp(ns: int) -> Timestamp:
+    return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
+
+
+def session_annotations(sessions: list[dict]) -> ImageAnnotations:
+    """The boxes of the given sessions (as Dashboard.sessions_json gives them) as one ImageAnnotations, stamped
+    with the newest box's frame."""
+    rectangles, labels, stamps = [], [], []
+    for session in sessions:
+        result = session["box"]
+        if result is None:
+            continue
+        x, y, w, h = result["box"]
+        colour = TRACKING if result["ok"] else LOST
+        corners = [Point2(x=x, y=y), Point2(x=x + w, y=y), Point2(x=x + w, y=y + h), Point2(x=x, y=y + h)]
+        metadata = {"node": session["node"], "sid": session["sid"], "seq": str(result["seq"]),
+                    "ok": str(result["ok"]).lower(), "pme": f"{result['pme']:.2f}"}
+        rectangles.append(PointsAnnotation(type=PointsAnnotationType.LineLoop, points=corners, outline_color=colour,
+                                           thickness=2.0, metadata=_key_values(metadata)))
+        labels.append(TextAnnotation(position=Point2(x=x, y=max(y - 2.0, 12.0)), font_size=12.0,
+                                     text=f"{session['sid']}  pme {result['pme']:.1f}", text_color=colour,
+                                     background_color=LABEL_BACKGROUND))
+        stamps.append(result["stamp_ns"])
+    stamp = _timestamp(max(stamps)) if stamps else Timestamp.now()
+    return ImageAnnotations(timestamp=stamp, points=rectangles, texts=labels)
+
+
+def _key_values(pairs: dict[str, str]) -> list[KeyValuePair]:
+    return [KeyValuePair(key=k, value=v) for k, v in pairs.items()]
+
+
+class _Subscriptions(foxglove.websocket.ServerListener):
+    """How many client subscriptions each topic has (the server calls these from its own threads)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._count: Counter[str] = Counter()
+
+    def on_subscribe(self, client, channel) -> None:
+        with self._lock:
+            self._count[channel.topic] += 1
+
+    def on_unsubscribe(self, client, channel) -> None:   # also on disconnect and on a channel's removal
+        with self._lock:
+            self._count[channel.topic] = max(0, self._count[channel.topic] - 1)
+
+    def __contains__(self, topic: str) -> bool:
+        with self._lock:
+            return self._count[topic] > 0
+
+
+class FoxgloveBridge:
+    """Serves `board`'s sessions to Foxglove clients on ws://host:port (port 0: any free port; see `port`).
+
+    `serve(stop)` publishes until `stop` is set; close() stops the WebSocket server (the board is not closed
+    here). control: offer the start/stop/reinit/list services (default: only on a loopback host). tls: (PEM
+    certificate, PEM PKCS#8 key) bytes to serve wss:// only.
+    """
+
+    def __init__(self, board: Dashboard, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
+                 image_hz: float = DEFAULT_IMAGE_HZ, control: bool | None = None,
+                 tls: tuple[bytes, bytes] | None = None, name: str = "tacf"):
+        if image_hz <= 0:
+            raise ValueError(f"image_hz must be positive, got {image_hz}")
+        self.board = board
+        self.image_period_s = 1.0 / image_hz
+        self.control = is_loopback(host) if control is None else control
+        self.context = foxglove.Context()         # our own: other Foxglove users in the process are not mixed in
+        self._subscriptions = _Subscriptions()
+        services = self._services() if self.control else []
+        cert, key = tls if tls is not None else (None, None)
+        self.server = foxglove.start_server(
+            name=name, host=host, port=port, context=self.context, server_listener=self._subscriptions,
+            services=services, capabilities=[foxglove.Capability.Services] if services else [],
+            supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG, tls_cert=cert, tls_key=key)
+        self._images: dict[str, CompressedImageChannel] = {}
+        self._tracks: dict[str, ImageAnnotationsChannel] = {}
+        self._session_channels: dict[str, foxglove.Channel] = {}
+        self._sent_versions: dict[str, tuple[int, int]] = {}
+        self._sent_frames: dict[str, tuple[int, int]] = {}       # key -> (seq, received_ns) last sent
+        self._keys_with_boxes: set[str] = set()
+
+    @property
+    def port(self) -> int:
+        return self.server.port
+
+    def close(self) -> None:
+        self.server.stop()
+
+    def __enter__(self) -> "FoxgloveBridge":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- publishing -----------------------------------------------------------------------------------------
+    def serve(self, stop: threading.Event) -> None:
+        next_images = 0.0
+        while not stop.is_set() and not self.board.closed.is_set():
+            now = time.monotonic()
+            try:
+                self.publish_sessions()
+                if now >= next_images:
+                    next_images = now + self.image_period_s
+                    self.publish_images()
+            except Exception:  # a viewer bridge that stops silently would look like a tracker that stopped
+                log.exception("publishing to Foxglove failed")
+            self.board.wait_changed(timeout=max(0.0, min(next_images - time.monotonic(), 0.25)))
+
+    def publish_sessions(self) -> None:
+        """Each changed session on `/tacf/N/S`, and the boxes of every image key one of them is on."""
+        versions = self.board.versions()
+        changed = {sid_id for sid_id, version in versions.items() if self._sent_versions.get(sid_id) != version}
+        gone = self._sent_versions.keys() - versions.keys()
+        if not changed and not gone:
+            return
+        sessions, _ = self.board.sessions_json(points_after={k: v[1] for k, v in versions.items()})
+        now_ns = time.time_ns()
+        for session in sessions:
+            if session["id"] in changed:
+                self._channel_of(session["id"]).log(session, log_time=now_ns)
+        for sid_id in gone:
+            channel = self._session_channels.pop(sid_id, None)
+            if channel is not None:
+                channel.close()
+        self._sent_versions = versions
+        by_key: dict[str, list[dict]] = {}
+        for session in sessions:
+            if session["image_key"] is not None and session["state"] != "stopped":
+                by_key.setdefault(session["image_key"], []).append(session)
+        # keys whose last session went away get one empty message, so that the last rectangle disappears
+        for key in set(by_key) | self._keys_with_boxes:
+            if key not in self._tracks:
+                self._tracks[key] = ImageAnnotationsChannel(f"/{key}/tracks", context=self.context)
+            self._tracks[key].log(session_annotations(by_key.get(key, [])), log_time=now_ns)
+        self._keys_with_boxes = set(by_key)
+
+    def publish_images(self) -> None:
+        """The newest frame of each watched key whose image topic somebody subscribes to."""
+        for key in self.board.image_keys():
+            topic = f"/{key}/image"
+            if key not in self._images:
+                self._images[key] = CompressedImageChannel(topic, context=self.context)
+            if topic not in self._subscriptions:
+                continue
+            snap = self.board.frame(key)
+            if snap is None or self._sent_frames.get(key) == (snap.seq, snap.received_ns):
+                continue
+            self._sent_frames[key] = (snap.seq, snap.received_ns)
+            self._images[key].log(CompressedImage(timestamp=_timestamp(snap.stamp_ns), frame_id=key,
+                                                  data=snap.jpeg, format="jpeg"), log_time=snap.received_ns)
+
+    def _channel_of(self, sid_id: str) -> foxglove.Channel:
+        channel = self._session_channels.get(sid_id)
+        if channel is None:
+            channel = foxglove.Channel(f"/tacf/{sid_id}", message_encoding="json", context=self.context)
+            self._session_channels[sid_id] = channel
+        return channel
+
+    # --- control services -------------------------------------------------------------------------------------
+    def _services(self) -> list[foxglove.Service]:
+        def service(name: str, handler) -> foxglove.Service:
+            return foxglove.Service(f"/tacf/{name}", schema=foxglove.ServiceSchema(name=f"tacf.{name}"),
+                                    handler=lambda request: _call(handler, request))
+        return [service("start", self._start), service("reinit", self._reinit), service("stop", self._stop),
+                service("list", self._list)]
+
+    def _start(self, fields: dict) -> bytes:
+        node = fields.pop("node", None)
+        request = StartRequest.model_validate(fields)
+        info = self.board.start(request.image_key, request.box, request.seq, sid=request.sid,
+                                profile=request.profile, node=node)
+        return info.model_dump_json().encode()
+
+    def _reinit(self, fields: dict) -> bytes:
+        node = fields.pop("node", None)
+        request = ReinitRequest.model_validate(fields)
+        return self.board.reinit(request.sid, request.box, request.seq, node=node).model_dump_json().encode()
+
+    def _stop(self, fields: dict) -> bytes:
+        node = fields.pop("node", None)
+        request = StopRequest.model_validate(fields)
+        return self.board.stop(request.sid, node=node).model_dump_json().encode()
+
+    def _list(self, fields: dict) -> bytes:
+        infos = self.board.client.list(node=fields.get("node"))
+        return json.dumps([info.model_dump(mode="json") for info in infos]).encode()
+
+
+def _call(handler, request) -> bytes:
+    """Run a service handler on a request's JSON payload (the server refuses other encodings). An exception's
+    text is what the Foxglove client is shown (the SDK replies serviceCallFailure with it); nothing a client
+    sends gets further than that."""
+    try:
+        fields = json.loads(request.payload or b"{}")
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"the request is not JSON: {exc}") from None
+    if not isinstance(fields, dict):
+        raise ValueError("the request must be a JSON object")
+    try:
+        return handler(fields)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'request'}: {e['msg']}" for e in exc.errors())
+        raise ValueError(f"bad request: {problems}") from None
+    except Exception as exc:
+        log.info("%s failed: %s", request.service_name, exc)
+        raise ValueError(f"{type(exc).__name__}: {exc}") from None

@@ -1,0 +1,285 @@
+"""`tacf foxglove` against a client that speaks Foxglove's WebSocket protocol as the Foxglove app does (subprotocol
+foxglove.sdk.v1; protobuf messages decoded from the schemas the server advertises): a real `tacf serve`, a camera
+publishing the generated scene, the dashboard's Zenoh side and the bridge in between."""
+from __future__ import annotations
+
+import base64
+import json
+import struct
+import threading
+import time
+from contextlib import contextmanager
+
+import cv2
+import numpy as np
+import pytest
+
+from tacf.eval.metrics import box_iou
+from tacf_clients.dashboard import Dashboard
+from tacf_clients.local_service import free_port
+from tacf_clients.scene import Scene
+from camera_rig import no_service_options, service_and_camera
+
+pytest.importorskip("foxglove", reason="pip install -e '.[test]' installs foxglove-sdk")
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
+from websockets.sync.client import connect  # noqa: E402
+
+from tacf_clients.foxglove_bridge import FoxgloveBridge  # noqa: E402
+
+pytestmark = pytest.mark.zenoh
+
+SCENE = Scene.from_spec("scene:320x240")
+KEY = "test/foxglove/cam"
+
+
+class FoxgloveClient:
+    """The client side of the protocol: channels and services as advertised, subscriptions, service calls."""
+
+    def __init__(self, ws):
+        self.ws = ws
+        self.server_info: dict | None = None
+        self.channels: dict[int, dict] = {}           # channel id -> advertisement
+        self.services: dict[str, int] = {}            # service name -> id
+        self.messages: list[tuple[str, object]] = []  # (topic, decoded message), in arrival order
+        self._subscriptions: dict[int, int] = {}      # subscription id -> channel id
+        self._replies: dict[int, tuple[bool, object]] = {}
+        self._next_id = 1
+        self.pump_until(lambda: self.server_info is not None)
+
+    def pump_until(self, done, timeout: float = 10.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while not done():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            try:
+                self._handle(self.ws.recv(timeout=min(left, 0.2)))
+            except TimeoutError:
+                pass
+        return True
+
+    def _handle(self, message) -> None:
+        if isinstance(message, bytes):
+            opcode = message[0]
+            if opcode == 1:                           # message data: subscription id, log time, payload
+                sub_id, _log_time = struct.unpack_from("<IQ", message, 1)
+                channel = self.channels.get(self._subscriptions.get(sub_id))
+                if channel is not None:
+                    self.messages.append((channel["topic"], self._decode(channel, message[13:])))
+            elif opcode == 3:                         # service call response
+                _service, call_id, length = struct.unpack_from("<III", message, 1)
+                self._replies[call_id] = (True, json.loads(message[13 + length:]))
+            return
+        body = json.loads(message)
+        op = body["op"]
+        if op == "serverInfo":
+            self.server_info = body
+        elif op == "advertise":
+            self.channels.update({c["id"]: c for c in body["channels"]})
+        elif op == "unadvertise":
+            for channel_id in body["channelIds"]:
+                self.channels.pop(channel_id, None)
+        elif op == "advertiseServices":
+            self.services.update({s["name"]: s["id"] for s in body["services"]})
+        elif op == "serviceCallFailure":
+            self._replies[body["callId"]] = (False, body["message"])
+
+    @staticmethod
+    def _decode(channel: dict, payload: bytes):
+        if channel["encoding"] == "json":
+            return json.loads(payload)
+        files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+        pool = descriptor_pool.DescriptorPool()
+        for file in files.file:
+            pool.Add(file)
+        message_class = message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
+        return message_class.FromString(payload)
+
+    def topic_id(self, topic: str) -> int | None:
+        return next((cid for cid, c in self.channels.items() if c["topic"] == topic), None)
+
+    def subscribe(self, topic: str) -> None:
+        assert self.pump_until(lambda: self.topic_id(topic) is not None), f"{topic} is advertised"
+        self._subscriptions[self._next_id] = self.topic_id(topic)
+        self.ws.send(json.dumps({"op": "subscribe",
+                                 "subscriptions": [{"id": self._next_id, "channelId": self.topic_id(topic)}]}))
+        self._next_id += 1
+
+    def call(self, service: str, request, encoding: str = "json") -> tuple[bool, object]:
+        """(True, the reply's JSON) or (False, the failure's message)."""
+        assert self.pump_until(lambda: service in self.services), f"{service} is offered"
+        call_id = self._next_id
+        self._next_id += 1
+        payload = request if isinstance(request, bytes) else json.dumps(request).encode()
+        self.ws.send(struct.pack("<BIII", 2, self.services[service], call_id, len(encoding)) + encoding.encode()
+                     + payload)
+        assert self.pump_until(lambda: call_id in self._replies, timeout=15), f"{service} answers"
+        return self._replies.pop(call_id)
+
+    def received(self, topic: str, where=lambda m: True) -> list:
+        return [m for t, m in self.messages if t == topic and where(m)]
+
+
+@pytest.fixture(scope="module")
+def rig():
+    with service_and_camera(SCENE, KEY, "fox") as (service, session, camera):
+        with Dashboard(session=session, image_keys=[KEY], max_frame_fps=20) as board:
+            with FoxgloveBridge(board, port=0, image_hz=10) as bridge:
+                stop = threading.Event()
+                loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge")
+                loop.start()
+                try:
+                    yield service, bridge, camera
+                finally:
+                    stop.set()
+                    loop.join(timeout=10)
+
+
+@contextmanager
+def foxglove_client(port: int):
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
+        yield FoxgloveClient(ws)
+
+
+@pytest.fixture
+def client(rig):
+    with foxglove_client(rig[1].port) as fox:
+        yield fox
+
+
+def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
+    service, _, camera = rig
+    assert "services" in client.server_info["capabilities"]
+    client.subscribe(f"/{KEY}/image")
+    assert client.pump_until(lambda: client.received(f"/{KEY}/image")), "frames arrive"
+    image = client.received(f"/{KEY}/image")[-1]
+    assert image.format == "jpeg" and image.frame_id == KEY
+    pixels = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)
+    assert pixels.shape == (SCENE.height, SCENE.width, 3)
+
+    camera.hold.set()                               # a still camera while the box is drawn on it
+    seq = camera.last_seq
+    ok, info = client.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
+                                           "seq": seq, "sid": "fox1", "node": service.node})
+    assert ok, info
+    assert info["sid"] == "fox1" and info["node"] == service.node and info["image_key"] == KEY
+    client.subscribe(f"/{KEY}/tracks")
+    client.subscribe(f"/tacf/{service.node}/fox1")
+
+    def boxes():
+        return [p for m in client.received(f"/{KEY}/tracks") for p in m.points]
+    assert client.pump_until(lambda: len(boxes()) >= 1, timeout=20), "boxes arrive"
+    camera.hold.clear()                             # the target moves; the boxes follow it
+    assert client.pump_until(lambda: len(boxes()) >= 30, timeout=20), "boxes keep arriving"
+    ious = []
+    for rectangle in boxes()[-10:]:
+        meta = {kv.key: kv.value for kv in rectangle.metadata}
+        assert meta["sid"] == "fox1" and meta["node"] == service.node and meta["ok"] == "true"
+        xs, ys = [p.x for p in rectangle.points], [p.y for p in rectangle.points]
+        box = (min(xs), min(ys), max(xs) - min(xs), max(ys) - min(ys))
+        ious.append(box_iou(box, SCENE.box(camera.index_of(int(meta["seq"])))))
+    assert np.mean(ious) > 0.5, ious
+    assert client.pump_until(lambda: client.received(f"/tacf/{service.node}/fox1",
+                                                     lambda s: s["health"] is not None), timeout=10)
+    statuses = client.received(f"/tacf/{service.node}/fox1", lambda s: s["box"] is not None)
+    assert statuses[-1]["state"] == "tracking" and statuses[-1]["box"]["ok"]
+    assert [s for s in statuses if s["health"]][-1]["health"]["fps"] > 0
+    # the annotations carry the stamp of the box's frame, so that Foxglove can pair them with the image
+    stamp_of_seq = {s["box"]["seq"]: s["box"]["stamp_ns"] for s in statuses}
+    tracks = [m for m in client.received(f"/{KEY}/tracks") if m.points]
+    paired = 0
+    for message in tracks:
+        seq = int({kv.key: kv.value for kv in message.points[0].metadata}["seq"])
+        if seq in stamp_of_seq:
+            assert message.timestamp.seconds * 10**9 + message.timestamp.nanos == stamp_of_seq[seq]
+            paired += 1
+    assert paired >= len(tracks) // 2 and tracks[-1].texts[0].text.startswith("fox1")
+
+    ok, listed = client.call("/tacf/list", {})
+    assert ok and [s["sid"] for s in listed] == ["fox1"]
+    camera.hold.set()
+    time.sleep(0.5)
+    again = SCENE.box(camera.index_of(camera.last_seq))
+    ok, info = client.call("/tacf/reinit", {"sid": "fox1", "box": list(again)})
+    assert ok and info["sid"] == "fox1"
+
+    ok, info = client.call("/tacf/stop", {"sid": "fox1"})
+    assert ok and info["state"] == "stopped"
+    assert client.pump_until(lambda: client.topic_id(f"/tacf/{service.node}/fox1") is None), \
+        "a stopped session's topic is withdrawn"
+    seen = len(client.received(f"/{KEY}/tracks"))
+    assert client.pump_until(lambda: any(not m.points for m in client.received(f"/{KEY}/tracks")[seen - 1:])), \
+        "its rectangle is taken off the image"
+
+
+@pytest.mark.parametrize("request_bytes, expected", [
+    (b"not json", "not JSON"),
+    (b"[1, 2]", "JSON object"),
+    (json.dumps({"box": [1, 2, 3, 4]}).encode(), "image_key"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, -3, 4]}).encode(), "box"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, 3, 4], "colour": "red"}).encode(), "colour"),
+    (json.dumps({"image_key": "bad key*", "box": [1, 2, 30, 40]}).encode(), "key"),
+])
+def test_a_bad_start_request_gets_a_clear_failure(client, request_bytes, expected):
+    ok, message = client.call("/tacf/start", request_bytes)
+    assert not ok and expected in message, message
+
+
+def test_unknown_sessions_and_encodings_are_refused_and_the_bridge_serves_on(client):
+    ok, message = client.call("/tacf/stop", {"sid": "nobody"})
+    assert not ok and "nobody" in message, message
+    ok, message = client.call("/tacf/list", b"\x00\x01", encoding="cbor")
+    assert not ok and "encoding" in message, message
+    ok, listed = client.call("/tacf/list", {})
+    assert ok and isinstance(listed, list)
+
+
+def test_services_are_not_offered_off_loopback_unless_asked():
+    with Dashboard(no_service_options()) as board:
+        for control, offered in ((None, False), (True, True)):
+            with FoxgloveBridge(board, host="0.0.0.0", port=0, control=control) as bridge:
+                with foxglove_client(bridge.port) as fox:
+                    assert ("services" in fox.server_info["capabilities"]) == offered
+
+
+def test_tacf_foxglove_serves_wss_with_make_certs_until_sigterm(tmp_path):
+    """The command with --certfile/--keyfile (make-certs.sh's service certificate): a client that trusts the CA
+    gets the server's info over wss://; SIGTERM ends it with status 0."""
+    import re
+    import signal
+    import ssl
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    certs = tmp_path / "certs"
+    subprocess.run(["sh", str(Path(__file__).parents[1] / "docs/security/make-certs.sh"), str(certs)], check=True,
+                   capture_output=True)
+    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "foxglove", "--port", "0",
+                                "--certfile", str(certs / "service.pem"), "--keyfile", str(certs / "service.key"),
+                                "--connect", f"tcp/127.0.0.1:{free_port()}"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        line = ""
+        while "tacf foxglove: open" not in line:
+            line = process.stdout.readline()
+            assert line, "the command printed its address"
+        url = re.search(r"wss://\S+", line).group(0)
+        trusting = ssl.create_default_context(cafile=str(certs / "ca.pem"))
+        with connect(url.replace("127.0.0.1", "localhost"), subprotocols=["foxglove.sdk.v1"], ssl=trusting,
+                     open_timeout=10) as ws:
+            fox = FoxgloveClient(ws)
+            assert fox.server_info["name"] == "tacf" and "services" in fox.server_info["capabilities"]
+        with pytest.raises(ssl.SSLError):             # a client that does not trust the CA is refused
+            with connect(url, subprotocols=["foxglove.sdk.v1"], ssl=ssl.create_default_context(), open_timeout=10):
+                pass
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=15) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=5)
+        process.stdout.close()
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "foxglove", "--keyfile", "k.pem"], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 2 and "--keyfile needs --certfile" in done.stderr, done.stderr
