@@ -8,8 +8,8 @@ Topics, for each watched image key K (the key of every listed session, plus the 
   subscribes; JPEG frames go as they came, raw ones are encoded once.
 - `/K/tracks` (foxglove.ImageAnnotations): the newest box of every session on K, a rectangle (green while the
   tracker holds the target, red while it reports it lost) labelled with the session id and PME; its timestamp is
-  the stamp of the frame the box was computed on, so the Image panel's "sync annotations" pairs the two. Each
-  rectangle's metadata carries node, sid, seq, ok and pme.
+  the stamp of the frame the box was computed on (images carry their frames' stamps too). Each rectangle's
+  metadata carries node, sid, seq, ok and pme.
 - `/tacf/N/S` (JSON): the session as the dashboard's /api/state shows it (box, PME, health: fps, latency, frame
   counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
 Services (JSON, e.g. from the Service Call panel): `/tacf/start` (the fields of a start request: image_key, box,
