@@ -139,6 +139,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="offer the start/stop/reinit/list services (default: on loopback only)")
     p.add_argument("--image-hz", type=_positive_float, default=10.0, metavar="HZ",
                    help="images per second and image key at most (default 10: viewers keep what they get)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="also write everything (images at --image-hz) to this MCAP file, for replay in Foxglove")
     p.add_argument("--certfile", metavar="PEM", help="serve wss:// only, with this certificate (chain)")
     p.add_argument("--keyfile", metavar="PEM", help="the certificate's private key (default: in --certfile)")
     p.add_argument("--key", "-k", dest="keys", action="append", default=[], metavar="IMAGE_KEY",
@@ -463,11 +465,13 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
             with Dashboard(options_from_args(args), image_keys=args.keys, node=args.node,
                            max_frame_fps=args.image_hz) as board, \
                  FoxgloveBridge(board, host=args.host, port=args.port, image_hz=args.image_hz,
-                                control=args.control, tls=tls) as bridge:
+                                control=args.control, tls=tls, record=args.record) as bridge:
                 scheme = "wss" if tls else "ws"
                 services = "with" if bridge.control else "without"
                 print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove (Open connection > "
                       f"Foxglove WebSocket), {services} the control services (Ctrl-C to stop)", flush=True)
+                if args.record:
+                    print(f"tacf foxglove: recording to {args.record}", flush=True)
                 bridge.serve(stop)
         except (OSError, RuntimeError, ValueError) as exc:
             print(f"tacf foxglove: {exc}", file=sys.stderr)

@@ -12,6 +12,8 @@ Topics, for each watched image key K (the key of every listed session, plus the 
   metadata carries node, sid, seq, ok and pme.
 - `/tacf/N/S` (JSON): the session as the dashboard's /api/state shows it (box, PME, health: fps, latency, frame
   counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
+With `record` (`--record FILE.mcap`) everything published, images included at the same rate, is also written
+to an MCAP file, which Foxglove opens to replay the flight.
 Services (JSON, e.g. from the Service Call panel): `/tacf/start` (the fields of a start request: image_key, box,
 and optionally seq, sid, profile, node), `/tacf/reinit` (sid, box, seq, node), `/tacf/stop` (sid, node) and
 `/tacf/list`; replies are SessionInfo JSON (a list for /tacf/list), failures the service's error message. Foxglove's
@@ -27,6 +29,7 @@ import logging
 import threading
 import time
 from collections import Counter
+from pathlib import Path
 
 import foxglove
 from foxglove.channels import CompressedImageChannel, ImageAnnotationsChannel
@@ -103,12 +106,13 @@ class FoxgloveBridge:
 
     `serve(stop)` publishes until `stop` is set; close() stops the WebSocket server (the board is not closed
     here). control: offer the start/stop/reinit/list services (default: only on a loopback host). tls: (PEM
-    certificate, PEM PKCS#8 key) bytes to serve wss:// only.
+    certificate, PEM key) bytes to serve wss:// only. record: an MCAP file to write everything to (it must not
+    exist yet).
     """
 
     def __init__(self, board: Dashboard, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
                  image_hz: float = DEFAULT_IMAGE_HZ, control: bool | None = None,
-                 tls: tuple[bytes, bytes] | None = None, name: str = "tacf"):
+                 tls: tuple[bytes, bytes] | None = None, record: str | Path | None = None, name: str = "tacf"):
         if image_hz <= 0:
             raise ValueError(f"image_hz must be positive, got {image_hz}")
         self.board = board
@@ -118,10 +122,21 @@ class FoxgloveBridge:
         self._subscriptions = _Subscriptions()
         services = self._services() if self.control else []
         cert, key = tls if tls is not None else (None, None)
-        self.server = foxglove.start_server(
-            name=name, host=host, port=port, context=self.context, server_listener=self._subscriptions,
-            services=services, capabilities=[foxglove.Capability.Services] if services else [],
-            supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG, tls_cert=cert, tls_key=key)
+        self._recording = None
+        if record is not None:
+            try:
+                self._recording = foxglove.open_mcap(record, context=self.context)
+            except OSError as exc:
+                raise OSError(exc.errno, f"cannot record to {record}: {exc.strerror or exc}") from None
+        try:
+            self.server = foxglove.start_server(
+                name=name, host=host, port=port, context=self.context, server_listener=self._subscriptions,
+                services=services, capabilities=[foxglove.Capability.Services] if services else [],
+                supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG, tls_cert=cert, tls_key=key)
+        except Exception:
+            if self._recording is not None:
+                self._recording.close()
+            raise
         self._images: dict[str, CompressedImageChannel] = {}
         self._tracks: dict[str, ImageAnnotationsChannel] = {}
         self._session_channels: dict[str, foxglove.Channel] = {}
@@ -135,6 +150,8 @@ class FoxgloveBridge:
 
     def close(self) -> None:
         self.server.stop()
+        if self._recording is not None:
+            self._recording.close()        # writes the MCAP summary: without it the file is read only slowly
 
     def __enter__(self) -> "FoxgloveBridge":
         return self
@@ -185,12 +202,12 @@ class FoxgloveBridge:
         self._keys_with_boxes = set(by_key)
 
     def publish_images(self) -> None:
-        """The newest frame of each watched key whose image topic somebody subscribes to."""
+        """The newest frame of each watched key whose image topic somebody subscribes to (or all, recording)."""
         for key in self.board.image_keys():
             topic = f"/{key}/image"
             if key not in self._images:
                 self._images[key] = CompressedImageChannel(topic, context=self.context)
-            if topic not in self._subscriptions:
+            if topic not in self._subscriptions and self._recording is None:
                 continue
             snap = self.board.frame(key)
             if snap is None or self._sent_frames.get(key) == (snap.seq, snap.received_ns):

@@ -32,6 +32,15 @@ SCENE = Scene.from_spec("scene:320x240")
 KEY = "test/foxglove/cam"
 
 
+def decode_protobuf(schema_name: str, descriptors: bytes, payload: bytes):
+    """A message of the protobuf schema `schema_name`, whose FileDescriptorSet (as advertised) is `descriptors`."""
+    files = descriptor_pb2.FileDescriptorSet.FromString(descriptors)
+    pool = descriptor_pool.DescriptorPool()
+    for file in files.file:
+        pool.Add(file)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name)).FromString(payload)
+
+
 class FoxgloveClient:
     """The client side of the protocol: channels and services as advertised, subscriptions, service calls."""
 
@@ -88,12 +97,7 @@ class FoxgloveClient:
     def _decode(channel: dict, payload: bytes):
         if channel["encoding"] == "json":
             return json.loads(payload)
-        files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
-        pool = descriptor_pool.DescriptorPool()
-        for file in files.file:
-            pool.Add(file)
-        message_class = message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
-        return message_class.FromString(payload)
+        return decode_protobuf(channel["schemaName"], base64.b64decode(channel["schema"]), payload)
 
     def topic_id(self, topic: str) -> int | None:
         return next((cid for cid, c in self.channels.items() if c["topic"] == topic), None)
@@ -129,7 +133,7 @@ def rig():
                 loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge")
                 loop.start()
                 try:
-                    yield service, bridge, camera
+                    yield service, bridge, camera, board
                 finally:
                     stop.set()
                     loop.join(timeout=10)
@@ -148,7 +152,7 @@ def client(rig):
 
 
 def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
-    service, _, camera = rig
+    service, _, camera, _ = rig
     assert "services" in client.server_info["capabilities"]
     client.subscribe(f"/{KEY}/image")
     assert client.pump_until(lambda: client.received(f"/{KEY}/image")), "frames arrive"
@@ -210,6 +214,50 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
     seen = len(client.received(f"/{KEY}/tracks"))
     assert client.pump_until(lambda: any(not m.points for m in client.received(f"/{KEY}/tracks")[seen - 1:])), \
         "its rectangle is taken off the image"
+
+
+def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path):
+    from mcap.reader import make_reader
+
+    service, _, camera, board = rig
+    path = tmp_path / "flight.mcap"
+    stop = threading.Event()
+    with FoxgloveBridge(board, port=0, record=path) as recorder:
+        loop = threading.Thread(target=recorder.serve, args=(stop,), name="foxglove-recorder")
+        loop.start()
+        try:
+            camera.hold.set()
+            seq = camera.last_seq
+            board.start(KEY, SCENE.box(camera.index_of(seq)), seq, sid="rec1", node=service.node)
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline and not any(s["box"] for s in board.sessions_json()[0]
+                                                          if s["sid"] == "rec1"):
+                time.sleep(0.1)
+            camera.hold.clear()
+            time.sleep(3.0)
+            board.stop("rec1", node=service.node)
+            time.sleep(0.5)
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+    with pytest.raises(OSError, match="flight.mcap"):
+        FoxgloveBridge(board, port=0, record=path)             # never overwrites a recording
+
+    messages: dict[str, list] = {}
+    with open(path, "rb") as stream:
+        for schema, channel, message in make_reader(stream).iter_messages():
+            decoded = (json.loads(message.data) if channel.message_encoding == "json"
+                       else decode_protobuf(schema.name, schema.data, message.data))
+            messages.setdefault(channel.topic, []).append(decoded)
+    images = messages[f"/{KEY}/image"]
+    assert len(images) >= 20, "images recorded at up to 10 a second although nobody subscribed"
+    first = cv2.imdecode(np.frombuffer(images[0].data, np.uint8), cv2.IMREAD_COLOR)
+    assert first.shape == (SCENE.height, SCENE.width, 3)
+    rectangles = [p for m in messages[f"/{KEY}/tracks"] for p in m.points
+                  if {kv.key: kv.value for kv in p.metadata}["sid"] == "rec1"]
+    assert len(rectangles) >= 20
+    statuses = messages[f"/tacf/{service.node}/rec1"]
+    assert any(s["health"] for s in statuses) and statuses[-1]["box"] is not None
 
 
 @pytest.mark.parametrize("request_bytes, expected", [
