@@ -90,8 +90,8 @@ class BoxConsumer:
     """
 
     def __init__(self, session: zenoh.Session | None = None, sid: str = keys.WILDCARD, node: str = keys.WILDCARD,
-                 *, latest_only: bool = False, on_box: Callable[[TrackedBox], None] | None = None, options: ZenohOptions | None = None,
-                 queue_size: int = 64):
+                 *, latest_only: bool = False, on_box: Callable[[TrackedBox], None] | None = None,
+                 options: ZenohOptions | None = None, queue_size: int = 64):
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         try:

@@ -6,8 +6,9 @@
 
 Everything is latest-only (ZENOH.md §3.4): boxes and health arrive through one latest-only ResultStream and
 overwrite the session's slot; each watched image key has a RingChannel(1) subscriber whose worker reads at most
-`max_frame_fps` frames a second and keeps the last few (so that a box is drawn on its own frame). Readers (the HTTP side, dashboard_http.py) copy
-what they need under a lock and never block a Zenoh thread, so a slow browser cannot slow the service.
+`max_frame_fps` frames a second and keeps the last few (so that a box is drawn on its own frame). Readers (the
+HTTP side, dashboard_http.py; the Foxglove bridge) copy what they need under a lock and never block a Zenoh
+thread, so a slow browser cannot slow the service.
 
 A poller lists the sessions of every service once a second (a Zenoh query): that gives each session's image
 key, state and node, and drops sessions that a service no longer lists. The dashboard never imports the
@@ -85,8 +86,8 @@ class SessionView:
             "id": self.id, "node": self.node, "sid": self.sid, "image_key": self.image_key,
             "profile": self.profile, "state": self.state, "version": self.version,
             "box": None if box is None else {
-                "seq": box.seq, "stamp_ns": box.stamp_ns, "box": list(box.box), "ok": box.ok, "pme": box.pme, "score": box.score,
-                "scale": box.scale, "processing_ms": box.processing_ms,
+                "seq": box.seq, "stamp_ns": box.stamp_ns, "box": list(box.box), "ok": box.ok, "pme": box.pme,
+                "score": box.score, "scale": box.scale, "processing_ms": box.processing_ms,
                 # capture -> dashboard latency of the newest box, and how long ago it arrived
                 "latency_ms": _ms(self.box_received_ns - box.stamp_ns) if self.box_received_ns else None,
                 "age_ms": _ms(now_ns - self.box_received_ns) if self.box_received_ns else None,

@@ -59,7 +59,8 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
                        help=f"endpoint to connect to, repeatable (default {DEFAULT_CONNECT})")
     group.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
-                       help=f"endpoint to listen on, repeatable (default {LOOPBACK_LISTEN} when connecting on loopback)")
+                       help=f"endpoint to listen on, repeatable (default {LOOPBACK_LISTEN} when connecting on "
+                            "loopback)")
     group.add_argument("--zenoh-config", type=Path, metavar="FILE",
                        help="Zenoh JSON5 config file (router, TLS, access control); flags override it")
     group.add_argument("--mode", choices=("peer", "client"), help="Zenoh session mode (default peer)")

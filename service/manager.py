@@ -37,8 +37,8 @@ MAX_CRASHES = 5
 CRASH_WINDOW_S = 60.0
 RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
-SPARE_RESPAWN_MIN_S = 2.0
-WORKER_SILENCE_S = 15.0         # a serving worker that sends nothing (not even health) this long is hung: kill it       # a spare that dies is replaced at most this often (no spawn storm)
+SPARE_RESPAWN_MIN_S = 2.0      # a spare that dies is replaced at most this often (no spawn storm)
+WORKER_SILENCE_S = 15.0        # a serving worker that sends nothing (not even health) this long is hung: kill it
 
 
 @dataclass

@@ -372,8 +372,9 @@ class Worker:
         from tacf_schemas import BoxResult, encode
         box = tuple(float(c) for c in result.box)
         message = BoxResult(node=self.spec.node, sid=self.job.sid, seq=frame.seq, stamp_ns=frame.stamp_ns,
-                            box=box, width=frame.width, height=frame.height, ok=bool(result.ok), pme=_finite(result.pme), score=_finite(result.score),
-                            scale=_finite(result.scale), processing_ms=processing_ms, published_ns=time.time_ns())
+                            box=box, width=frame.width, height=frame.height, ok=bool(result.ok),
+                            pme=_finite(result.pme), score=_finite(result.score), scale=_finite(result.scale),
+                            processing_ms=processing_ms, published_ns=time.time_ns())
         self._box_pub.put(encode(message))
         self._send(("result", frame.seq, box, bool(result.ok), _finite(result.pme)))
 

@@ -65,7 +65,8 @@ def scale_model_size(norm_target_sz, max_area: float, cell_size: int) -> np.ndar
 
 
 def scale_limits(scale_step: float, image_hw, base_target_sz, bg_area) -> tuple[float, float]:
-    """(min_scale, max_scale): whole powers of scale_step; the background area keeps 5 px, the target fits (section 11)."""
+    """(min_scale, max_scale): whole powers of scale_step; the background area keeps 5 px, the target fits
+    (section 11)."""
     log_step = np.log(scale_step)
     smallest = np.log(np.max(5.0 / np.asarray(bg_area, dtype=np.float64))) / log_step
     largest = np.log(np.min(np.asarray(image_hw, dtype=np.float64) / np.asarray(base_target_sz))) / log_step

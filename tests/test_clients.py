@@ -11,8 +11,8 @@ import zenoh
 from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.demo import HoldingPublisher
-from tacf_clients.errors import (ERRORS, AmbiguousNode, DuplicateSession, InvalidBox, InvalidConfig, InvalidId, InvalidKey,
-                                 NoService, RequestTimeout, ServiceError, UnknownSession)
+from tacf_clients.errors import (ERRORS, AmbiguousNode, DuplicateSession, InvalidBox, InvalidConfig, InvalidId,
+                                 InvalidKey, NoService, RequestTimeout, ServiceError, UnknownSession)
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config

@@ -372,7 +372,8 @@ def test_a_reinit_with_a_box_larger_than_the_frame_is_refused(service, victim, b
 
 
 # mutations of a frame of the session's feed and of a frame of another size
-_FRAME_MUTATIONS = mutations(encode(encode_frame(SCENE.frame(0)[0], 0, "jpeg", stamp_ns=1))) | mutations(PAYLOADS["Frame"])
+_FRAME_MUTATIONS = (mutations(encode(encode_frame(SCENE.frame(0)[0], 0, "jpeg", stamp_ns=1)))
+                    | mutations(PAYLOADS["Frame"]))
 
 
 @settings(FUZZ, max_examples=6)

@@ -20,7 +20,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
-from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
+from tacf_schemas import (Frame, ReinitRequest, StartRequest, StatusRequest, StopRequest,
                           control_key, encode, session_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService

@@ -42,7 +42,9 @@ def iou(pred, gt) -> np.ndarray:
     right = np.minimum(a[:, 0] + a[:, 2], b[:, 0] + b[:, 2])
     bottom = np.minimum(a[:, 1] + a[:, 3], b[:, 1] + b[:, 3])
     inter = np.clip(right - left, 0, None) * np.clip(bottom - top, 0, None)
-    union = np.clip(a[:, 2], 0, None) * np.clip(a[:, 3], 0, None) + np.clip(b[:, 2], 0, None) * np.clip(b[:, 3], 0, None) - inter
+    area_a = np.clip(a[:, 2], 0, None) * np.clip(a[:, 3], 0, None)
+    area_b = np.clip(b[:, 2], 0, None) * np.clip(b[:, 3], 0, None)
+    union = area_a + area_b - inter
     with np.errstate(invalid="ignore", divide="ignore"):
         out = np.where(union > 0, inter / union, 0.0)
     return np.nan_to_num(np.clip(out, 0.0, 1.0), nan=0.0)
