@@ -5,7 +5,7 @@ glibc serves blocks that large with mmap and trims the top of its heap whenever 
 so the same megabytes were mapped, page-faulted and unmapped frame after frame: a fifth of the tracker's time
 went to the kernel (`sys` time 6.7-8.2 s of 53-66 s over the 10 UAV sequences twice). With the mmap and trim
 thresholds raised once per process, freed blocks stay in the heap and are reused: `sys` time about 30 % lower
-and about 7 % more frames per second (median of four alternating runs), with the same boxes (README "Speed").
+and about 7 % more frames per second (median of four alternating runs), with the same boxes (docs/speed.md).
 The cost is that the process keeps its peak heap instead of returning it, a few tens of megabytes for a tracker.
 
 glibc only (Linux); elsewhere nothing is changed.

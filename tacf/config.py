@@ -82,7 +82,7 @@ class TrackerConfig:
     context_penalty_rate: float = 0.2  # EMA of the penalties across context frames
     # The challenge factors' responses use one multi-channel kernel over the 31 fHOG channels (KCF's), not the 31
     # per-channel ones detection uses: 3 FFTs a context patch instead of 63, and the same boxes on all 15 sequences
-    # of ../shared/data (README "Decisions"). False measures them exactly as detection would.
+    # of ../shared/data (docs/decisions.md). False measures them exactly as detection would.
     context_pooled_kernel: bool = True
 
     # Dimensional attention: s_d = max(z_d - threshold, 0) + floor, EMA over frames.
@@ -92,7 +92,7 @@ class TrackerConfig:
 
     # Spatiotemporal attention: the paper's per-frame map (rate 1). The authors' code keeps an EMA at 0.02, which
     # only did no harm because its window was misaligned; aligned, it freezes frame 2's map into a prior on
-    # frame 2's motion (person12_1: AUC 0.06 instead of 0.76). See README "Decisions".
+    # frame 2's motion (person12_1: AUC 0.06 instead of 0.76). See docs/decisions.md.
     spatial_learning_rate: float = 1.0
     motion_gain: float = 2.0
 
@@ -110,14 +110,14 @@ class TrackerConfig:
     scale_model_max_area: float = 512.0
 
     # Engineering: grow the filter grid to a fast FFT size (a few per cent more search area); shrink patches by
-    # exact 2x2 halvings then bilinearly instead of one area resize (geometry.resize_auto; README "Decisions").
+    # exact 2x2 halvings then bilinearly instead of one area resize (geometry.resize_auto; docs/decisions.md).
     fast_fft: bool = True
     fast_resize: bool = True
     fast_context: bool = True  # the four context patches cut from one sample covering them (Tracker._context_features)
 
-    # The peak refined between cells by a parabola on each axis of the cell-level fused response (README
-    # "Decisions"). False is the paper's and the code's peak: the upsampled response's, which bilinear upsampling
-    # keeps on whole cells.
+    # The peak refined between cells by a parabola on each axis of the cell-level fused response
+    # (docs/decisions.md). False is the paper's and the code's peak: the upsampled response's, which bilinear
+    # upsampling keeps on whole cells.
     subcell_peak: bool = True
 
     # Output: the target counts as lost when the PME of the fused response falls under this floor. Measured on

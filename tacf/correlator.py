@@ -48,7 +48,7 @@ class GaussianKernel:
         cross *= 2 * inverse_width
         cross -= (sq_norm_a + sq_norm_b) * inverse_width
         # OpenCV's float32 exp is ~6x faster than numpy's here and as close to the float64 exp (both within
-        # 2e-7); the boxes on the UAV sequences are identical with either (README "Speed").
+        # 2e-7); the boxes on the UAV sequences are identical with either (docs/speed.md).
         rows = cross.reshape(-1, cross.shape[-1])  # OpenCV takes 2-D arrays
         cv2.exp(rows, rows)
         return rows.reshape(cross.shape)

@@ -106,7 +106,7 @@ def resize_auto(patch: np.ndarray, out_hw, fast: bool = False) -> np.ndarray:
     stretches the content. Enlargements are the same either way. OpenCV's general area resize runs a scalar loop
     over weight tables: a 586x528 colour crop to 216x192 takes 1.1 ms that way and 0.25 ms this way. On real frames
     the two differ by 0.3 grey levels on average (mean absolute difference) for shrinks under 1.3x and by 1-2 for
-    larger ones (tests/test_geometry.py); the tracker's accuracy is unchanged within its noise (README "Decisions").
+    larger ones (tests/test_geometry.py); the tracker's accuracy is unchanged within its noise (docs/decisions.md).
     """
     rows, cols = int(out_hw[0]), int(out_hw[1])
     if patch.shape[0] == rows and patch.shape[1] == cols:

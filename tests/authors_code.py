@@ -5,7 +5,7 @@ profile departs from that code on purpose in four places that move the boxes fro
 1. `fast_fft` and `fast_resize`: we grow the filter grid to a fast FFT size (the search area grows by a few per
    cent), and shrink patches by 2x2 halvings then bilinearly instead of mexResize's one area resize;
 2. spatiotemporal attention: the code takes the map through the centred Hann window while the response has its
-   origin at the corner, and keeps it as an EMA at rate 0.02 (README "Decisions"; the code's window also carries
+   origin at the corner, and keeps it as an EMA at rate 0.02 (docs/decisions.md; the code's window also carries
    the colour likelihood, which makes no measurable difference over the misaligned response);
 3. the code writes the box before its scale step, so a reported box keeps the previous frame's size;
 4. `subcell_peak`: we refine the response's peak between cells; the code's peak stays on whole cells.
@@ -14,7 +14,7 @@ profile departs from that code on purpose in four places that move the boxes fro
 dimensional attention, the first frame's context term and the DSST agree to the pixel. Later frames part by one
 upsampled pixel or one scale step, then drift apart as any tracker's trajectory does after a small difference.
 
-    python tests/authors_code.py      # the README's parity table (about a minute)
+    python tests/authors_code.py      # the parity table of docs/accuracy.md (about a minute)
 """
 from __future__ import annotations
 

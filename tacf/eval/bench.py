@@ -71,7 +71,7 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
         return out
 
     main = report(names[0])
-    # CSRT's own speed differs several-fold between OpenCV releases (README "Speed"): say which one this was.
+    # CSRT's own speed differs several-fold between OpenCV releases (docs/speed.md): say which one this was.
     result = {"tracker": names[0], **main, "peers": {n: report(n) for n in names[1:]}, "opencv": cv2.__version__}
     peer_fps = result["peers"][PEER]["fps"] if PEER != names[0] else main["fps"]
     result["ratio_to_" + PEER] = main["fps"] / peer_fps if peer_fps and np.isfinite(peer_fps) else float("nan")
