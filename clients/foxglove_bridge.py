@@ -142,7 +142,7 @@ class FoxgloveBridge:
         self._session_channels: dict[str, foxglove.Channel] = {}
         self._sent_versions: dict[str, tuple[int, int]] = {}
         self._sent_frames: dict[str, tuple[int, int]] = {}       # key -> (seq, received_ns) last sent
-        self._keys_with_boxes: set[str] = set()
+        self._sent_boxes: dict[str, tuple] = {}                   # key -> (sid id, seq, ok) of the boxes last sent
 
     @property
     def port(self) -> int:
@@ -190,16 +190,20 @@ class FoxgloveBridge:
             if channel is not None:
                 channel.close()
         self._sent_versions = versions
-        by_key: dict[str, list[dict]] = {}
+        by_key: dict[str, list[dict]] = {key: [] for key in self._sent_boxes}
         for session in sessions:
             if session["image_key"] is not None and session["state"] != "stopped":
                 by_key.setdefault(session["image_key"], []).append(session)
-        # keys whose last session went away get one empty message, so that the last rectangle disappears
-        for key in set(by_key) | self._keys_with_boxes:
+        for key, on_key in by_key.items():
+            # a key's annotations change with its boxes (not with health); a key whose last session went away
+            # gets one empty message, so that the last rectangle disappears
+            boxes = tuple((s["id"], s["box"]["seq"], s["box"]["ok"]) for s in on_key if s["box"] is not None)
+            if self._sent_boxes.get(key) == boxes:
+                continue
+            self._sent_boxes[key] = boxes
             if key not in self._tracks:
                 self._tracks[key] = ImageAnnotationsChannel(f"/{key}/tracks", context=self.context)
-            self._tracks[key].log(session_annotations(by_key.get(key, [])), log_time=now_ns)
-        self._keys_with_boxes = set(by_key)
+            self._tracks[key].log(session_annotations(on_key), log_time=now_ns)
 
     def publish_images(self) -> None:
         """The newest frame of each watched key whose image topic somebody subscribes to (or all, recording)."""
