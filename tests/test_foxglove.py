@@ -198,6 +198,8 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
             assert message.timestamp.seconds * 10**9 + message.timestamp.nanos == stamp_of_seq[seq]
             paired += 1
     assert paired >= len(tracks) // 2 and tracks[-1].texts[0].text.startswith("fox1")
+    seqs = [{kv.key: kv.value for kv in m.points[0].metadata}["seq"] for m in tracks]
+    assert all(a != b for a, b in zip(seqs, seqs[1:])), "annotations follow the boxes, not the health reports"
 
     ok, listed = client.call("/tacf/list", {})
     assert ok and [s["sid"] for s in listed] == ["fox1"]
