@@ -253,6 +253,8 @@ class FoxgloveBridge:
         return self.board.stop(request.sid, node=node).model_dump_json().encode()
 
     def _list(self, fields: dict) -> bytes:
+        if set(fields) - {"node"}:
+            raise ValueError(f"bad request: unknown fields {sorted(set(fields) - {'node'})}; only node is taken")
         infos = self.board.client.list(node=fields.get("node"))
         return json.dumps([info.model_dump(mode="json") for info in infos]).encode()
 

@@ -280,6 +280,8 @@ def test_unknown_sessions_and_encodings_are_refused_and_the_bridge_serves_on(cli
     assert not ok and "nobody" in message, message
     ok, message = client.call("/tacf/list", b"\x00\x01", encoding="cbor")
     assert not ok and "encoding" in message, message
+    ok, message = client.call("/tacf/list", {"nodes": "all"})
+    assert not ok and "nodes" in message, message
     ok, listed = client.call("/tacf/list", {})
     assert ok and isinstance(listed, list)
 
