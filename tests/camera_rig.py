@@ -1,6 +1,9 @@
-"""A real service with a camera in front of it, shared by the tests of the client-side tools."""
+"""A real service with a camera in front of it, and the `tacf` command in a child process, shared by the tests of
+the client-side tools."""
 from __future__ import annotations
 
+import subprocess
+import sys
 from contextlib import contextmanager
 
 import zenoh
@@ -29,3 +32,17 @@ def service_and_camera(scene: Scene, key: str, node_prefix: str, fps: float = 20
                 yield service, session, camera
             finally:
                 camera.close()
+
+
+@contextmanager
+def tacf_command(*args: str, env: dict | None = None):
+    """`tacf ARGS` as a user runs it, its output (stdout and stderr) on a pipe; killed if it still runs after."""
+    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", *args], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(timeout=5)
+        process.stdout.close()

@@ -32,7 +32,7 @@ from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
 from tacf_service.loopback import wait_until
-from camera_rig import no_service_options, service_and_camera
+from camera_rig import no_service_options, service_and_camera, tacf_command
 
 pytestmark = pytest.mark.zenoh
 
@@ -345,11 +345,8 @@ def test_page_is_offline_and_the_dashboard_never_loads_the_tracker():
 @contextlib.contextmanager
 def _dashboard_command(*args: str, env: dict | None = None):
     """`tacf dashboard ARGS` as a user runs it; yields the process and the address it printed."""
-    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "dashboard", *args,
-                                "--connect", f"tcp/127.0.0.1:{free_port()}", "--key", KEY],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                               env={**os.environ, **(env or {})})
-    try:
+    with tacf_command("dashboard", *args, "--connect", f"tcp/127.0.0.1:{free_port()}", "--key", KEY,
+                      env={**os.environ, **(env or {})}) as process:
         lines = []
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not any("open http" in line for line in lines):
@@ -360,11 +357,6 @@ def _dashboard_command(*args: str, env: dict | None = None):
         printed = re.search(r"open (http://\S+) in a browser", "".join(lines))
         assert printed, "".join(lines)
         yield process, printed.group(1)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(timeout=5)
-        process.stdout.close()
 
 
 def test_tacf_dashboard_command_serves_until_sigterm():

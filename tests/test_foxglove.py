@@ -18,7 +18,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from camera_rig import no_service_options, service_and_camera
+from camera_rig import no_service_options, service_and_camera, tacf_command
 
 pytest.importorskip("foxglove", reason="pip install -e '.[test]' installs foxglove-sdk")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
@@ -307,11 +307,8 @@ def test_tacf_foxglove_serves_wss_with_make_certs_until_sigterm(tmp_path):
     certs = tmp_path / "certs"
     subprocess.run(["sh", str(Path(__file__).parents[1] / "docs/security/make-certs.sh"), str(certs)], check=True,
                    capture_output=True)
-    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "foxglove", "--port", "0",
-                                "--certfile", str(certs / "service.pem"), "--keyfile", str(certs / "service.key"),
-                                "--connect", f"tcp/127.0.0.1:{free_port()}"],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with tacf_command("foxglove", "--port", "0", "--certfile", str(certs / "service.pem"),
+                      "--keyfile", str(certs / "service.key"), "--connect", f"tcp/127.0.0.1:{free_port()}") as process:
         line = ""
         while "tacf foxglove: open" not in line:
             line = process.stdout.readline()
@@ -327,11 +324,6 @@ def test_tacf_foxglove_serves_wss_with_make_certs_until_sigterm(tmp_path):
                 pass
         process.send_signal(signal.SIGTERM)
         assert process.wait(timeout=15) == 0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(timeout=5)
-        process.stdout.close()
     done = subprocess.run([sys.executable, "-m", "tacf.cli", "foxglove", "--keyfile", "k.pem"], capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 2 and "--keyfile needs --certfile" in done.stderr, done.stderr

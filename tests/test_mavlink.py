@@ -15,7 +15,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
-from camera_rig import no_service_options, service_and_camera
+from camera_rig import no_service_options, service_and_camera, tacf_command
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
 os.environ.setdefault("MAVLINK20", "1")
@@ -235,22 +235,16 @@ def test_tacf_mavlink_command_announces_itself_until_sigterm():
     port = free_port()
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
                                      source_component=GCS_COMPONENT, dialect="common")
-    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link",
-                                f"udpout:127.0.0.1:{port}", "--component", "101",
-                                "--connect", f"tcp/127.0.0.1:{free_port()}"],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        assert "camera component 1/101 for test/mavlink/cam" in process.stdout.readline()
-        heartbeat = _receive(gcs, "HEARTBEAT", timeout=30)
-        assert heartbeat is not None and heartbeat.get_srcComponent() == 101
-        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, component=101) == mav.MAV_RESULT_ACCEPTED
-        process.send_signal(signal.SIGTERM)
-        assert process.wait(timeout=15) == 0
+        with tacf_command("mavlink", "--key", KEY, "--link", f"udpout:127.0.0.1:{port}", "--component", "101",
+                          "--connect", f"tcp/127.0.0.1:{free_port()}") as process:
+            assert "camera component 1/101 for test/mavlink/cam" in process.stdout.readline()
+            heartbeat = _receive(gcs, "HEARTBEAT", timeout=30)
+            assert heartbeat is not None and heartbeat.get_srcComponent() == 101
+            assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, component=101) == mav.MAV_RESULT_ACCEPTED
+            process.send_signal(signal.SIGTERM)
+            assert process.wait(timeout=15) == 0
     finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait(timeout=5)
-        process.stdout.close()
         gcs.close()
     done = subprocess.run([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link", "udpout:x:1",
                            "--component", "0"], capture_output=True, text=True, timeout=60)
