@@ -451,3 +451,83 @@ def test_eval_ablation_command(tmp_path, capsys):
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert sorted(summary["trackers"]) == sorted(trackers.ABLATION)
     assert all(t["sequences"]["synthetic/drift"]["auc"] > 0.5 for t in summary["trackers"].values())
+
+
+# --- tacf eval --results: result folders other toolkits wrote ----------------------------------------------------
+def test_eval_scores_result_folders_in_other_toolkits_layouts(tmp_path, capsys):
+    n = 6
+    data = write_synthetic_dataset(tmp_path, n)
+    gt_lines = (data / "synthetic" / "drift" / "groundtruth.txt").read_text()
+    gt = np.loadtxt(data / "synthetic" / "drift" / "groundtruth.txt", delimiter=",")
+    ours = tmp_path / "ours"  # our layout and got10k's: the sequence's path, times/ beside
+    (ours / "synthetic").mkdir(parents=True)
+    (ours / "synthetic" / "drift.txt").write_text(gt_lines)
+    (ours / "times" / "synthetic").mkdir(parents=True)
+    (ours / "times" / "synthetic" / "drift_time.txt").write_text("0.5\n" * n)
+    flat = tmp_path / "flat"  # pysot's OPE layout, pytracking's tab-separated integers
+    flat.mkdir()
+    (flat / "drift.txt").write_text("".join(f"{x + 12:.0f}\t{y:.0f}\t24\t24\n" for x, y, _, _ in gt))
+    vot = tmp_path / "vot"  # pysot's VOT layout
+    (vot / "drift").mkdir(parents=True)
+    (vot / "drift" / "drift_001.txt").write_text("".join(f"{x},{y + 6},24,24\n" for x, y, _, _ in gt))
+    out = tmp_path / "out"
+    rc = main(["eval", str(data), "--results", f"ours={ours}", "--results", f"flat={flat}", "--results",
+               f"vot={vot}", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    scored = json.loads((out / "summary.json").read_text())["trackers"]
+    assert list(scored) == ["ours", "flat", "vot"]
+    # Read in the ground truth's own pixel frame: IoU 1 passes 20 of the 21 thresholds (IoU > 1 never holds);
+    # one pixel off would pass 19. 12 px to the side is IoU 1/3 (7 thresholds), 6 px down IoU 0.6 (12).
+    assert scored["ours"]["auc"] == pytest.approx(20 / 21) and scored["ours"]["precision20"] == 1.0
+    assert scored["flat"]["auc"] == pytest.approx(7 / 21) and scored["vot"]["auc"] == pytest.approx(12 / 21)
+    assert scored["ours"]["fps"] == pytest.approx(2.0) and scored["flat"]["fps"] is None
+    assert all(t["frames"] == n for t in scored.values())
+    assert not any((out / name).exists() for name in scored)  # nothing ran: only files were scored
+    assert "| ours | 0.952 |" in capsys.readouterr().out
+
+    # Beside trackers that run: they run, and the imported rows join their table and plots.
+    rc = main(["eval", str(data), "--trackers", "identity", "--results", f"ours={ours}", "--out", str(out),
+               "--no-progress"])
+    assert rc == 0
+    assert list(json.loads((out / "summary.json").read_text())["trackers"]) == ["identity", "ours"]
+    assert (out / "identity" / "synthetic" / "drift.txt").is_file()
+
+
+def test_eval_results_refused_with_the_reason(tmp_path, caplog):
+    data = write_synthetic_dataset(tmp_path, 6)
+    good, short, long, garbled, empty = (tmp_path / name for name in ("good", "short", "long", "garbled", "empty"))
+    rows = [f"{31 + 2 * i},{41 + i},24,24\n" for i in range(6)]
+    for folder, text in ((good, rows), (short, rows[:5]), (long, rows + rows[:1]), (garbled, rows[:3] + ["1\n"])):
+        (folder / "synthetic").mkdir(parents=True)
+        (folder / "synthetic" / "drift.txt").write_text("".join(text))
+    empty.mkdir()
+    args = ["eval", str(data), "--out", str(tmp_path / "out"), "--no-progress"]
+    for results, says in [("good", "use NAME=DIR"), (f"={good}", "use NAME=DIR"), ("a b=" + str(good), "NAME=DIR"),
+                          (f"x={tmp_path / 'nowhere'}", "is not a folder"),
+                          (f"x={empty}", "has no result for 1 of the 1 sequences (synthetic/drift"),
+                          (f"x={short}", "5 boxes for the 6 frames"), (f"x={long}", "7 boxes for the 6 frames"),
+                          (f"x={garbled}", "expected 4 numbers")]:
+        caplog.clear()
+        assert main(args + ["--results", results]) == 2, results
+        assert says in caplog.text, results
+    caplog.clear()
+    assert main(args + ["--trackers", "identity", "--results", f"identity={good}"]) == 2
+    assert "the name is taken" in caplog.text
+    assert main(args + ["--results", f"x={good}", "--results", f"x={good}"]) == 2
+    # The first frames of a sequence asked for: a longer result file is cut to them.
+    assert main(args + ["--results", f"x={long}", "--max-frames", "4"]) == 0
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["trackers"]["x"]["frames"] == 4
+
+
+AUTHORS_OUTPUT = DATA / "reference" / "authors_tacf"
+
+
+@pytest.mark.skipif(not AUTHORS_OUTPUT.is_dir() or not SEQUENCES.is_dir(), reason="../shared/data is absent")
+def test_the_authors_output_scores_what_the_issue_says(tmp_path, capsys):
+    """The authors' MATLAB output on the ten UAV sequences, scored as result files: mean AUC 0.491 (issue 2)."""
+    rc = main(["eval", str(SEQUENCES), "--sequences", "UAV123_10fps/*,DTB70/*,UAVDT/*", "--results",
+               f"authors={AUTHORS_OUTPUT}", "--out", str(tmp_path), "--no-progress"])
+    assert rc == 0
+    authors = json.loads((tmp_path / "summary.json").read_text())["trackers"]["authors"]
+    assert len(authors["sequences"]) == 10 and authors["frames"] == 1292
+    assert round(authors["auc"], 3) == 0.491 and round(authors["precision20"], 3) == 0.669

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 from pathlib import Path
 
@@ -15,6 +16,7 @@ log = logging.getLogger(__name__)
 DEFAULT_TRACKERS = "tacf,tacf-authors,kcc,opencv-csrt,opencv-kcf,opencv-mosse,opencv-mil"
 DEFAULT_OUT = Path("results/eval")
 DEFAULT_DATA = Path("../shared/data/sequences")
+RESULTS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")  # `--results NAME=DIR`
 
 
 def _names(values: list[str] | None, default: str) -> list[str]:
@@ -30,10 +32,11 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "eval", help="one-pass evaluation of trackers on a dataset (success AUC, precision@20, FPS)",
         description="Run trackers side by side over every sequence of ROOT (layout detected: generic, OTB, "
-                    "UAV123, UAVDT), write result files, summary.json, summary.md and plots.")
+                    "UAV123, UAVDT), and score result folders other toolkits wrote (--results) with them; write "
+                    "result files, summary.json, summary.md and plots.")
     p.add_argument("root", metavar="ROOT", type=Path, help="dataset root folder")
     p.add_argument("--trackers", nargs="+", metavar="NAME",
-                   help=f"tracker names, comma or space separated (default {DEFAULT_TRACKERS})")
+                   help=f"tracker names, comma or space separated (default {DEFAULT_TRACKERS}; none with --results)")
     p.add_argument("--sequences", metavar="GLOB", help="only sequences whose name matches (comma-separated globs)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help="output folder (default %(default)s)")
     p.add_argument("--workers", type=int, default=1, metavar="N", help="processes (default %(default)s)")
@@ -51,6 +54,10 @@ def register(subparsers) -> None:
     p.add_argument("--tre", type=int, default=0, metavar="K",
                    help="also start every pair at frames N/K, 2N/K, ... of each sequence (OTB's temporal robustness; "
                         "K = 10 is 5.5 times the one-pass work) and report it as --shifts does")
+    p.add_argument("--results", action="append", metavar="NAME=DIR",
+                   help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking, the "
+                        "UAV123 MATLAB toolkit; one x,y,w,h row per frame, in the ground truth's pixel frame) as "
+                        "tracker NAME, one pass; repeatable. With --results and no --trackers, nothing runs")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -93,6 +100,36 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
     return seqs
 
 
+def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: bool) -> dict[str, dict]:
+    """{NAME: {sequence name: (boxes, times)}} from `--results NAME=DIR` specs; ValueError naming every problem."""
+    from .runner import read_imported_run
+
+    imported: dict[str, dict] = {}
+    for spec in specs or []:
+        name, equals, folder = (part.strip() for part in spec.partition("="))
+        if not equals or not RESULTS_NAME.fullmatch(name) or not folder:
+            raise ValueError(f"bad --results {spec!r}: use NAME=DIR, NAME of letters, digits and _ . + -")
+        if name in trackers or name in imported:
+            raise ValueError(f"--results {name}: the name is taken by a tracker or another --results")
+        if not Path(folder).is_dir():
+            raise ValueError(f"--results {name}: {folder} is not a folder")
+        runs, missing = {}, []
+        for seq in seqs:
+            try:
+                runs[seq.name] = read_imported_run(Path(folder), seq, allow_longer)
+            except FileNotFoundError:
+                missing.append(seq.name)
+            except ValueError as exc:
+                raise ValueError(f"--results {name}: {exc}") from None
+        if missing:
+            listed = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+            raise ValueError(f"--results {name}: {folder} has no result for {len(missing)} of the {len(seqs)} "
+                             f"sequences ({listed}; looked for <sequence>.txt, <last part>.txt and <last part>/"
+                             "<last part>_001.txt); --sequences selects the ones it has")
+        imported[name] = runs
+    return imported
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     from . import report
     from .runner import Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
@@ -101,8 +138,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.ablation and args.trackers:
         log.warning("--ablation runs %s; --trackers ignored", ", ".join(ABLATION))
     try:
-        trackers = list(ABLATION) if args.ablation else _names(args.trackers, DEFAULT_TRACKERS)
+        default = "" if args.results else DEFAULT_TRACKERS  # scoring result files only, unless asked
+        trackers = list(ABLATION) if args.ablation else _names(args.trackers, default)
         seqs = _load(args.root, args.sequences, args.ranges, args.max_frames)
+        imported = _imported(args.results, trackers, seqs, allow_longer=args.max_frames is not None)
     except (ValueError, FileNotFoundError) as exc:
         log.error("%s", exc)
         return 2
@@ -115,6 +154,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.tre < 0 or args.tre == 1:
         log.error("--tre must be 0 (off) or at least 2 segments, got %d", args.tre)
         return 2
+    if imported and (args.shifts or args.tre):
+        log.info("imported results (%s) are scored one pass only", ", ".join(imported))
     protocols = {}  # robustness protocol: its starts, the one-pass start first
     if args.shifts:
         protocols["shifts"] = shifted_starts(args.shifts)
@@ -131,7 +172,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     failed = [o for o in outcomes if o.error]
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
-    summary, reports = report.summarize(args.out, trackers, seqs)
+    summary, reports = report.summarize(args.out, trackers, seqs, imported)
     for protocol, its_starts in protocols.items():
         per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs))[0]
                      for start in its_starts}

@@ -51,8 +51,8 @@ class TrackerReport:
 
 
 def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> TrackerReport:
-    """Score every recorded result of `tracker` against the sequences' ground truth."""
-    rep = TrackerReport(tracker)
+    """Score every recorded result of `tracker` in the result tree `out_dir` against the sequences' ground truth."""
+    runs = {}
     for seq in sequences:
         if not result_path(out_dir, tracker, seq.name).is_file():
             log.warning("%s: no result for %s; left out of the summary", tracker, seq.name)
@@ -62,6 +62,17 @@ def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> Tra
             log.warning("%s/%s: %d result rows for %d frames; left out (rerun with --force)",
                         tracker, seq.name, len(boxes), len(seq))
             continue
+        runs[seq.name] = boxes, times
+    return score_runs(tracker, sequences, runs)
+
+
+def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.ndarray, np.ndarray]]) -> TrackerReport:
+    """Score runs {sequence name: (0-based boxes, seconds per frame)}, one box per frame of the sequence."""
+    rep = TrackerReport(name)
+    for seq in sequences:
+        if seq.name not in runs:
+            continue
+        boxes, times = runs[seq.name]
         s = metrics.score(boxes, seq.gt)
         seconds = float(np.nansum(times))
         rep.sequences[seq.name] = {"auc": s.auc, "precision20": s.precision20,
@@ -74,9 +85,12 @@ def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> Tra
     return rep
 
 
-def summarize(out_dir: Path, trackers: list[str], sequences: list[Sequence]) -> tuple[dict, list[TrackerReport]]:
-    """(summary dict in the summary.json shape, the per-tracker reports)."""
+def summarize(out_dir: Path, trackers: list[str], sequences: list[Sequence],
+              imported: dict[str, dict] | None = None) -> tuple[dict, list[TrackerReport]]:
+    """(summary dict in the summary.json shape, the per-tracker reports): the trackers' results recorded in
+    `out_dir`, then the imported runs {name: {sequence name: (boxes, times)}} (`tacf eval --results`)."""
     reports = [score_tracker(out_dir, t, sequences) for t in trackers]
+    reports += [score_runs(name, sequences, runs) for name, runs in (imported or {}).items()]
     return {"trackers": {r.name: r.entry() for r in reports}}, reports
 
 
@@ -123,16 +137,16 @@ def relative_gain(aucs, base_aucs, resamples: int = 10000) -> tuple[float, float
 
 
 def ablation_table(summary: dict) -> str:
-    """The paper's ablation rows (KCC, +SA, +DA, +CA, all three) with the AUC gain over KCC, also relative, with
-    the relative gain's 95 % bootstrap interval over the sequences both scored."""
+    """The paper's ablation rows (KCC, +SA, +DA, +CA, all three), then any other tracker of the summary (imported
+    results), with the AUC gain over KCC, also relative, with the relative gain's 95 % bootstrap interval over the
+    sequences both scored."""
     trackers = summary["trackers"]
     kcc = trackers.get("kcc", {})
     lines = ["| variant | tracker | AUC | gain over KCC | relative gain (95 % interval) | precision@20 | FPS |",
              "|---|---|---|---|---|---|---|"]
-    for name, label in ABLATION_LABELS.items():
-        if name not in trackers:
-            continue
-        t = trackers[name]
+    rows = [n for n in ABLATION_LABELS if n in trackers] + [n for n in trackers if n not in ABLATION_LABELS]
+    for name in rows:
+        label, t = ABLATION_LABELS.get(name, "imported results"), trackers[name]
         gain = t["auc"] - kcc.get("auc", float("nan"))
         names = sorted(set(t["sequences"]) & set(kcc.get("sequences", {})))
         relative = "-"

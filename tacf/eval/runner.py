@@ -7,6 +7,8 @@ Result tree (got10k layout, docs ECOSYSTEM.md 3.5):
 Runs started from a shifted first box (`tacf eval --shifts`) go to <out>/shifted/<dx><dy>/, runs started at a
 later frame (`tacf eval --tre`) to <out>/tre/<segment>of<segments>/, in the same layout.
 Timing covers the init/update calls only (time.perf_counter), never the image decoding.
+
+Result folders written by other toolkits (`tacf eval --results NAME=DIR`) are read by `read_imported_run`.
 """
 from __future__ import annotations
 
@@ -161,6 +163,50 @@ def read_run(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np
     tp = times_path(out_dir, tracker, seq_name)
     times = np.atleast_1d(np.loadtxt(tp, ndmin=1)) if tp.is_file() else np.full(len(boxes), np.nan)
     return boxes, times
+
+
+def _imported_files(results_dir: Path, seq_name: str) -> tuple[Path, Path | None] | None:
+    """(box file, times file or None) of a sequence in another toolkit's result folder, or None.
+
+    Box files: <dir>/<seq name>.txt (ours, got10k's: the name relative to the dataset root), <dir>/<last part>.txt
+    (pysot's, pytracking's, the UAV123 MATLAB toolkit's) or <dir>/<last part>/<last part>_001.txt (pysot's VOT
+    layout). Times: <dir>/times/<that path>_time.txt (ours, got10k's) or <box file stem>_time.txt beside it
+    (pytracking's)."""
+    results_dir = Path(results_dir)
+    base = Path(seq_name).name
+    for relative in (seq_name, base, f"{base}/{base}_001"):
+        box_file = results_dir / f"{relative}.txt"
+        if box_file.is_file():
+            times = [results_dir / "times" / f"{relative}_time.txt", box_file.with_name(f"{box_file.stem}_time.txt")]
+            return box_file, next((t for t in times if t.is_file()), None)
+    return None
+
+
+def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(0-based N x 4 boxes, seconds per frame or NaN) of `seq` from a result folder another toolkit wrote.
+
+    Box files are in the pixel frame of the dataset's ground-truth files, as every toolkit compares them (1-based
+    for the MATLAB-made benchmarks), so they are read the way the ground truth is. One row per frame, the first
+    being the init box; more rows than frames only with `allow_longer` (the first frames of a sequence were
+    asked for). Raises FileNotFoundError or ValueError saying what is wrong."""
+    found = _imported_files(results_dir, seq.name)
+    if found is None:
+        raise FileNotFoundError(f"no result for {seq.name} in {results_dir}")
+    box_file, times_file = found
+    boxes = read_boxes(box_file, one_based=True)
+    if len(boxes) < len(seq) or (len(boxes) > len(seq) and not allow_longer):
+        raise ValueError(f"{box_file}: {len(boxes)} boxes for the {len(seq)} frames of {seq.name}")
+    times = np.full(len(seq), np.nan)
+    if times_file is not None:
+        try:
+            recorded = np.loadtxt(times_file, ndmin=1)
+        except ValueError as exc:
+            raise ValueError(f"{times_file}: {exc}") from None
+        if len(recorded) >= len(seq):
+            times = recorded[: len(seq)]
+        else:
+            log.warning("%s: %d times for %d frames; its speed is left out", times_file, len(recorded), len(seq))
+    return boxes[: len(seq)], times
 
 
 @dataclass(frozen=True)
