@@ -149,6 +149,9 @@ def test_eval_reports_plots_and_markdown(evaluated):
     for png in ("success_plot.png", "precision_plot.png"):
         data = (evaluated / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    for seq in ("UAV123_10fps/wakeboard7", "UAVDT/S0601"):  # one IoU-over-frames plot per sequence
+        data = (evaluated / "overlap" / f"{seq}.png").read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
     md = (evaluated / "summary.md").read_text()
     assert md.startswith("| tracker | AUC | precision@20 | FPS |")
     assert all(name in md for name in EVAL_TRACKERS) and "UAVDT/S0601" in md
@@ -531,3 +534,35 @@ def test_the_authors_output_scores_what_the_issue_says(tmp_path, capsys):
     authors = json.loads((tmp_path / "summary.json").read_text())["trackers"]["authors"]
     assert len(authors["sequences"]) == 10 and authors["frames"] == 1292
     assert round(authors["auc"], 3) == 0.491 and round(authors["precision20"], 3) == 0.669
+
+
+def test_eval_videos_draw_every_track_and_the_ground_truth(tmp_path):
+    n, band = 8, 18 * 4 + 6  # the band above the frame: title, ground truth and two tracks
+    frames, _ = synthetic_frames(n, size=(480, 360))
+    seq = tmp_path / "data" / "synthetic" / "drift"
+    (seq / "img").mkdir(parents=True)
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(seq / "img" / f"{i:06d}.png"), f)
+    (seq / "groundtruth.txt").write_text("".join(f"{31 + 2 * i},{41 + i},24,24\n" for i in range(n)))
+    still = tmp_path / "still"  # an imported track that never moves from the ground truth's first box + 200 px
+    (still / "synthetic").mkdir(parents=True)
+    (still / "synthetic" / "drift.txt").write_text("231,241,24,24\n" * n)
+    out = tmp_path / "out"
+    assert main(["eval", str(tmp_path / "data"), "--trackers", "identity", "--results", f"still={still}",
+                 "--out", str(out), "--videos", "--no-progress"]) == 0
+    cap = cv2.VideoCapture(str(out / "videos" / "synthetic" / "drift.mp4"))
+    try:
+        assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == n
+        assert (cap.get(cv2.CAP_PROP_FRAME_WIDTH), cap.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (480, 360 + band)
+        for _ in range(n):
+            ok, last = cap.read()
+            assert ok
+    finally:
+        cap.release()
+    picture = last[band:].astype(int)
+    blue, orange = np.array([180, 119, 31]), np.array([14, 127, 255])  # the first two plot colours, BGR
+    # identity stays on the first box (30, 40); the target has drifted to (44, 47); "still" sits at (230, 240)
+    assert np.abs(picture[40, 35] - blue).max() < 60          # identity's top edge
+    assert (picture[47, 62] > 190).all()                      # the ground truth's top edge, white
+    assert np.abs(picture[240, 240] - orange).max() < 60      # the imported track's top edge
+    assert last[:band, 200:].max() < 60 and last[:band, :200].max() > 200   # the band: text on black, left

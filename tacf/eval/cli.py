@@ -58,6 +58,8 @@ def register(subparsers) -> None:
                    help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking, the "
                         "UAV123 MATLAB toolkit; one x,y,w,h row per frame, in the ground truth's pixel frame) as "
                         "tracker NAME, one pass; repeatable. With --results and no --trackers, nothing runs")
+    p.add_argument("--videos", action="store_true",
+                   help="also write videos/<sequence>.mp4: every tracker's boxes and the ground truth on the frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_eval)
 
@@ -177,7 +179,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs))[0]
                      for start in its_starts}
         summary[report.ROBUSTNESS_KEYS[protocol]] = report.robustness(per_start, trackers, protocol)
-    paths = report.write_reports(args.out, summary, reports)
+    paths = report.write_reports(args.out, summary, reports, seqs)
+    if args.videos:
+        paths["videos"] = _write_videos(args.out / "videos", seqs, reports, progress=not args.no_progress)
     table = report.markdown_table(summary)
     if args.ablation:
         table = report.ablation_table(summary)
@@ -186,6 +190,19 @@ def cmd_eval(args: argparse.Namespace) -> int:
     sys.stdout.write(table)
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return 1 if failed else 0
+
+
+def _write_videos(folder: Path, seqs, reports, progress: bool) -> Path:
+    """videos/<sequence>.mp4 for every sequence, each tracker in its colour of the plots."""
+    from tqdm import tqdm
+
+    from .report import tracker_colour
+    from .video import write_comparison_video
+
+    for seq in tqdm(seqs, desc="videos", unit="seq", disable=not progress):
+        tracks = [(r.name, tracker_colour(i), r.boxes[seq.name]) for i, r in enumerate(reports) if seq.name in r.boxes]
+        write_comparison_video(seq, tracks, folder / f"{seq.name}.mp4")
+    return folder
 
 
 def cmd_track(args: argparse.Namespace) -> int:

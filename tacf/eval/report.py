@@ -26,14 +26,31 @@ ABLATION_LABELS = {"kcc": "KCC (baseline)", "kcc+sa": "KCC + SA", "kcc+da": "KCC
                    "tacf-authors": "TACF (SA + DA + CA)", "tacf": "TACF, the paper's values (the default)"}
 
 
+# One colour per tracker, in report order, shared by the per-sequence plots and the comparison videos: the first
+# ten of matplotlib's default cycle (tab10).
+TRACKER_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
+                   "#bcbd22", "#17becf")
+
+
+def tracker_colour(index: int) -> str:
+    return TRACKER_COLOURS[index % len(TRACKER_COLOURS)]
+
+
+def _line_style(index: int) -> dict:
+    """The i-th tracker's colour, and past ten trackers a dash style that tells repeated colours apart."""
+    return {"color": tracker_colour(index), "linestyle": ("-", "--", ":")[index // len(TRACKER_COLOURS) % 3]}
+
+
 @dataclass
 class TrackerReport:
-    """Scores of one tracker: per-sequence entries plus the mean curves for the plots."""
+    """Scores of one tracker: per-sequence entries plus the mean curves for the plots, and the boxes scored
+    (0-based, per sequence name) for the per-sequence plots and videos."""
 
     name: str
     sequences: dict = field(default_factory=dict)
     success: list = field(default_factory=list)
     precision: list = field(default_factory=list)
+    boxes: dict = field(default_factory=dict)
     frames: int = 0
     seconds: float = 0.0
 
@@ -80,6 +97,7 @@ def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.nd
                                    "frames": len(boxes)}
         rep.success.append(s.success)
         rep.precision.append(s.precision)
+        rep.boxes[seq.name] = boxes
         rep.frames += len(boxes)
         rep.seconds += seconds
     return rep
@@ -223,7 +241,6 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    reports = [r for r in reports if r.success]
     paths = []
     specs = [("success_plot.png", "Success plot of OPE", "Overlap threshold", "Success rate",
               metrics.IOU_THRESHOLDS, 0, lambda s, p: float(np.mean(s)), "AUC"),
@@ -231,21 +248,57 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
               metrics.DIST_THRESHOLDS, 1, lambda s, p: float(p[metrics.PRECISION_AT]), "P@20")]
     for fname, title, xlabel, ylabel, xs, which, key, label in specs:
         curves = []
-        for r in reports:
-            succ, prec = r.mean_curves()
-            curves.append((key(succ, prec), r.name, (succ, prec)[which]))
+        for i, r in enumerate(reports):
+            if r.success:
+                succ, prec = r.mean_curves()
+                curves.append((key(succ, prec), i, r.name, (succ, prec)[which]))
         curves.sort(key=lambda c: -c[0])
         fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
-        # The default cycle has ten colours; past ten curves the dash style tells repeated colours apart.
-        for rank, (value, name, ys) in enumerate(curves):
-            ax.plot(xs, ys, label=f"{name} [{label} {value:.3f}]", linewidth=1.8,
-                    linestyle=("-", "--", ":")[rank // 10 % 3])
+        for value, i, name, ys in curves:  # each tracker keeps its style in every picture of the run
+            ax.plot(xs, ys, label=f"{name} [{label} {value:.3f}]", linewidth=1.8, **_line_style(i))
         ax.set(title=title, xlabel=xlabel, ylabel=ylabel, xlim=(xs[0], xs[-1]), ylim=(0, 1.01))
         ax.grid(alpha=0.3)
         if curves:
             ax.legend(loc="upper right" if which == 0 else "lower right", fontsize=8)
         fig.tight_layout()
         path = Path(out_dir) / fname
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def overlap_plot_path(out_dir: Path, seq_name: str) -> Path:
+    return Path(out_dir) / "overlap" / f"{seq_name}.png"
+
+
+def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_dir: Path) -> list[Path]:
+    """overlap/<seq>.png: every tracker's IoU with the ground truth frame by frame (gaps where the target is
+    absent), which shows where and how each one lost the target; the legend gives the sequence's AUC."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    for seq in sequences:
+        scored = [(i, r) for i, r in enumerate(reports) if seq.name in r.boxes]
+        if not scored:
+            continue
+        present = metrics.valid_mask(seq.gt)
+        frames = np.arange(1, len(seq) + 1)
+        fig, ax = plt.subplots(figsize=(8, 3), dpi=100)
+        for i, r in scored:
+            overlap = np.where(present, metrics.iou(r.boxes[seq.name], seq.gt), np.nan)
+            ax.plot(frames, overlap, linewidth=1.4, label=f"{r.name} [AUC {r.sequences[seq.name]['auc']:.3f}]",
+                    **_line_style(i))
+        ax.set(title=f"{seq.name}: overlap with the ground truth", xlabel="frame", ylabel="IoU",
+               xlim=(1, max(len(seq), 2)), ylim=(0, 1.01))
+        ax.grid(alpha=0.3)
+        ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+        fig.tight_layout()
+        path = overlap_plot_path(out_dir, seq.name)
+        path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path)
         plt.close(fig)
         paths.append(path)
@@ -300,8 +353,10 @@ def _finite(obj):
     return obj
 
 
-def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) -> dict[str, Path]:
-    """summary.json, summary.md, the two plots and, with a robustness entry, its plot, in `out_dir`."""
+def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
+                  sequences: list[Sequence]) -> dict[str, Path]:
+    """summary.json, summary.md, the two plots, one overlap plot per sequence and, with a robustness entry, its
+    plot, in `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     js = out_dir / "summary.json"
@@ -309,7 +364,9 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport]) ->
     md = out_dir / "summary.md"
     md.write_text(markdown_table(summary) + robustness_tables(summary))
     success, precision = plot_curves(reports, out_dir)
-    paths = {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision}
+    plot_overlaps(reports, sequences, out_dir)
+    paths = {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision,
+             "overlap_plots": out_dir / "overlap"}
     for key in ROBUSTNESS_KEYS.values():
         if summary.get(key, {}).get("trackers"):
             paths[f"{key}_plot"] = plot_robustness(summary[key], out_dir)

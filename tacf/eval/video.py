@@ -1,4 +1,5 @@
-"""`tacf track`: follow one target through a video file or an image folder, write boxes and an annotated video."""
+"""`tacf track`: follow one target through a video file or an image folder, write boxes and an annotated video;
+and `tacf eval --videos`: a sequence's frames with every tracker's boxes and the ground truth."""
 from __future__ import annotations
 
 import logging
@@ -8,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .datasets import list_frames
+from . import metrics
+from .datasets import Sequence, list_frames
 from .runner import read_frame
 from .trackers import BoxTracker
 
@@ -112,3 +114,56 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out=None, video_o
         raise ValueError(f"{source}: no frames")
     log.info("tracked %d frames of %s", n, source)
     return n
+
+
+def _bgr(hex_colour: str) -> tuple[int, int, int]:
+    red, green, blue = (int(hex_colour[i:i + 2], 16) for i in (1, 3, 5))
+    return blue, green, red
+
+
+def write_comparison_video(seq: Sequence, tracks: list[tuple[str, str, np.ndarray]], path: Path,
+                           fps: float = 10.0) -> None:
+    """An mp4v video of `seq`: its ground truth (white) and each track's boxes, tracks = (name, '#rrggbb' colour,
+    0-based N x 4 boxes), under a band that names them with their IoU on the frame shown (the band sits above
+    the frame, so that it hides nothing of small frames)."""
+    import cv2
+
+    overlaps = [metrics.iou(boxes, seq.gt) for _, _, boxes in tracks]
+    present = metrics.valid_mask(seq.gt)
+    white = (255, 255, 255)
+    row_height = 18
+    band = row_height * (len(tracks) + 2) + 6
+    writer = None
+    try:
+        for index, frame_path in enumerate(seq.frames):
+            frame = read_frame(frame_path)
+            if writer is None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                size = (frame.shape[1], frame.shape[0] + band)
+                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+                if not writer.isOpened():
+                    raise OSError(f"cannot write video {path}")
+            rows = [(f"{seq.name}  #{index + 1}/{len(seq)}", white),
+                    ("ground truth" if present[index] else "ground truth: target absent", white)]
+            if present[index]:
+                _rectangle(frame, seq.gt[index], white)
+            for (name, colour, boxes), overlap in zip(tracks, overlaps):
+                if np.isfinite(boxes[index]).all():
+                    _rectangle(frame, boxes[index], _bgr(colour))
+                rows.append((f"{name}  IoU {overlap[index]:.2f}" if present[index] else name, _bgr(colour)))
+            canvas = np.zeros((frame.shape[0] + band, frame.shape[1], 3), np.uint8)
+            canvas[band:] = frame
+            for row, (text, colour) in enumerate(rows):
+                cv2.putText(canvas, text, (6, row_height * row + 17), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1,
+                            cv2.LINE_AA)
+            writer.write(canvas)
+    finally:
+        if writer is not None:
+            writer.release()
+
+
+def _rectangle(frame: np.ndarray, box, colour) -> None:
+    import cv2
+
+    x, y, w, h = box
+    cv2.rectangle(frame, (round(x), round(y)), (round(x + w), round(y + h)), colour, 2)
