@@ -268,10 +268,6 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
     return paths
 
 
-def overlap_plot_path(out_dir: Path, seq_name: str) -> Path:
-    return Path(out_dir) / "overlap" / f"{seq_name}.png"
-
-
 def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_dir: Path) -> list[Path]:
     """overlap/<seq>.png: every tracker's IoU with the ground truth frame by frame (gaps where the target is
     absent), which shows where and how each one lost the target; the legend gives the sequence's AUC."""
@@ -297,7 +293,7 @@ def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_d
         ax.grid(alpha=0.3)
         ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
         fig.tight_layout()
-        path = overlap_plot_path(out_dir, seq.name)
+        path = Path(out_dir) / "overlap" / f"{seq.name}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path)
         plt.close(fig)
