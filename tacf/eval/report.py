@@ -1,4 +1,5 @@
-"""Reports over a result tree: summary.json, a markdown table, success and precision plots.
+"""Reports over a result tree: summary.json, a markdown table, success and precision plots, an overlap plot per
+sequence.
 
 summary.json shape (read by other tools; docs DESIGN.md 6):
   {"trackers": {NAME: {"auc": f, "precision20": f, "fps": f, "frames": n,
