@@ -15,7 +15,7 @@ import pytest
 
 from tacf.cli import main
 from tacf.config import TrackerConfig
-from tacf.eval import trackers
+from tacf.eval import metrics, trackers
 from tacf.eval.runner import track_frames
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -118,7 +118,7 @@ def got10k_auc(result_file: Path, gt_file: Path) -> float:
 
 def test_eval_summary_shape_and_values(evaluated):
     summary = json.loads((evaluated / "summary.json").read_text())
-    assert set(summary) == {"trackers"} and sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
+    assert set(summary) == {"trackers", "lost_flag"} and sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
     for name, t in summary["trackers"].items():
         assert set(t) == ENTRY_KEYS | {"sequences"}
         assert sorted(t["sequences"]) == ["UAV123_10fps/wakeboard7", "UAVDT/S0601"]
@@ -143,6 +143,30 @@ def test_eval_result_files_are_one_based_got10k_format(evaluated):
     assert all(len(line.split(",")) == 4 for line in lines)
     times = np.loadtxt(evaluated / "opencv-kcf" / "times" / "UAV123_10fps" / "wakeboard7_time.txt")
     assert times.shape == (67,) and (times > 0).all()
+
+
+def test_eval_records_and_judges_each_tracker_s_lost_flag(evaluated):
+    summary = json.loads((evaluated / "summary.json").read_text())
+    flags = summary["lost_flag"]
+    assert (flags["failure_iou"], flags["tracked_iou"]) == (0.1, 0.5) and sorted(flags["trackers"]) == sorted(EVAL_TRACKERS)
+    gt = {seq: np.loadtxt(SEQUENCES / seq / "groundtruth.txt", delimiter=",") for seq in ("UAV123_10fps/wakeboard7",
+                                                                                      "UAVDT/S0601")}
+    for name, judged in flags["trackers"].items():
+        lost, overlaps = [], []
+        for seq, truth in gt.items():
+            rows = np.loadtxt(evaluated / name / "confidence" / f"{seq}.txt", delimiter=",")
+            assert rows.shape == (len(truth), 2) and set(rows[:, 1]) <= {0.0, 1.0}
+            assert np.isnan(rows[:, 0]).all()  # OpenCV's trackers have no PME
+            boxes = np.loadtxt(evaluated / name / f"{seq}.txt", delimiter=",")
+            lost.append(rows[1:, 1] == 0)
+            overlaps.append(metrics.iou(boxes[1:], truth[1:]))  # the init frame is not judged
+        lost, overlaps = np.concatenate(lost), np.concatenate(overlaps)
+        assert judged["frames"] == 66 + 81 and judged["flagged"] == pytest.approx(lost.mean())
+        assert judged["failures_flagged"] == pytest.approx(lost[overlaps < 0.1].mean())
+    # MOSSE gives up on wakeboard7's fast little target and says so
+    assert flags["trackers"]["opencv-mosse"]["failures_flagged"] > 0.5
+    assert "| opencv-csrt | 147 |" in (evaluated / "summary.md").read_text()
+    assert (evaluated / "lost_flag_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_eval_reports_plots_and_markdown(evaluated):
@@ -450,9 +474,9 @@ def test_eval_ablation_command(tmp_path, capsys):
     assert rc == 0
     out = capsys.readouterr().out
     assert "KCC (baseline)" in out and "TACF (SA + DA + CA)" in out
-    assert (tmp_path / "out" / "ablation.md").read_text() == out
+    assert out.startswith((tmp_path / "out" / "ablation.md").read_text())  # then the lost-flag table
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert sorted(summary["trackers"]) == sorted(trackers.ABLATION)
+    assert sorted(summary["trackers"]) == sorted(trackers.ABLATION) == sorted(summary["lost_flag"]["trackers"])
     assert all(t["sequences"]["synthetic/drift"]["auc"] > 0.5 for t in summary["trackers"].values())
 
 

@@ -125,3 +125,28 @@ def test_invariant_to_common_shift(boxes, shift):
     b = metrics.score(pred + [shift, shift, 0, 0], gt + [shift, shift, 0, 0])
     np.testing.assert_allclose(a.success, b.success, atol=1e-12)
     np.testing.assert_allclose(a.precision, b.precision, atol=1e-12)
+
+
+# --- the lost flag ---------------------------------------------------------------------------------------------
+def test_lost_flag_rates_hand_case():
+    overlaps = np.array([0.0, 0.05, 0.09, 0.3, 0.6, 0.8, 0.9, 0.95])  # 3 failures, 1 in between, 4 tracked
+    lost = np.array([True, True, False, True, False, True, False, False])
+    rates = metrics.lost_flag_rates(lost, overlaps)
+    assert (rates["frames"], rates["failures"], rates["tracked"]) == (8, 3, 4)
+    assert rates["flagged"] == 4 / 8 and rates["failures_flagged"] == 2 / 3 and rates["tracked_flagged"] == 1 / 4
+    assert rates["flags_on_failures"] == 2 / 4  # the flag on IoU 0.3 is neither right nor a false alarm
+    never = metrics.lost_flag_rates(np.zeros(8, bool), overlaps)
+    assert never["failures_flagged"] == 0 and np.isnan(never["flags_on_failures"])
+
+
+def test_lost_flag_curve_hand_case():
+    confidence = np.array([5.0, 30.0, np.nan, 10.0, 40.0, 50.0])
+    overlaps = np.array([0.0, 0.0, 0.0, 0.7, 0.7, 0.7])  # three failures (one without a confidence), three tracked
+    thresholds, failures_flagged, tracked_flagged = metrics.lost_flag_curve(confidence, overlaps)
+    np.testing.assert_array_equal(thresholds, [5, 10, 30, 40, 50, 51])
+    # flag = confidence < threshold; the failure without a confidence is never flagged
+    np.testing.assert_allclose(failures_flagged, [0, 1 / 3, 1 / 3, 2 / 3, 2 / 3, 2 / 3])
+    np.testing.assert_allclose(tracked_flagged, [0, 0, 1 / 3, 1 / 3, 2 / 3, 1])
+    for threshold, caught, wrong in zip(thresholds, failures_flagged, tracked_flagged):
+        rates = metrics.lost_flag_rates(confidence < threshold, overlaps)  # the curve is the rates' own
+        assert (rates["failures_flagged"], rates["tracked_flagged"]) == pytest.approx((caught, wrong))

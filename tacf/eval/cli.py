@@ -179,6 +179,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs))[0]
                      for start in its_starts}
         summary[report.ROBUSTNESS_KEYS[protocol]] = report.robustness(per_start, trackers, protocol)
+    lost_flag = report.lost_flag_summary(reports)
+    if lost_flag["trackers"]:
+        summary["lost_flag"] = lost_flag
     paths = report.write_reports(args.out, summary, reports, seqs)
     if args.videos:
         paths["videos"] = _write_videos(args.out / "videos", seqs, reports, progress=not args.no_progress)
@@ -186,7 +189,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.ablation:
         table = report.ablation_table(summary)
         (Path(args.out) / "ablation.md").write_text(table)
-    table += report.robustness_tables(summary)
+    table += report.analysis_tables(summary)
     sys.stdout.write(table)
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return 1 if failed else 0

@@ -5,7 +5,8 @@ Conventions (docs ECOSYSTEM.md 3.4, as got10k and pysot compute them):
   - success at threshold t = fraction of frames with IoU > t, t in linspace(0, 1, 21); AUC = mean of the curve;
   - centre = xy + (wh - 1) / 2; precision at t px = fraction of frames with centre distance <= t, t = 0..50;
     the precision score is the value at 20 px;
-  - frames whose ground truth is NaN or empty (w or h <= 0) are skipped; a NaN prediction counts as a miss.
+  - frames whose ground truth is NaN or empty (w or h <= 0) are skipped; a NaN prediction counts as a miss;
+  - a lost flag: the share of failures (IoU < 0.1) it flags and of tracked frames (IoU > 0.5) it flags wrongly.
 Shifting both boxes by the same offset (0- vs 1-based) changes none of these numbers.
 """
 from __future__ import annotations
@@ -15,6 +16,9 @@ from dataclasses import dataclass
 import numpy as np
 
 IOU_THRESHOLDS = np.linspace(0.0, 1.0, 21)
+# A tracker's lost flag is judged against the overlap: a frame under FAILURE_IOU is a failure the flag should
+# catch, a frame over TRACKED_IOU a tracked one it should leave alone; the frames between count for neither.
+FAILURE_IOU, TRACKED_IOU = 0.1, 0.5
 DIST_THRESHOLDS = np.arange(0, 51, dtype=np.float64)
 PRECISION_AT = 20
 
@@ -103,3 +107,37 @@ def score(pred, gt) -> Scores:
     succ = success_curve(pred, gt)
     prec = precision_curve(pred, gt)
     return Scores(auc(succ), float(prec[PRECISION_AT]), succ, prec, int(valid_mask(gt).sum()))
+
+
+def lost_flag_rates(lost, overlaps) -> dict:
+    """How a per-frame lost flag matches the overlaps of the same frames: the share of frames flagged, of the
+    failures flagged (IoU < FAILURE_IOU: the flag's recall), of the tracked frames flagged (IoU > TRACKED_IOU:
+    false alarms) and of the flags that fell on failures (precision); NaN where a share has no frames."""
+    lost, overlaps = np.asarray(lost, bool), np.asarray(overlaps, np.float64)
+    failures, tracked = overlaps < FAILURE_IOU, overlaps > TRACKED_IOU
+
+    def share(flags: np.ndarray) -> float:
+        return float(flags.mean()) if len(flags) else float("nan")
+
+    return {"frames": int(len(lost)), "failures": int(failures.sum()), "tracked": int(tracked.sum()),
+            "flagged": share(lost), "failures_flagged": share(lost[failures]),
+            "tracked_flagged": share(lost[tracked]), "flags_on_failures": share(failures[lost])}
+
+
+def lost_flag_curve(confidence, overlaps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(thresholds, failures flagged, tracked frames flagged) when the flag is `confidence < threshold`, for
+    every threshold that changes it (each confidence value, and one above them all): the trade-off a lost-flag
+    threshold chooses from. NaN confidences never flag."""
+    confidence, overlaps = np.asarray(confidence, np.float64), np.asarray(overlaps, np.float64)
+    known = np.isfinite(confidence)
+    failures = np.sort(confidence[known & (overlaps < FAILURE_IOU)])
+    tracked = np.sort(confidence[known & (overlaps > TRACKED_IOU)])
+    values = np.unique(confidence[known])
+    thresholds = np.append(values, values[-1] + 1.0) if len(values) else np.zeros(0)
+
+    def flagged(sorted_values: np.ndarray, total: int) -> np.ndarray:
+        counts = np.searchsorted(sorted_values, thresholds, side="left")
+        return counts / total if total else np.full(len(thresholds), np.nan)
+
+    return (thresholds, flagged(failures, int((overlaps < FAILURE_IOU).sum())),
+            flagged(tracked, int((overlaps > TRACKED_IOU).sum())))

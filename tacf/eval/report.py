@@ -6,7 +6,8 @@ summary.json shape (read by other tools; docs DESIGN.md 6):
                        "sequences": {SEQ: {"auc": f, "precision20": f, "fps": f, "frames": n}}}}}
 A tracker's auc and precision20 are the means over its sequences (as benchmark tables report them);
 fps = total frames / total tracker seconds; frames = total frames tracked.
-With `tacf eval --shifts` summary.json also has "robustness", with `--tre` "temporal_robustness" (see `robustness`).
+With `tacf eval --shifts` summary.json also has "robustness", with `--tre` "temporal_robustness" (see `robustness`),
+and for the trackers that recorded their lost flag, "lost_flag" (see `lost_flag_summary`).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from . import metrics
 from .datasets import Sequence
-from .runner import read_run, result_path
+from .runner import read_confidence, read_run, result_path
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +53,8 @@ class TrackerReport:
     success: list = field(default_factory=list)
     precision: list = field(default_factory=list)
     boxes: dict = field(default_factory=dict)
+    # (ok, pme, IoU) of the frames after the first with a target, per sequence whose confidence was recorded
+    flag_frames: list = field(default_factory=list)
     frames: int = 0
     seconds: float = 0.0
 
@@ -70,7 +73,7 @@ class TrackerReport:
 
 def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> TrackerReport:
     """Score every recorded result of `tracker` in the result tree `out_dir` against the sequences' ground truth."""
-    runs = {}
+    runs, confidences = {}, {}
     for seq in sequences:
         if not result_path(out_dir, tracker, seq.name).is_file():
             log.warning("%s: no result for %s; left out of the summary", tracker, seq.name)
@@ -81,11 +84,16 @@ def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> Tra
                         tracker, seq.name, len(boxes), len(seq))
             continue
         runs[seq.name] = boxes, times
-    return score_runs(tracker, sequences, runs)
+        confidence = read_confidence(out_dir, tracker, seq.name)
+        if confidence is not None and len(confidence[0]) == len(seq):
+            confidences[seq.name] = confidence
+    return score_runs(tracker, sequences, runs, confidences)
 
 
-def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.ndarray, np.ndarray]]) -> TrackerReport:
-    """Score runs {sequence name: (0-based boxes, seconds per frame)}, one box per frame of the sequence."""
+def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.ndarray, np.ndarray]],
+               confidences: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> TrackerReport:
+    """Score runs {sequence name: (0-based boxes, seconds per frame)}, one box per frame of the sequence, and
+    the lost flags of those with confidences {sequence name: (pme, ok)}."""
     rep = TrackerReport(name)
     for seq in sequences:
         if seq.name not in runs:
@@ -99,6 +107,11 @@ def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.nd
         rep.success.append(s.success)
         rep.precision.append(s.precision)
         rep.boxes[seq.name] = boxes
+        if confidences and seq.name in confidences:
+            pme, ok = confidences[seq.name]
+            judged = metrics.valid_mask(seq.gt)
+            judged[0] = False  # the init frame has no flag
+            rep.flag_frames.append((ok[judged], pme[judged], metrics.iou(boxes, seq.gt)[judged]))
         rep.frames += len(boxes)
         rep.seconds += seconds
     return rep
@@ -111,6 +124,41 @@ def summarize(out_dir: Path, trackers: list[str], sequences: list[Sequence],
     reports = [score_tracker(out_dir, t, sequences) for t in trackers]
     reports += [score_runs(name, sequences, runs) for name, runs in (imported or {}).items()]
     return {"trackers": {r.name: r.entry() for r in reports}}, reports
+
+
+def _pooled_flag_frames(r: TrackerReport) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ok, pme, IoU) over all of a tracker's judged frames."""
+    return tuple(np.concatenate(column) for column in zip(*r.flag_frames))
+
+
+def lost_flag_summary(reports: list[TrackerReport]) -> dict:
+    """summary.json's "lost_flag": per tracker that recorded its flags, metrics.lost_flag_rates of `not ok` over
+    all its frames after the first (pooled over the sequences), with the IoU bounds they were judged by."""
+    trackers = {}
+    for r in reports:
+        if r.flag_frames:
+            ok, _, overlaps = _pooled_flag_frames(r)
+            trackers[r.name] = metrics.lost_flag_rates(~ok, overlaps)
+    return {"failure_iou": metrics.FAILURE_IOU, "tracked_iou": metrics.TRACKED_IOU, "trackers": trackers}
+
+
+def lost_flag_table(result: dict) -> str:
+    """summary.json's "lost_flag" as markdown."""
+    if not result.get("trackers"):
+        return ""
+
+    def percent(v: float) -> str:
+        return "n/a" if v is None or not np.isfinite(v) else f"{100 * v:.1f} %"
+
+    lines = [f"Lost flag (ok = false) against the overlap, on the frames after the first: a failure is IoU < "
+             f"{result['failure_iou']:g}, a tracked frame IoU > {result['tracked_iou']:g}:", "",
+             "| tracker | frames | flagged | failures flagged | tracked frames flagged | flags on failures |",
+             "|---|---|---|---|---|---|"]
+    for name, t in result["trackers"].items():
+        lines.append(f"| {name} | {t['frames']} | {percent(t['flagged'])} | {percent(t['failures_flagged'])} of "
+                     f"{t['failures']} | {percent(t['tracked_flagged'])} of {t['tracked']} | "
+                     f"{percent(t['flags_on_failures'])} |")
+    return "\n".join(lines) + "\n"
 
 
 def _ranked(summary: dict) -> list[tuple[str, dict]]:
@@ -302,13 +350,51 @@ def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_d
     return paths
 
 
+def plot_lost_flags(reports: list[TrackerReport], out_dir: Path) -> Path:
+    """lost_flag_plot.png: for every tracker that recorded its lost flag, the share of failures it flags against
+    the share of tracked frames it flags wrongly (a dot), and for those with a PME, the curve of every PME
+    threshold the flag could use instead: how much warning a lost flag can give, and at what cost."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
+    for i, r in enumerate(reports):
+        if not r.flag_frames:
+            continue
+        ok, pme, overlaps = _pooled_flag_frames(r)
+        rates = metrics.lost_flag_rates(~ok, overlaps)
+        style = _line_style(i)
+        if np.isfinite(pme).any():
+            _, failures_flagged, tracked_flagged = metrics.lost_flag_curve(pme, overlaps)
+            ax.plot(tracked_flagged, failures_flagged, linewidth=1.4, label=f"{r.name}: PME under a threshold",
+                    **style)
+        ax.plot([rates["tracked_flagged"]], [rates["failures_flagged"]], "o", color=style["color"], markersize=7,
+                label=f"{r.name}: its lost flag")
+    ax.set(title="Lost flag: failures caught against false alarms",
+           xlabel=f"tracked frames flagged (IoU > {metrics.TRACKED_IOU:g})",
+           ylabel=f"failures flagged (IoU < {metrics.FAILURE_IOU:g})", ylim=(0, 1.01))
+    # A useful flag lives in the first per cent of false alarms: linear up to 0.01, logarithmic beyond.
+    ax.set_xscale("symlog", linthresh=0.01, linscale=1.0)
+    ax.set_xlim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    path = Path(out_dir) / "lost_flag_plot.png"
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 ROBUSTNESS_KEYS = {"shifts": "robustness", "tre": "temporal_robustness"}  # protocol: its summary.json key
 
 
-def robustness_tables(summary: dict) -> str:
-    """The robustness tables a summary holds, each after a blank line; empty when it holds none."""
-    return "".join("\n" + robustness_table(summary[key]) for key in ROBUSTNESS_KEYS.values()
-                   if summary.get(key, {}).get("trackers"))
+def analysis_tables(summary: dict) -> str:
+    """The robustness and lost-flag tables a summary holds, each after a blank line; empty when it holds none."""
+    tables = [robustness_table(summary[key]) for key in ROBUSTNESS_KEYS.values() if summary.get(key, {}).get("trackers")]
+    tables.append(lost_flag_table(summary.get("lost_flag", {})))
+    return "".join("\n" + table for table in tables if table)
 
 
 def plot_robustness(result: dict, out_dir: Path) -> Path:
@@ -356,14 +442,17 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
     plot, in `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {}
     js = out_dir / "summary.json"
     js.write_text(json.dumps(_finite(summary), indent=2, allow_nan=False) + "\n")
     md = out_dir / "summary.md"
-    md.write_text(markdown_table(summary) + robustness_tables(summary))
+    md.write_text(markdown_table(summary) + analysis_tables(summary))
     success, precision = plot_curves(reports, out_dir)
     plot_overlaps(reports, sequences, out_dir)
-    paths = {"json": js, "markdown": md, "success_plot": success, "precision_plot": precision,
-             "overlap_plots": out_dir / "overlap"}
+    if summary.get("lost_flag", {}).get("trackers"):
+        paths["lost_flag_plot"] = plot_lost_flags(reports, out_dir)
+    paths.update({"json": js, "markdown": md, "success_plot": success, "precision_plot": precision,
+                  "overlap_plots": out_dir / "overlap"})
     for key in ROBUSTNESS_KEYS.values():
         if summary.get(key, {}).get("trackers"):
             paths[f"{key}_plot"] = plot_robustness(summary[key], out_dir)

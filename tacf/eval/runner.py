@@ -3,6 +3,7 @@
 Result tree (got10k layout, docs ECOSYSTEM.md 3.5):
     <out>/<tracker>/<seq>.txt                  x,y,w,h per frame, 1-based, %.3f, line 1 = the init box
     <out>/<tracker>/times/<seq>_time.txt       seconds of tracker time per frame (init on line 1)
+    <out>/<tracker>/confidence/<seq>.txt       pme,ok per frame: the tracker's own confidence and lost flag
 <seq> is the sequence name relative to the dataset root, so it may contain folders (UAV123_10fps/wakeboard7).
 Runs started from a shifted first box (`tacf eval --shifts`) go to <out>/shifted/<dx><dy>/, runs started at a
 later frame (`tacf eval --tre`) to <out>/tre/<segment>of<segments>/, in the same layout.
@@ -147,14 +148,32 @@ def times_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
     return Path(out_dir) / tracker / "times" / f"{seq_name}_time.txt"
 
 
+def confidence_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
+    return Path(out_dir) / tracker / "confidence" / f"{seq_name}.txt"
+
+
+def _write_atomically(path: Path, rows: np.ndarray, fmt: str, header: str = "") -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    np.savetxt(tmp, rows, fmt=fmt, delimiter=",", header=header)
+    tmp.replace(path)
+
+
 def write_run(out_dir: Path, tracker: str, seq_name: str, run: TrackRun) -> None:
-    """Times first, boxes last: the box file's presence marks a complete, resumable result."""
-    tp = times_path(out_dir, tracker, seq_name)
-    tp.parent.mkdir(parents=True, exist_ok=True)
-    tmp = tp.with_name(tp.name + ".part")
-    np.savetxt(tmp, run.times, fmt="%.6f")
-    tmp.replace(tp)
+    """Times and confidence first, boxes last: the box file's presence marks a complete, resumable result."""
+    _write_atomically(times_path(out_dir, tracker, seq_name), run.times, "%.6f")
+    _write_atomically(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]),
+                      "%.3f,%d", "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame")
     write_boxes(result_path(out_dir, tracker, seq_name), run.boxes, one_based=True)
+
+
+def read_confidence(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pme, ok) per frame of a recorded result, or None for results recorded without them."""
+    path = confidence_path(out_dir, tracker, seq_name)
+    if not path.is_file():
+        return None
+    rows = np.loadtxt(path, delimiter=",", ndmin=2)
+    return rows[:, 0], rows[:, 1].astype(bool)
 
 
 def read_run(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np.ndarray]:
