@@ -350,10 +350,10 @@ def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_d
     return paths
 
 
-def plot_lost_flags(reports: list[TrackerReport], out_dir: Path) -> Path:
-    """lost_flag_plot.png: for every tracker that recorded its lost flag, the share of failures it flags against
-    the share of tracked frames it flags wrongly (a dot), and for those with a PME, the curve of every PME
-    threshold the flag could use instead: how much warning a lost flag can give, and at what cost."""
+def plot_lost_flags(reports: list[TrackerReport], lost_flag: dict, out_dir: Path) -> Path:
+    """lost_flag_plot.png: for every tracker of `lost_flag` (summary.json's), the share of failures it flags
+    against the share of tracked frames it flags wrongly (a dot), and for those with a PME, the curve of every
+    PME threshold the flag could use instead: how much warning a lost flag can give, and at what cost."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -361,10 +361,10 @@ def plot_lost_flags(reports: list[TrackerReport], out_dir: Path) -> Path:
 
     fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
     for i, r in enumerate(reports):
-        if not r.flag_frames:
+        if r.name not in lost_flag["trackers"]:
             continue
-        ok, pme, overlaps = _pooled_flag_frames(r)
-        rates = metrics.lost_flag_rates(~ok, overlaps)
+        _, pme, overlaps = _pooled_flag_frames(r)
+        rates = lost_flag["trackers"][r.name]
         style = _line_style(i)
         if np.isfinite(pme).any():
             _, failures_flagged, tracked_flagged = metrics.lost_flag_curve(pme, overlaps)
@@ -450,7 +450,7 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
     success, precision = plot_curves(reports, out_dir)
     plot_overlaps(reports, sequences, out_dir)
     if summary.get("lost_flag", {}).get("trackers"):
-        paths["lost_flag_plot"] = plot_lost_flags(reports, out_dir)
+        paths["lost_flag_plot"] = plot_lost_flags(reports, summary["lost_flag"], out_dir)
     paths.update({"json": js, "markdown": md, "success_plot": success, "precision_plot": precision,
                   "overlap_plots": out_dir / "overlap"})
     for key in ROBUSTNESS_KEYS.values():

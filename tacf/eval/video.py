@@ -67,9 +67,9 @@ def draw(frame: np.ndarray, box, ok: bool, pme: float, index: int) -> np.ndarray
     import cv2
 
     out = frame.copy()
-    x, y, w, h = box
+    x, y = box[0], box[1]
     colour = (0, 200, 0) if ok else (0, 0, 255)
-    cv2.rectangle(out, (round(x), round(y)), (round(x + w), round(y + h)), colour, 2)
+    _rectangle(out, box, colour)
     label = f"#{index} PME {pme:.1f}" if math.isfinite(pme) else f"#{index}"
     cv2.putText(out, label, (round(x), max(12, round(y) - 6)), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1,
                 cv2.LINE_AA)
@@ -81,8 +81,6 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out=None, video_o
 
     Returns the number of frames processed.
     """
-    import cv2
-
     frames, fps = open_source(source)
     writer = None
     n = 0
@@ -100,11 +98,7 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out=None, video_o
                 boxes_out.write(",".join(f"{v:.3f}" for v in cur) + f",{pme:.3f},{int(ok)}\n")
             if video_out is not None:
                 if writer is None:
-                    Path(video_out).parent.mkdir(parents=True, exist_ok=True)
-                    h, w = frame.shape[:2]
-                    writer = cv2.VideoWriter(str(video_out), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-                    if not writer.isOpened():
-                        raise OSError(f"cannot write video {video_out}")
+                    writer = _open_video(Path(video_out), fps, frame.shape[1::-1])
                 writer.write(draw(frame, cur, ok, pme, n))
             n += 1
     finally:
@@ -138,11 +132,7 @@ def write_comparison_video(seq: Sequence, tracks: list[tuple[str, str, np.ndarra
         for index, frame_path in enumerate(seq.frames):
             frame = read_frame(frame_path)
             if writer is None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                size = (frame.shape[1], frame.shape[0] + band)
-                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
-                if not writer.isOpened():
-                    raise OSError(f"cannot write video {path}")
+                writer = _open_video(path, fps, (frame.shape[1], frame.shape[0] + band))
             rows = [(f"{seq.name}  #{index + 1}/{len(seq)}", white),
                     ("ground truth" if present[index] else "ground truth: target absent", white)]
             if present[index]:
@@ -160,6 +150,17 @@ def write_comparison_video(seq: Sequence, tracks: list[tuple[str, str, np.ndarra
     finally:
         if writer is not None:
             writer.release()
+
+
+def _open_video(path: Path, fps: float, width_height: tuple[int, int]):
+    """An mp4v cv2.VideoWriter at `path` (its folder made); OSError if OpenCV cannot write it."""
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, width_height)
+    if not writer.isOpened():
+        raise OSError(f"cannot write video {path}")
+    return writer
 
 
 def _rectangle(frame: np.ndarray, box, colour) -> None:
