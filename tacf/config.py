@@ -120,6 +120,12 @@ class TrackerConfig:
     # upsampling keeps on whole cells.
     subcell_peak: bool = True
 
+    # Motion search (beyond the paper; docs/decisions.md): after a move of more than this fraction of the search
+    # radius, the target is also searched for where that move continues, and the search whose HOG response
+    # peaks higher is taken. On truck2 (UAV123@10fps) every profile otherwise falls behind the truck and loses it.
+    motion_search: bool = True
+    motion_search_threshold: float = 0.2
+
     # Output: the target counts as lost when the PME of the fused response falls under this floor. On the 10 UAV
     # sequences (`tacf eval`'s lost-flag table, 1,282 frames), the `paper` profile's flag at 20 catches 23 % of the
     # failures (IoU < 0.1) and flags none of the tracked frames (IoU > 0.5); 25 would catch 40 % and flag 0.1 %.
@@ -132,7 +138,7 @@ class TrackerConfig:
                                      "cn_output_sigma_factor", "lambda1", "context_interval", "hist_bins",
                                      "num_scales", "scale_sigma_factor", "scale_lambda", "scale_model_max_area"),
                      rates=("learning_rate", "context_penalty_rate", "dim_learning_rate", "spatial_learning_rate",
-                            "hist_learning_rate", "scale_learning_rate"))
+                            "hist_learning_rate", "scale_learning_rate", "motion_search_threshold"))
 
     @classmethod
     def profile_names(cls) -> tuple[str, ...]:

@@ -5,7 +5,8 @@ Per frame (ALGORITHM.md section 7, with the decisions of section B):
   LOCALISE  sample the search area at the last position; colour-weighted cosine window; per-channel kernel
             correlators for fHOG and Color Names; dimensional attention weights the channels; spatiotemporal
             attention multiplies the channel sum; crop; context penalties from PME ratios on context frames;
-            upsample, fuse the two feature types, take the peak (refined between cells).
+            upsample, fuse the two feature types, take the peak (refined between cells). After a fast move,
+            also search where that move continues, and keep the search whose HOG response peaks higher.
   SCALE     DSST scale filter at the new position.
   UPDATE    train fresh filters (with context patches as hard negatives on context frames), blend them into
             the model, update the channel weights, colour histograms and scale model.
@@ -28,6 +29,21 @@ from tacf.features import color_names, fhog, fhog_batch
 from tacf.geometry import NormalisedGrid, TargetAreas, round_half_up, search_padding, subwindow
 from tacf.response import crop_centre, fuse, fusion_coefficients, peak_offset, subcell_peak_offset, upsample
 from tacf.scale import ScaleFilter
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One search for the target: where it was centred, what it found, and the state it would leave."""
+
+    centre: np.ndarray  # (row, col) image pixels: the search area's centre
+    fused: np.ndarray  # fused, upsampled response over the search square; its centre is the search centre
+    offset: np.ndarray  # (row, col) of its peak from the centre, normalised pixels
+    hog_response: np.ndarray  # cropped HOG response: the detection score and the context factors' reference
+    spatial_maps: dict[str, np.ndarray]  # the spatiotemporal attention's maps, kept if this search is taken
+
+    @property
+    def score(self) -> float:
+        return float(self.hog_response.max())
 
 
 @dataclass(frozen=True)
@@ -132,9 +148,15 @@ class Tracker:
         self.frame_number += 1
 
         # ------- LOCALISE -------
-        fused, offset, object_response = self._localise(frame)
-        self.displacement = offset / self.areas.resize_factor
-        self.pos = np.clip(self.pos + self.displacement, 0, np.asarray(frame.shape[:2]) - 1)
+        detection = self._localise(frame, self.pos)
+        ahead = self._motion_search_centre()
+        if ahead is not None:
+            detection = max(detection, self._localise(frame, ahead), key=lambda d: d.score)
+        for name, spatial_map in detection.spatial_maps.items():
+            self.spatiotemporal[name].keep(spatial_map)
+        found = detection.centre + detection.offset / self.areas.resize_factor
+        self.displacement = found - self.pos
+        self.pos = np.clip(found, 0, np.asarray(frame.shape[:2]) - 1)
 
         # ------- SCALE -------
         if self.scale_filter is not None:
@@ -142,9 +164,9 @@ class Tracker:
             self.target_hw = np.maximum(round_half_up(self.base_target_hw * self.scale_factor), 1.0)
             self.areas = self._areas_around(self.target_hw)
 
-        self._to_learn = frame, object_response
-        confidence = pme(fused)
-        return TrackResult(box=self.box, pme=confidence, score=float(fused.max()),
+        self._to_learn = frame, detection.hog_response
+        confidence = pme(detection.fused)
+        return TrackResult(box=self.box, pme=confidence, score=float(detection.fused.max()),
                            ok=confidence >= self.config.lost_pme, scale=self.scale_factor)
 
     def learn(self) -> None:
@@ -172,33 +194,45 @@ class Tracker:
     def _sample(self, frame: np.ndarray, pos: np.ndarray) -> np.ndarray:
         return subwindow(frame, pos, self.grid.patch_hw, self._sample_hw(), self.config.fast_resize)
 
+    def _motion_search_centre(self) -> np.ndarray | None:
+        """Where the last move, continued, puts the target, when that move was fast enough to be worth a second
+        search: more than motion_search_threshold of the search radius. At 10 fps a vehicle moves by half its
+        length between frames (truck2: 20-23 px for a 45 px truck); a search centred on its last position
+        then finds it far out, where the cosine window has dimmed it and the static background's answer at
+        zero motion outweighs it, and each frame's shortfall puts it further out (docs/decisions.md)."""
+        if not self.config.motion_search or self.frame_number < 3:
+            return None
+        move = np.hypot(*self.displacement) * self.areas.resize_factor  # normalised pixels
+        if move <= self.config.motion_search_threshold * self.grid.response_size / 2:
+            return None
+        return self.pos + self.displacement
+
     def _features(self, patch: np.ndarray, names) -> dict[str, np.ndarray]:
         extractors = {"hog": lambda p: fhog(p, self.config.cell_size, divisor=255.0),
                       "cn": lambda p: color_names(p, self.config.cell_size)}
         return {name: extractors[name](patch) for name in names}
 
-    def _patch_and_features(self, frame: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """The sample at the current position and area, and its features."""
-        patch = self._sample(frame, self.pos)
+    def _patch_and_features(self, frame: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The sample around centre at the current area, and its features."""
+        patch = self._sample(frame, centre)
         return patch, self._features(patch, self.banks)
 
-    def _localise(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Fused, upsampled response over the search square (its centre is 'no motion'), the displacement of its
-        peak in normalised pixels, and the cropped HOG response, the reference for the context challenge
-        factors."""
+    def _localise(self, frame: np.ndarray, centre: np.ndarray) -> Detection:
+        """Search the area around centre with the current model; nothing of the tracker's state changes."""
         cfg = self.config
-        patch, features = self._patch_and_features(frame)
+        patch, features = self._patch_and_features(frame, centre)
         window = self.cosine_window
         if self.colour is not None:
             window = window * self.colour.likelihood_window(patch, self.grid.filter_hw)
-        cropped = {}
+        cropped, spatial_maps = {}, {}
         for name, bank in self.banks.items():
             weights = self.dimensional[name].weights if cfg.dimensional_attention else None
             response = bank.response(features[name] * window, weights)
             if cfg.spatiotemporal_attention:
                 motion = self.displacement if self.frame_number >= 3 else None
-                response = response * self.spatiotemporal[name].update(
-                    response, self.response_window, motion, self.target_hw)
+                spatial_maps[name] = self.spatiotemporal[name].propose(response, self.response_window, motion,
+                                                                        self.target_hw)
+                response = response * spatial_maps[name]
             cropped[name] = crop_centre(response, self.grid.crop_cells)
         size = self.grid.response_size
         upsampled = [upsample(r, size) for r in cropped.values()]
@@ -209,7 +243,7 @@ class Tracker:
             offset = subcell_peak_offset(fuse(list(cropped.values()), coefficients)) * size / self.grid.crop_cells
         else:
             offset = peak_offset(fused)
-        return fused, offset, cropped["hog"]
+        return Detection(np.asarray(centre, dtype=np.float64), fused, offset, cropped["hog"], spatial_maps)
 
     def _context_features(self, frame: np.ndarray) -> np.ndarray:
         """Windowed fHOG of the four context patches around the current position: (4, 31, H, W).
@@ -251,7 +285,7 @@ class Tracker:
         The authors' code measures the penalties on patches around the previous position; sampling once saves
         four fHOGs per context frame, and the boxes on the ten UAV sequences come out identical."""
         cfg = self.config
-        patch, features = self._patch_and_features(frame)
+        patch, features = self._patch_and_features(frame, self.pos)
         context_energy = None
         if cfg.context_attention and self.contextual.is_context_frame(self.frame_number):
             hog = self.banks["hog"]

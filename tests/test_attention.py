@@ -107,8 +107,9 @@ def test_spatial_map_ema():
     window = np.ones((5, 5))
     first = np.zeros((5, 5)); first[4, 4] = 1
     second = np.zeros((5, 5)); second[0, 0] = 1
-    attention.update(first, window, None, np.ones(2))
-    combined = attention.update(second, window, None, np.ones(2))
+    attention.keep(attention.propose(first, window, None, np.ones(2)))
+    attention.propose(np.ones((5, 5)), window, None, np.ones(2))  # proposed, not kept: no effect
+    combined = attention.propose(second, window, None, np.ones(2))
     np.testing.assert_allclose(combined, 0.5 * attention_map(first, window) + 0.5 * attention_map(second, window))
 
 

@@ -34,6 +34,28 @@ def test_follows_a_moving_textured_target(name):
     assert all(isinstance(r, TrackResult) and r.ok for r in results[:5])
 
 
+def _mean_iou(config, images, truth) -> float:
+    return float(np.mean([box_iou(r.box, t) for r, t in zip(_track(config, images, truth[0]), truth[1:])]))
+
+
+def test_motion_search_follows_a_target_faster_than_the_search_radius():
+    # Speeding up to 30 px a frame: the search area reaches about 30 px from the last position, so a search
+    # there alone loses the target; the second search, where the last move continues, keeps it.
+    steps = [(0.0, min(5.0 * k, 30.0)) for k in range(1, 40)]
+    images, truth = moving_target_sequence(size=(240, 1400), steps=steps)
+    assert _mean_iou(TrackerConfig.profile("paper", motion_search=False), images, truth) < 0.4
+    for profile in ("paper", "authors", "kcc"):
+        assert _mean_iou(TrackerConfig.profile(profile), images, truth) > 0.85, profile
+
+
+@pytest.mark.parametrize("then", [(0.0, 0.0), (0.0, -25.0)], ids=["stops", "turns-back"])
+def test_motion_search_lets_a_fast_target_stop_or_turn_back(then):
+    # The search where the move continues finds background there, and the search at the last position wins.
+    steps = [(0.0, 5.0 * k) for k in range(1, 6)] + [(0.0, 25.0)] * 4 + [then] * 10
+    images, truth = moving_target_sequence(size=(240, 640), steps=steps)
+    assert _mean_iou(TrackerConfig.profile("paper"), images, truth) > 0.85
+
+
 def test_grayscale_frames():
     images, truth = moving_target_sequence(frames=25, gray=True)
     results = _track(TrackerConfig.profile(), images, truth[0])

@@ -50,14 +50,16 @@ class SpatiotemporalAttention:
         self.motion_gain = motion_gain
         self.map: np.ndarray | None = None
 
-    def update(self, response: np.ndarray, window: np.ndarray, displacement: np.ndarray | None,
-               target_hw: np.ndarray) -> np.ndarray:
-        """Fold this frame's map into the EMA and return the map to multiply the response with."""
+    def propose(self, response: np.ndarray, window: np.ndarray, displacement: np.ndarray | None,
+                target_hw: np.ndarray) -> np.ndarray:
+        """This frame's map folded into the EMA: the map to multiply the response with. Nothing is kept until
+        keep(): a frame searched in two places keeps the map of the search it takes."""
         fresh = attention_map(response, window)
         if displacement is not None:
             fresh = add_motion(fresh, displacement, target_hw, self.motion_gain)
         if self.map is None:
-            self.map = fresh
-        else:
-            self.map = (1 - self.learning_rate) * self.map + self.learning_rate * fresh
-        return self.map
+            return fresh
+        return (1 - self.learning_rate) * self.map + self.learning_rate * fresh
+
+    def keep(self, spatial_map: np.ndarray) -> None:
+        self.map = spatial_map
