@@ -442,8 +442,6 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
 
 
 def cmd_foxglove(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from tacf.zenoh_options import options_from_args
     try:
         from tacf_clients.foxglove_bridge import FoxgloveBridge
@@ -451,13 +449,13 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
         print(f"tacf foxglove: {exc}; install it with: pip install 'tacf[foxglove]'", file=sys.stderr)
         return 2
     from tacf_clients.dashboard import Dashboard
+    from tacf_clients.dashboard_http import tls_context
 
     try:
         if args.keyfile and not args.certfile:
             raise ValueError("--keyfile needs --certfile")
-        cert = Path(args.certfile).read_bytes() if args.certfile else None
-        tls = (cert, Path(args.keyfile).read_bytes() if args.keyfile else cert) if cert else None
-    except (OSError, ValueError) as exc:
+        tls = tls_context(args.certfile, args.keyfile) if args.certfile else None
+    except (OSError, ValueError) as exc:       # ssl.SSLError is an OSError
         print(f"tacf foxglove: {exc}", file=sys.stderr)
         return 2
     with stop_on_signals() as stop:
@@ -468,7 +466,7 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
                                 control=args.control, tls=tls, record=args.record) as bridge:
                 scheme = "wss" if tls else "ws"
                 services = "with" if bridge.control else "without"
-                print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove (Open connection > "
+                print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove or Lichtblick (Open connection > "
                       f"Foxglove WebSocket), {services} the control services (Ctrl-C to stop)", flush=True)
                 if args.record:
                     print(f"tacf foxglove: recording to {args.record}", flush=True)

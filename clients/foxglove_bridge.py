@@ -1,5 +1,6 @@
 """`tacf foxglove`: every tracking session in Foxglove (or its open fork Lichtblick), over Foxglove's WebSocket
-protocol (foxglove-sdk's server; no ROS).
+protocol (foxglove-sdk's server behind a relay that also accepts Lichtblick's name for the protocol,
+foxglove_relay.py; no ROS).
 
     tacf foxglove          # in Foxglove: Open connection > Foxglove WebSocket > ws://127.0.0.1:8765
 
@@ -7,9 +8,9 @@ Topics, for each watched image key K (the key of every listed session, plus the 
 - `/K/image` (foxglove.CompressedImage): the newest frame of K, at most `image_hz` a second, only while someone
   subscribes; JPEG frames go as they came, raw ones are encoded once.
 - `/K/tracks` (foxglove.ImageAnnotations): the newest box of every session on K, a rectangle (green while the
-  tracker holds the target, red while it reports it lost) labelled with the session id and PME; its timestamp is
-  the stamp of the frame the box was computed on (images carry their frames' stamps too). Each rectangle's
-  metadata carries node, sid, seq, ok and pme.
+  tracker holds the target, red while it reports it lost) labelled with the session id and PME; its timestamp, and
+  each rectangle's and label's, is the stamp of the frame the box was computed on (images carry their frames'
+  stamps too). Each rectangle's metadata carries node, sid, seq, ok and pme.
 - `/tacf/N/S` (JSON): the session as the dashboard's /api/state shows it (box, PME, health: fps, latency, frame
   counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
 With `record` (`--record FILE.mcap`) everything published, images included at the same rate, is also written
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import ssl
 import threading
 import time
 from collections import Counter
@@ -39,6 +41,7 @@ from pydantic import ValidationError
 
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.dashboard_access import is_loopback
+from tacf_clients.foxglove_relay import SubprotocolRelay
 from tacf_schemas.models import ReinitRequest, StartRequest, StopRequest
 
 log = logging.getLogger(__name__)
@@ -56,7 +59,8 @@ def _timestamp(ns: int) -> Timestamp:
 
 def session_annotations(sessions: list[dict]) -> ImageAnnotations:
     """The boxes of the given sessions (as Dashboard.sessions_json gives them) as one ImageAnnotations, stamped
-    with the newest box's frame."""
+    with the newest box's frame. Each rectangle and label also carries its own box's stamp: Foxglove's schema
+    takes the message's stamp when it has one, Lichtblick's (older) reads only the annotations' own."""
     rectangles, labels, stamps = [], [], []
     for session in sessions:
         result = session["box"]
@@ -64,12 +68,13 @@ def session_annotations(sessions: list[dict]) -> ImageAnnotations:
             continue
         x, y, w, h = result["box"]
         colour = TRACKING if result["ok"] else LOST
+        stamp = _timestamp(result["stamp_ns"])
         corners = [Point2(x=x, y=y), Point2(x=x + w, y=y), Point2(x=x + w, y=y + h), Point2(x=x, y=y + h)]
         metadata = {"node": session["node"], "sid": session["sid"], "seq": str(result["seq"]),
                     "ok": str(result["ok"]).lower(), "pme": f"{result['pme']:.2f}"}
-        rectangles.append(PointsAnnotation(type=PointsAnnotationType.LineLoop, points=corners, outline_color=colour,
-                                           thickness=2.0, metadata=_key_values(metadata)))
-        labels.append(TextAnnotation(position=Point2(x=x, y=max(y - 2.0, 12.0)), font_size=12.0,
+        rectangles.append(PointsAnnotation(timestamp=stamp, type=PointsAnnotationType.LineLoop, points=corners,
+                                           outline_color=colour, thickness=2.0, metadata=_key_values(metadata)))
+        labels.append(TextAnnotation(timestamp=stamp, position=Point2(x=x, y=max(y - 2.0, 12.0)), font_size=12.0,
                                      text=f"{session['sid']}  pme {result['pme']:.1f}", text_color=colour,
                                      background_color=LABEL_BACKGROUND))
         stamps.append(result["stamp_ns"])
@@ -105,14 +110,15 @@ class FoxgloveBridge:
     """Serves `board`'s sessions to Foxglove clients on ws://host:port (port 0: any free port; see `port`).
 
     `serve(stop)` publishes until `stop` is set; close() stops the WebSocket server (the board is not closed
-    here). control: offer the start/stop/reinit/list services (default: only on a loopback host). tls: (PEM
-    certificate, PEM key) bytes to serve wss:// only. record: an MCAP file to write everything to (it must not
-    exist yet).
+    here). control: offer the start/stop/reinit/list services (default: only on a loopback host). tls: a server
+    context to serve wss:// only. record: an MCAP file to write everything to (it must not exist yet).
+    The SDK's server listens on a loopback port of its own; the public address is a SubprotocolRelay's, which also
+    lets in Lichtblick (foxglove_relay.py).
     """
 
     def __init__(self, board: Dashboard, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
                  image_hz: float = DEFAULT_IMAGE_HZ, control: bool | None = None,
-                 tls: tuple[bytes, bytes] | None = None, record: str | Path | None = None, name: str = "tacf"):
+                 tls: ssl.SSLContext | None = None, record: str | Path | None = None, name: str = "tacf"):
         if image_hz <= 0:
             raise ValueError(f"image_hz must be positive, got {image_hz}")
         self.board = board
@@ -121,21 +127,21 @@ class FoxgloveBridge:
         self.context = foxglove.Context()         # our own: other Foxglove users in the process are not mixed in
         self._subscriptions = _Subscriptions()
         services = self._services() if self.control else []
-        cert, key = tls if tls is not None else (None, None)
         self._recording = None
         if record is not None:
             try:
                 self._recording = foxglove.open_mcap(record, context=self.context)
             except OSError as exc:
                 raise OSError(exc.errno, f"cannot record to {record}: {exc.strerror or exc}") from None
+        self.server = self.relay = None
         try:
             self.server = foxglove.start_server(
-                name=name, host=host, port=port, context=self.context, server_listener=self._subscriptions,
+                name=name, host="127.0.0.1", port=0, context=self.context, server_listener=self._subscriptions,
                 services=services, capabilities=[foxglove.Capability.Services] if services else [],
-                supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG, tls_cert=cert, tls_key=key)
+                supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG)
+            self.relay = SubprotocolRelay(self.server.port, host=host, port=port, tls=tls)
         except Exception:
-            if self._recording is not None:
-                self._recording.close()
+            self.close()
             raise
         self._images: dict[str, CompressedImageChannel] = {}
         self._tracks: dict[str, ImageAnnotationsChannel] = {}
@@ -146,10 +152,13 @@ class FoxgloveBridge:
 
     @property
     def port(self) -> int:
-        return self.server.port
+        return self.relay.port
 
     def close(self) -> None:
-        self.server.stop()
+        if self.relay is not None:
+            self.relay.close()
+        if self.server is not None:
+            self.server.stop()
         if self._recording is not None:
             self._recording.close()        # writes the MCAP summary: without it the file is read only slowly
 

@@ -1,6 +1,7 @@
 """`tacf foxglove` against a client that speaks Foxglove's WebSocket protocol as the Foxglove app does (subprotocol
-foxglove.sdk.v1; protobuf messages decoded from the schemas the server advertises): a real `tacf serve`, a camera
-publishing the generated scene, the dashboard's Zenoh side and the bridge in between."""
+foxglove.sdk.v1, or foxglove.websocket.v1 as Lichtblick does; protobuf messages decoded from the schemas the server
+advertises): a real `tacf serve`, a camera publishing the generated scene, the dashboard's Zenoh side and the bridge
+in between."""
 from __future__ import annotations
 
 import base64
@@ -22,6 +23,7 @@ from camera_rig import no_service_options, service_and_camera, tacf_command
 
 pytest.importorskip("foxglove", reason="pip install -e '.[test]' installs foxglove-sdk")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
+from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
 from tacf_clients.foxglove_bridge import FoxgloveBridge  # noqa: E402
@@ -140,8 +142,8 @@ def rig():
 
 
 @contextmanager
-def foxglove_client(port: int):
-    with connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
+def foxglove_client(port: int, subprotocol: str = "foxglove.sdk.v1"):
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=[subprotocol], open_timeout=5) as ws:
         yield FoxgloveClient(ws)
 
 
@@ -195,7 +197,9 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
     for message in tracks:
         seq = int({kv.key: kv.value for kv in message.points[0].metadata}["seq"])
         if seq in stamp_of_seq:
-            assert message.timestamp.seconds * 10**9 + message.timestamp.nanos == stamp_of_seq[seq]
+            # the message's stamp for Foxglove, each annotation's own for Lichtblick, which reads only those
+            for stamped in (message, message.points[0], message.texts[0]):
+                assert stamped.timestamp.seconds * 10**9 + stamped.timestamp.nanos == stamp_of_seq[seq]
             paired += 1
     assert paired >= len(tracks) // 2 and tracks[-1].texts[0].text.startswith("fox1")
     seqs = [{kv.key: kv.value for kv in m.points[0].metadata}["seq"] for m in tracks]
@@ -284,6 +288,25 @@ def test_unknown_sessions_and_encodings_are_refused_and_the_bridge_serves_on(cli
     assert not ok and "nodes" in message, message
     ok, listed = client.call("/tacf/list", {})
     assert ok and isinstance(listed, list)
+
+
+def test_lichtblick_gets_the_protocol_under_its_older_name(rig):
+    """Lichtblick's client library (@foxglove/ws-protocol) offers only the subprotocol foxglove.websocket.v1 and
+    drops a connection that does not get it back; the SDK's server refuses that name. The relay in front accepts it
+    and passes the same messages; a client offering neither name is refused, as by the SDK's server."""
+    service, bridge, _, _ = rig
+    with pytest.raises(InvalidStatus):
+        with connect(f"ws://127.0.0.1:{bridge.server.port}", subprotocols=["foxglove.websocket.v1"], open_timeout=5):
+            pass
+    with foxglove_client(bridge.port, "foxglove.websocket.v1") as lichtblick:
+        assert lichtblick.ws.subprotocol == "foxglove.websocket.v1"
+        lichtblick.subscribe(f"/{KEY}/image")
+        assert lichtblick.pump_until(lambda: lichtblick.received(f"/{KEY}/image")), "frames arrive"
+        ok, listed = lichtblick.call("/tacf/list", {"node": service.node})
+        assert ok and isinstance(listed, list)
+    with pytest.raises(InvalidStatus):
+        with connect(f"ws://127.0.0.1:{bridge.port}", subprotocols=["ros.bridge"], open_timeout=5):
+            pass
 
 
 def test_services_are_not_offered_off_loopback_unless_asked():

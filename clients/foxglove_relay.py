@@ -1,0 +1,89 @@
+"""The public side of `tacf foxglove`: a WebSocket relay that lets Lichtblick in as well as Foxglove.
+
+foxglove-sdk's server (0.30) accepts a client only if it offers the subprotocol `foxglove.sdk.v1`. Lichtblick, the
+open fork of Foxglove, connects through @foxglove/ws-protocol's client, which offers only the protocol's older
+name, `foxglove.websocket.v1`, and closes the connection unless it gets that name back (lichtblick#750): against
+the SDK's server alone it never connects. The messages are the same under both names (that client library served
+everything `tacf foxglove` offers once it was given the name it checks for; README "Foxglove and Lichtblick"). So
+the SDK's server listens on a loopback port of its own, and this relay takes the public address: it accepts either
+name, opens one connection to the SDK's server per client, and passes every message through unchanged both ways.
+It also terminates TLS (wss://), so the SDK's server never needs the certificate.
+
+Nothing queues without bound: the relay sends a message on before it reads the next, so a client that reads too
+slowly fills the TCP buffers back to the SDK's server, which then drops that client's oldest messages, as it would
+without the relay (its per-client backlog, FoxgloveBridge's MESSAGE_BACKLOG).
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import ssl
+import threading
+
+from websockets.asyncio.client import connect
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+
+log = logging.getLogger(__name__)
+
+SDK_SUBPROTOCOL = "foxglove.sdk.v1"
+SUBPROTOCOLS = (SDK_SUBPROTOCOL, "foxglove.websocket.v1")  # the SDK's name, then Lichtblick's
+MAX_CLIENT_MESSAGE = 1 << 20   # subscriptions and service calls are small; the SDK's own limit is larger
+UPSTREAM_QUEUE = 4             # messages read ahead from the SDK's server per client (images are ~0.1-0.5 MB)
+
+
+class SubprotocolRelay:
+    """Serves ws://host:port (wss:// with `tls`) and relays every connection to ws://127.0.0.1:upstream_port.
+
+    Runs its own asyncio loop on a daemon thread; close() stops it and drops every connection."""
+
+    def __init__(self, upstream_port: int, *, host: str, port: int, tls: ssl.SSLContext | None = None):
+        self.upstream = f"ws://127.0.0.1:{upstream_port}"
+        self._loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self._loop.run_forever, name="foxglove-relay", daemon=True)
+        self._thread.start()
+        try:
+            self._server = asyncio.run_coroutine_threadsafe(self._listen(host, port, tls), self._loop).result()
+        except BaseException:
+            self._stop_loop()
+            raise
+        self.port = self._server.sockets[0].getsockname()[1]
+
+    async def _listen(self, host: str, port: int, tls: ssl.SSLContext | None):
+        return await serve(self._relay, host, port, ssl=tls, subprotocols=list(SUBPROTOCOLS),
+                           compression=None, max_size=MAX_CLIENT_MESSAGE)
+
+    async def _relay(self, client: ServerConnection) -> None:
+        try:
+            async with connect(self.upstream, subprotocols=[SDK_SUBPROTOCOL], compression=None, max_size=None,
+                               max_queue=UPSTREAM_QUEUE, open_timeout=5) as server:
+                forward = asyncio.create_task(_pass_on(client, server))
+                back = asyncio.create_task(_pass_on(server, client))
+                await asyncio.wait((forward, back), return_when=asyncio.FIRST_COMPLETED)
+                for task in (forward, back):
+                    task.cancel()
+        except (OSError, TimeoutError, ConnectionClosed) as exc:
+            log.info("foxglove relay: %s closed: %s", client.remote_address, exc)
+
+    def close(self) -> None:
+        if self._loop.is_closed():
+            return
+        self._server.close()
+        asyncio.run_coroutine_threadsafe(self._server.wait_closed(), self._loop).result(timeout=10)
+        self._stop_loop()
+
+    def _stop_loop(self) -> None:
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=10)
+        self._loop.close()
+
+
+async def _pass_on(source, sink) -> None:
+    """Every message of source to sink, text as text and binary as binary, until either side closes."""
+    try:
+        async for message in source:
+            await sink.send(message)
+    except ConnectionClosed:
+        pass
+    finally:
+        await sink.close()
