@@ -7,7 +7,9 @@ the SDK's server alone it never connects. The messages are the same under both n
 everything `tacf foxglove` offers once it was given the name it checks for; README "Foxglove and Lichtblick"). So
 the SDK's server listens on a loopback port of its own, and this relay takes the public address: it accepts either
 name, opens one connection to the SDK's server per client, and passes every message through unchanged both ways.
-It also terminates TLS (wss://), so the SDK's server never needs the certificate.
+It also terminates TLS (wss://), so the SDK's server never needs the certificate. The SDK's port is on loopback
+only and offers nothing the public one does not (the services are registered there only when the public side
+offers them too).
 
 Nothing queues without bound: the relay sends a message on before it reads the next, so a client that reads too
 slowly fills the TCP buffers back to the SDK's server, which then drops that client's oldest messages, as it would
