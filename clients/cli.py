@@ -466,8 +466,8 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
                                 control=args.control, tls=tls, record=args.record) as bridge:
                 scheme = "wss" if tls else "ws"
                 services = "with" if bridge.control else "without"
-                print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove or Lichtblick (Open connection > "
-                      f"Foxglove WebSocket), {services} the control services (Ctrl-C to stop)", flush=True)
+                print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove or Lichtblick (Open "
+                      f"connection > Foxglove WebSocket), {services} the control services (Ctrl-C to stop)", flush=True)
                 if args.record:
                     print(f"tacf foxglove: recording to {args.record}", flush=True)
                 bridge.serve(stop)

@@ -32,6 +32,7 @@ SDK_SUBPROTOCOL = "foxglove.sdk.v1"
 SUBPROTOCOLS = (SDK_SUBPROTOCOL, "foxglove.websocket.v1")  # the SDK's name, then Lichtblick's
 MAX_CLIENT_MESSAGE = 1 << 20   # subscriptions and service calls are small; the SDK's own limit is larger
 UPSTREAM_QUEUE = 4             # messages read ahead from the SDK's server per client (images are ~0.1-0.5 MB)
+CLOSE_TIMEOUT_S = 1.0          # a viewer that stopped reading never completes a close: don't wait 10 s for it
 
 
 class SubprotocolRelay:
@@ -41,6 +42,7 @@ class SubprotocolRelay:
 
     def __init__(self, upstream_port: int, *, host: str, port: int, tls: ssl.SSLContext | None = None):
         self.upstream = f"ws://127.0.0.1:{upstream_port}"
+        self._clients: set[ServerConnection] = set()
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="foxglove-relay", daemon=True)
         self._thread.start()
@@ -53,26 +55,38 @@ class SubprotocolRelay:
 
     async def _listen(self, host: str, port: int, tls: ssl.SSLContext | None):
         return await serve(self._relay, host, port, ssl=tls, subprotocols=list(SUBPROTOCOLS),
-                           compression=None, max_size=MAX_CLIENT_MESSAGE)
+                           compression=None, max_size=MAX_CLIENT_MESSAGE, close_timeout=CLOSE_TIMEOUT_S)
 
     async def _relay(self, client: ServerConnection) -> None:
+        self._clients.add(client)
         try:
             async with connect(self.upstream, subprotocols=[SDK_SUBPROTOCOL], compression=None, max_size=None,
-                               max_queue=UPSTREAM_QUEUE, open_timeout=5) as server:
+                               max_queue=UPSTREAM_QUEUE, open_timeout=5, close_timeout=CLOSE_TIMEOUT_S) as server:
                 forward = asyncio.create_task(_pass_on(client, server))
                 back = asyncio.create_task(_pass_on(server, client))
                 await asyncio.wait((forward, back), return_when=asyncio.FIRST_COMPLETED)
                 for task in (forward, back):
                     task.cancel()
+                await asyncio.gather(forward, back, return_exceptions=True)
         except (OSError, TimeoutError, ConnectionClosed) as exc:
             log.info("foxglove relay: %s closed: %s", client.remote_address, exc)
+        finally:
+            self._clients.discard(client)
 
     def close(self) -> None:
         if self._loop.is_closed():
             return
-        self._server.close()
-        asyncio.run_coroutine_threadsafe(self._server.wait_closed(), self._loop).result(timeout=10)
+        asyncio.run_coroutine_threadsafe(self._shut_down(), self._loop).result(timeout=10)
         self._stop_loop()
+
+    async def _shut_down(self) -> None:
+        self._server.close()          # also closes every connection, politely
+        try:
+            await asyncio.wait_for(self._server.wait_closed(), CLOSE_TIMEOUT_S)
+        except TimeoutError:          # a viewer that stopped reading blocks its own close: drop it
+            for client in self._clients:
+                client.transport.abort()
+            await self._server.wait_closed()
 
     def _stop_loop(self) -> None:
         self._loop.call_soon_threadsafe(self._loop.stop)
