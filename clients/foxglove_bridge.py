@@ -50,6 +50,19 @@ DEFAULT_PORT = 8765                 # Foxglove's default WebSocket port
 DEFAULT_IMAGE_HZ = 10.0             # viewers keep every image they get: a cap keeps a long session's memory bounded
 MESSAGE_BACKLOG = 64                # messages queued per client before the oldest are dropped (SDK default: 1024)
 TRACKING, LOST = Color(r=0.2, g=0.9, b=0.3, a=1.0), Color(r=1.0, g=0.25, b=0.2, a=1.0)
+# The fields of each service's JSON request, as JSON schemas in the subset Lichtblick parses (plain types: no null,
+# no anyOf). Lichtblick builds a request writer from the request's schema and offers no service that has none.
+_TEXT, _WHOLE = {"type": "string"}, {"type": "integer"}
+_BOX = {"type": "array", "items": {"type": "number"}, "description": "x, y, w, h: pixels of the frame `seq`"}
+_NODE = {"type": "string", "description": "the service to ask, when several are on the network"}
+REQUEST_FIELDS = {
+    "start": {"image_key": _TEXT, "box": _BOX, "seq": _WHOLE, "sid": _TEXT, "profile": _TEXT,
+              "overrides": {"type": "object", "properties": {}, "description": "TrackerConfig fields"},
+              "node": _NODE},
+    "reinit": {"sid": _TEXT, "box": _BOX, "seq": _WHOLE, "node": _NODE},
+    "stop": {"sid": _TEXT, "node": _NODE},
+    "list": {"node": _NODE},
+}
 LABEL_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 
 
@@ -239,8 +252,15 @@ class FoxgloveBridge:
     # --- control services -------------------------------------------------------------------------------------
     def _services(self) -> list[foxglove.Service]:
         def service(name: str, handler) -> foxglove.Service:
-            return foxglove.Service(f"/tacf/{name}", schema=foxglove.ServiceSchema(name=f"tacf.{name}"),
-                                    handler=lambda request: _call(handler, request))
+            request_schema = json.dumps({"type": "object", "properties": REQUEST_FIELDS[name]}).encode()
+            # replies are SessionInfo JSON (a list of them for list): no schema, so viewers show them as they are
+            schema = foxglove.ServiceSchema(
+                name=f"tacf.{name}",
+                request=foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
+                    name=f"tacf.{name}_Request", encoding="jsonschema", data=request_schema)),
+                response=foxglove.MessageSchema(encoding="json", schema=foxglove.Schema(
+                    name=f"tacf.{name}_Response", encoding="jsonschema", data=b"")))
+            return foxglove.Service(f"/tacf/{name}", schema=schema, handler=lambda request: _call(handler, request))
         return [service("start", self._start), service("reinit", self._reinit), service("stop", self._stop),
                 service("list", self._list)]
 

@@ -51,6 +51,7 @@ class FoxgloveClient:
         self.server_info: dict | None = None
         self.channels: dict[int, dict] = {}           # channel id -> advertisement
         self.services: dict[str, int] = {}            # service name -> id
+        self.services_advertised: list[dict] = []     # the services' advertisements as sent
         self.messages: list[tuple[str, object]] = []  # (topic, decoded message), in arrival order
         self._subscriptions: dict[int, int] = {}      # subscription id -> channel id
         self._replies: dict[int, tuple[bool, object]] = {}
@@ -92,6 +93,7 @@ class FoxgloveClient:
                 self.channels.pop(channel_id, None)
         elif op == "advertiseServices":
             self.services.update({s["name"]: s["id"] for s in body["services"]})
+            self.services_advertised.extend(body["services"])
         elif op == "serviceCallFailure":
             self._replies[body["callId"]] = (False, body["message"])
 
@@ -307,6 +309,31 @@ def test_lichtblick_gets_the_protocol_under_its_older_name(rig):
     with pytest.raises(InvalidStatus):
         with connect(f"ws://127.0.0.1:{bridge.port}", subprotocols=["ros.bridge"], open_timeout=5):
             pass
+
+
+def test_each_service_advertises_a_request_schema_lichtblick_can_parse(client):
+    """Lichtblick builds each service's request writer from its advertised JSON schema and offers no service without
+    one it can parse: an object whose fields are plain (boolean, string, number, integer, object, or an array of
+    those), no null and no anyOf. The fields are those of the service's request model, plus node."""
+    from tacf_clients.foxglove_bridge import REQUEST_FIELDS
+    from tacf_schemas.models import ListRequest, ReinitRequest, StartRequest, StopRequest
+
+    plain = {"boolean", "string", "number", "integer", "object"}
+    models = {"start": StartRequest, "reinit": ReinitRequest, "stop": StopRequest, "list": ListRequest}
+    assert client.pump_until(lambda: len(client.services_advertised) == 4)
+    for advertised in client.services_advertised:
+        name = advertised["name"].removeprefix("/tacf/")
+        request = advertised["request"]
+        assert request["encoding"] == "json" and request["schemaEncoding"] == "jsonschema"
+        assert request["schemaName"] == f"tacf.{name}_Request"
+        schema = json.loads(request["schema"])
+        assert schema["type"] == "object"
+        for field, field_schema in schema["properties"].items():
+            kind = field_schema["type"]
+            assert kind in plain or (kind == "array" and field_schema["items"]["type"] in plain), (name, field)
+        assert set(schema["properties"]) == (set(models[name].model_fields) - {"v"}) | {"node"}, name
+        assert schema["properties"] == REQUEST_FIELDS[name]
+        assert advertised["response"]["encoding"] == "json"
 
 
 def test_services_are_not_offered_off_loopback_unless_asked():
