@@ -63,6 +63,20 @@ REQUEST_FIELDS = {
     "stop": {"sid": _TEXT, "node": _NODE},
     "list": {"node": _NODE},
 }
+# The session topic's JSON (Dashboard's SessionView.to_json), in the same subset: the viewers' Plot and Raw
+# Messages panels take field names and types from it (`.health.fps`); box and health are null until they arrive.
+_NUMBER = {"type": "number"}
+SESSION_SCHEMA = {"type": "object", "properties": {
+    "id": _TEXT, "node": _TEXT, "sid": _TEXT, "image_key": _TEXT, "profile": _TEXT, "state": _TEXT,
+    "version": _WHOLE,
+    "box": {"type": "object", "properties": {
+        "seq": _WHOLE, "stamp_ns": _WHOLE, "box": _BOX, "ok": {"type": "boolean"}, "pme": _NUMBER,
+        "score": _NUMBER, "scale": _NUMBER, "processing_ms": _NUMBER, "latency_ms": _NUMBER, "age_ms": _NUMBER}},
+    "health": {"type": "object", "properties": {
+        "fps": _NUMBER, "processing_ms_mean": _NUMBER, "processing_ms_p95": _NUMBER, "frame_age_ms": _NUMBER,
+        "frames_received": _WHOLE, "frames_processed": _WHOLE, "frames_dropped": _WHOLE, "frames_rejected": _WHOLE,
+        "pme": _NUMBER, "last_seq": _WHOLE, "restarts": _WHOLE, "message": _TEXT, "age_ms": _NUMBER}},
+}}
 LABEL_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 
 
@@ -245,7 +259,9 @@ class FoxgloveBridge:
     def _channel_of(self, sid_id: str) -> foxglove.Channel:
         channel = self._session_channels.get(sid_id)
         if channel is None:
-            channel = foxglove.Channel(f"/tacf/{sid_id}", message_encoding="json", context=self.context)
+            channel = foxglove.Channel(f"/tacf/{sid_id}", message_encoding="json", context=self.context,
+                                       schema=foxglove.Schema(name="tacf.Session", encoding="jsonschema",
+                                                              data=json.dumps(SESSION_SCHEMA).encode()))
             self._session_channels[sid_id] = channel
         return channel
 

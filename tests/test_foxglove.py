@@ -128,6 +128,24 @@ class FoxgloveClient:
         return [m for t, m in self.messages if t == topic and where(m)]
 
 
+def assert_matches_schema(value, schema: dict, path: str = "") -> None:
+    """value fits the JSON schema (the plain subset the bridge advertises; null stands for a value not yet known)."""
+    if value is None:
+        return
+    kind = schema["type"]
+    if kind == "object":
+        assert isinstance(value, dict) and set(value) <= set(schema["properties"]), (path, set(value))
+        for key, item in value.items():
+            assert_matches_schema(item, schema["properties"][key], f"{path}.{key}")
+    elif kind == "array":
+        assert isinstance(value, list), path
+        for item in value:
+            assert_matches_schema(item, schema["items"], path + "[]")
+    else:
+        types = {"string": str, "integer": int, "number": (int, float), "boolean": bool}[kind]
+        assert isinstance(value, types) and (kind == "boolean" or not isinstance(value, bool)), (path, value)
+
+
 @pytest.fixture(scope="module")
 def rig():
     with service_and_camera(SCENE, KEY, "fox") as (service, session, camera):
@@ -191,6 +209,10 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
                                                      lambda s: s["health"] is not None), timeout=10)
     statuses = client.received(f"/tacf/{service.node}/fox1", lambda s: s["box"] is not None)
     assert statuses[-1]["state"] == "tracking" and statuses[-1]["box"]["ok"]
+    advertised = client.channels[client.topic_id(f"/tacf/{service.node}/fox1")]
+    assert advertised["schemaName"] == "tacf.Session" and advertised["schemaEncoding"] == "jsonschema"
+    for status in statuses:      # the schema names every field the messages carry, with its type
+        assert_matches_schema(status, json.loads(advertised["schema"]))
     assert [s for s in statuses if s["health"]][-1]["health"]["fps"] > 0
     # the annotations carry the stamp of the box's frame, so that Foxglove can pair them with the image
     stamp_of_seq = {s["box"]["seq"]: s["box"]["stamp_ns"] for s in statuses}
