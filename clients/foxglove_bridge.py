@@ -11,8 +11,8 @@ Topics, for each watched image key K (the key of every listed session, plus the 
   tracker holds the target, red while it reports it lost) labelled with the session id and PME; its timestamp, and
   each rectangle's and label's, is the stamp of the frame the box was computed on (images carry their frames'
   stamps too). Each rectangle's metadata carries node, sid, seq, ok and pme.
-- `/tacf/N/S` (JSON): the session as the dashboard's /api/state shows it (box, PME, health: fps, latency, frame
-  counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
+- `/tacf/N/S` (JSON, schema SESSION_SCHEMA): the session as the dashboard's /api/state shows it (box, PME, health:
+  fps, latency, frame counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
 With `record` (`--record FILE.mcap`) everything published, images included at the same rate, is also written
 to an MCAP file, which Foxglove opens to replay the flight.
 Services (JSON, e.g. from the Service Call panel): `/tacf/start` (the fields of a start request: image_key, box,
