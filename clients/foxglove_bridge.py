@@ -167,6 +167,8 @@ class FoxgloveBridge:
                 services=services, capabilities=[foxglove.Capability.Services] if services else [],
                 supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG)
             self.relay = SubprotocolRelay(self.server.port, host=host, port=port, tls=tls)
+            log.info("viewers connect to %s:%d; the SDK's server on 127.0.0.1:%d is internal, behind the relay",
+                     host, self.relay.port, self.server.port)
         except Exception:
             self.close()
             raise
