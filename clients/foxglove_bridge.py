@@ -50,6 +50,7 @@ DEFAULT_PORT = 8765                 # Foxglove's default WebSocket port
 DEFAULT_IMAGE_HZ = 10.0             # viewers keep every image they get: a cap keeps a long session's memory bounded
 MESSAGE_BACKLOG = 64                # messages queued per client before the oldest are dropped (SDK default: 1024)
 TRACKING, LOST = Color(r=0.2, g=0.9, b=0.3, a=1.0), Color(r=1.0, g=0.25, b=0.2, a=1.0)
+LABEL_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 # The fields of each service's JSON request, as JSON schemas in the subset Lichtblick parses (plain types: no null,
 # no anyOf). Lichtblick builds a request writer from the request's schema and offers no service that has none.
 _TEXT, _WHOLE = {"type": "string"}, {"type": "integer"}
@@ -77,7 +78,6 @@ SESSION_SCHEMA = {"type": "object", "properties": {
         "frames_received": _WHOLE, "frames_processed": _WHOLE, "frames_dropped": _WHOLE, "frames_rejected": _WHOLE,
         "pme": _NUMBER, "last_seq": _WHOLE, "restarts": _WHOLE, "message": _TEXT, "age_ms": _NUMBER}},
 }}
-LABEL_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 
 
 def _timestamp(ns: int) -> Timestamp:
