@@ -12,7 +12,9 @@ It announces itself with a HEARTBEAT (MAV_TYPE_CAMERA, component 100 by default)
 - MAV_CMD_SET_MESSAGE_INTERVAL for CAMERA_TRACKING_IMAGE_STATUS: its rate (-1 off, 0 the default 10 Hz).
 - MAV_CMD_REQUEST_MESSAGE (and the older MAV_CMD_REQUEST_CAMERA_INFORMATION) for CAMERA_INFORMATION, whose
   flags say CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, or for one CAMERA_TRACKING_IMAGE_STATUS.
-- any other command addressed to it: UNSUPPORTED. Commands for other components are left alone.
+- any other command addressed to it: UNSUPPORTED. Commands for other components are left alone, and so are
+  broadcast ones (component 0) it does not handle, as a MAVSDK component's are: the autopilot or another component
+  answers those, and an UNSUPPORTED from the camera could reach the ground station before their ACCEPTED.
 While a session runs it streams CAMERA_TRACKING_IMAGE_STATUS with the newest box (rectangle and centre, target
 data IN_STATUS): ACTIVE, plus COASTING while the tracker reports the target lost; one IDLE status follows a stop.
 Point tracking is not offered: a tracker needs the target's extent. The video itself stays the camera's own
@@ -146,6 +148,8 @@ class MavlinkCamera:
         except Exception:                            # a command never ends the component: FAILED, and on we go
             log.exception("command %d failed", command)
             result = mav.MAV_RESULT_FAILED
+        if result == mav.MAV_RESULT_UNSUPPORTED and message.target_component == 0:
+            return                                   # a broadcast command for some other component
         self.mav.mav.command_ack_send(command, result, target_system=message.get_srcSystem(),
                                       target_component=message.get_srcComponent())
         if result != mav.MAV_RESULT_ACCEPTED:

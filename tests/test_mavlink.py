@@ -108,6 +108,13 @@ def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):
     assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_HEARTBEAT, 1e6) == \
         mav.MAV_RESULT_UNSUPPORTED
     assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.3, 0.3, component=101, timeout=1.5) is None
+    # broadcast commands it does not handle are the other components' to answer (MAVProxy asks every component for
+    # the home position); the ones it handles it answers
+    assert _command(gcs, mav.MAV_CMD_GET_HOME_POSITION, component=0, timeout=1.5) is None
+    assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HEARTBEAT, component=0, timeout=1.5) is None
+    assert _command(gcs, mav.MAV_CMD_GET_HOME_POSITION) == mav.MAV_RESULT_UNSUPPORTED
+    assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, component=0) == \
+        mav.MAV_RESULT_ACCEPTED
     assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED, "nothing to stop is fine"
     assert SID not in {info.sid for info in client.list()}
 
