@@ -50,7 +50,6 @@ class FoxgloveClient:
         self.ws = ws
         self.server_info: dict | None = None
         self.channels: dict[int, dict] = {}           # channel id -> advertisement
-        self.services: dict[str, int] = {}            # service name -> id
         self.services_advertised: list[dict] = []     # the services' advertisements as sent
         self.messages: list[tuple[str, object]] = []  # (topic, decoded message), in arrival order
         self._subscriptions: dict[int, int] = {}      # subscription id -> channel id
@@ -92,10 +91,14 @@ class FoxgloveClient:
             for channel_id in body["channelIds"]:
                 self.channels.pop(channel_id, None)
         elif op == "advertiseServices":
-            self.services.update({s["name"]: s["id"] for s in body["services"]})
             self.services_advertised.extend(body["services"])
         elif op == "serviceCallFailure":
             self._replies[body["callId"]] = (False, body["message"])
+
+    @property
+    def services(self) -> dict[str, int]:
+        """Service name -> id, as advertised."""
+        return {service["name"]: service["id"] for service in self.services_advertised}
 
     @staticmethod
     def _decode(channel: dict, payload: bytes):
@@ -126,6 +129,22 @@ class FoxgloveClient:
 
     def received(self, topic: str, where=lambda m: True) -> list:
         return [m for t, m in self.messages if t == topic and where(m)]
+
+
+def assert_lichtblick_can_parse(schema: dict, path: str = "") -> None:
+    """schema is in the subset Lichtblick's JSON-schema parser takes: an object with properties, each plain
+    (boolean, string, number, integer), an object of the same kind, or an array of plain values or such objects;
+    no null, no anyOf."""
+    plain = {"boolean", "string", "number", "integer"}
+    assert schema["type"] == "object" and isinstance(schema["properties"], dict), path
+    for name, field in schema["properties"].items():
+        kind = field["type"]
+        if kind == "object":
+            assert_lichtblick_can_parse(field, f"{path}.{name}")
+        elif kind == "array" and field["items"]["type"] == "object":
+            assert_lichtblick_can_parse(field["items"], f"{path}.{name}[]")
+        else:
+            assert kind in plain or (kind == "array" and field["items"]["type"] in plain), (f"{path}.{name}", kind)
 
 
 def assert_matches_schema(value, schema: dict, path: str = "") -> None:
@@ -211,8 +230,10 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
     assert statuses[-1]["state"] == "tracking" and statuses[-1]["box"]["ok"]
     advertised = client.channels[client.topic_id(f"/tacf/{service.node}/fox1")]
     assert advertised["schemaName"] == "tacf.Session" and advertised["schemaEncoding"] == "jsonschema"
+    session_schema = json.loads(advertised["schema"])
+    assert_lichtblick_can_parse(session_schema)
     for status in statuses:      # the schema names every field the messages carry, with its type
-        assert_matches_schema(status, json.loads(advertised["schema"]))
+        assert_matches_schema(status, session_schema)
     assert [s for s in statuses if s["health"]][-1]["health"]["fps"] > 0
     # the annotations carry the stamp of the box's frame, so that Foxglove can pair them with the image
     stamp_of_seq = {s["box"]["seq"]: s["box"]["stamp_ns"] for s in statuses}
@@ -340,7 +361,6 @@ def test_each_service_advertises_a_request_schema_lichtblick_can_parse(client):
     from tacf_clients.foxglove_bridge import REQUEST_FIELDS
     from tacf_schemas.models import ListRequest, ReinitRequest, StartRequest, StopRequest
 
-    plain = {"boolean", "string", "number", "integer", "object"}
     models = {"start": StartRequest, "reinit": ReinitRequest, "stop": StopRequest, "list": ListRequest}
     assert client.pump_until(lambda: len(client.services_advertised) == 4)
     for advertised in client.services_advertised:
@@ -349,10 +369,7 @@ def test_each_service_advertises_a_request_schema_lichtblick_can_parse(client):
         assert request["encoding"] == "json" and request["schemaEncoding"] == "jsonschema"
         assert request["schemaName"] == f"tacf.{name}_Request"
         schema = json.loads(request["schema"])
-        assert schema["type"] == "object"
-        for field, field_schema in schema["properties"].items():
-            kind = field_schema["type"]
-            assert kind in plain or (kind == "array" and field_schema["items"]["type"] in plain), (name, field)
+        assert_lichtblick_can_parse(schema, name)
         assert set(schema["properties"]) == (set(models[name].model_fields) - {"v"}) | {"node"}, name
         assert schema["properties"] == REQUEST_FIELDS[name]
         assert advertised["response"]["encoding"] == "json"
