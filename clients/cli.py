@@ -29,6 +29,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg", help="frame encoding (default jpeg)")
     p.add_argument("--quality", type=_quality, default=90, help="JPEG quality 1-100 (default 90)")
     p.add_argument("--loop", action="store_true", help="start over at the end of a file or folder")
+    p.add_argument("--no-reconnect", dest="reconnect", action="store_false",
+                   help="end when a camera or stream fails or ends (default: reopen it, pausing 0.5 s doubling to "
+                        "5 s between attempts; a stream silent for 5 s counts as failed)")
     p.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
                    help="wait up to SECONDS for a subscriber before the first frame (default: do not wait)")
@@ -244,7 +247,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
     from tacf_clients.zconfig import open_session
 
     try:
-        source = open_source(args.source, loop=args.loop)
+        source = open_source(args.source, loop=args.loop, reconnect=args.reconnect)
     except (ValueError, FileNotFoundError) as exc:
         print(f"tacf publish: {exc}", file=sys.stderr)
         return 2
@@ -256,8 +259,9 @@ def cmd_publish(args: argparse.Namespace) -> int:
                           file=sys.stderr)
         stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
                         max_frames=args.frames, stop=stop)
+    reconnected = f", {source.reconnects} reconnections" if source.reconnects else ""
     print(f"published {stats.frames} frames in {stats.seconds:.1f} s ({stats.fps:.1f} fps, "
-          f"{stats.bytes / 1e6:.1f} MB) on {args.key}")
+          f"{stats.bytes / 1e6:.1f} MB{reconnected}) on {args.key}")
     return 0
 
 

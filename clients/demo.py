@@ -154,7 +154,7 @@ class HoldingPublisher:
     def _run(self) -> None:
         pacer = Pacer(self.fps)
         try:
-            frames = iter(self.source)
+            frames = self.source.frames(should_stop=self.stop.is_set)
             current = next(frames, None)
             while current is not None and not self.stop.is_set():
                 pacer.wait(should_stop=self.stop.is_set)

@@ -108,8 +108,8 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
     """Publish `source` on `key` until it ends, `max_frames` were sent or `stop` is set.
 
     Replayable sources (files, folders, the scene) are paced at `fps`, else at their own rate, else 30 fps;
-    live sources (camera, URL) run at the device's rate, thinned to `fps` when given. `on_frame(frame, src)`
-    is called after each put (keep it quick).
+    live sources (camera, URL) run at the device's rate, thinned to `fps` when given, and go on through their
+    reconnections with the same seq count. `on_frame(frame, src)` is called after each put (keep it quick).
     """
     stop = stop or threading.Event()
     pacer = Pacer(None if source.live else (fps or source.fps or DEFAULT_FPS))
@@ -120,7 +120,7 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
     log.info("publishing %s on %r as %s at %s fps", source.name, key, encoding,
              "device" if source.live and not fps else f"{1 / pacer.period if pacer.period else fps:.3g}")
     with FramePublisher(session, key, encoding, quality) as publisher:
-        for src in source:
+        for src in source.frames(should_stop=stop.is_set):
             if stop.is_set() or (max_frames is not None and frames >= max_frames):
                 break
             if not thinner.admit():

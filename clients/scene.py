@@ -10,14 +10,14 @@ from __future__ import annotations
 import math
 import re
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 
 import cv2
 import numpy as np
 
-from tacf_clients.sources import FrameSource, SourceFrame
+from tacf_clients.sources import FrameSource, SourceFrame, never_stop
 
 Box = tuple[float, float, float, float]
 
@@ -125,7 +125,7 @@ class SceneSource(FrameSource):
         self.scene = scene or Scene()
         self.fps, self.name = fps, f"scene:{self.scene.width}x{self.scene.height}"
 
-    def frames(self) -> Iterator[SourceFrame]:
+    def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
         i = 0
         while True:
             yield SourceFrame(i, self.scene.frame(i), time.time_ns())

@@ -3,13 +3,14 @@
 Every source yields `SourceFrame`s (BGR uint8 image, position in the source, capture time) and is a context
 manager. `open_source(spec)` picks the kind from the spec string. Pacing (`Pacer`) is separate: file-like sources
 are replayed at their own rate or a given one; live sources (camera, URL) run at the device's rate and are only
-thinned when a lower rate is asked for.
+thinned when a lower rate is asked for. A live source that fails (a radio link drops, a camera is unplugged, a
+stream stalls) is reopened with growing pauses until it delivers again or the caller stops.
 """
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,26 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".p
 DEFAULT_FPS = 30.0
 SCENE_SPEC = "scene"
 
+# Stream URLs: give up opening after OPEN_TIMEOUT_MS and count a stream silent for READ_TIMEOUT_MS as failed
+# (FFmpeg would otherwise wait on a dead RTSP/HTTP link for as long as the TCP connection lives).
+OPEN_TIMEOUT_MS, READ_TIMEOUT_MS = 10_000, 5_000
+# Pauses before each attempt to reopen a failed live source: doubling from the first, capped at the last.
+RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.5, 5.0
+
+
+def never_stop() -> bool:
+    return False
+
+
+def sleep_unless(seconds: float, should_stop: Callable[[], bool], slice_s: float = 0.1) -> bool:
+    """Sleep `seconds` in slices, returning early (True) as soon as `should_stop()` is true."""
+    deadline = time.monotonic() + seconds
+    while (remaining := deadline - time.monotonic()) > 0:
+        if should_stop():
+            return True
+        time.sleep(min(remaining, slice_s))
+    return should_stop()
+
 
 @dataclass(frozen=True)
 class SourceFrame:
@@ -31,13 +52,16 @@ class SourceFrame:
 
 
 class FrameSource:
-    """Base class: iterate to get frames; `fps` is the native rate (None if unknown); `live` sources cannot loop."""
+    """Base class: iterate to get frames; `fps` is the native rate (None if unknown); `live` sources cannot loop;
+    `reconnects` counts how often a live source was reopened after a failure."""
 
     name: str = "source"
     fps: float | None = None
     live: bool = False
+    reconnects: int = 0
 
-    def frames(self) -> Iterator[SourceFrame]:
+    def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
+        """The frames; a source that may wait (a live one reconnecting) returns once `should_stop()` is true."""
         raise NotImplementedError
 
     def __iter__(self) -> Iterator[SourceFrame]:
@@ -71,7 +95,7 @@ class ImageFolderSource(FrameSource):
     def __len__(self) -> int:
         return len(self.paths)
 
-    def frames(self) -> Iterator[SourceFrame]:
+    def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
         while True:
             for index, path in enumerate(self.paths):
                 image = cv2.imread(str(path), cv2.IMREAD_COLOR)
@@ -84,38 +108,66 @@ class ImageFolderSource(FrameSource):
 
 
 class CaptureSource(FrameSource):
-    """cv2.VideoCapture: a video file (replayable, loops by reopening), a camera index or a stream URL (live)."""
+    """cv2.VideoCapture: a video file (replayable, loops by reopening), a camera index or a stream URL (live).
 
-    def __init__(self, spec: str | int, loop: bool = False, live: bool | None = None):
+    A live source reconnects after a failure unless `reconnect` is False; `reconnects` counts the reopenings.
+    """
+
+    def __init__(self, spec: str | int, loop: bool = False, live: bool | None = None, reconnect: bool = True):
         self.spec, self.name = spec, str(spec)
         self.live = isinstance(spec, int) if live is None else live
         self.loop = loop and not self.live
+        self.reconnect = reconnect and self.live
+        self.reconnects = 0
         self._cap = self._open()
         fps = self._cap.get(cv2.CAP_PROP_FPS)
         self.fps = float(fps) if fps and 0 < fps < 1000 else None
 
     def _open(self) -> cv2.VideoCapture:
-        cap = cv2.VideoCapture(self.spec)
+        if isinstance(self.spec, str) and "://" in self.spec:
+            cap = cv2.VideoCapture(self.spec, cv2.CAP_ANY, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, OPEN_TIMEOUT_MS,
+                                                             cv2.CAP_PROP_READ_TIMEOUT_MSEC, READ_TIMEOUT_MS])
+        else:
+            cap = cv2.VideoCapture(self.spec)
         if not cap.isOpened():
             cap.release()
             raise ValueError(f"cannot open video source {self.spec!r}")
         return cap
 
-    def frames(self) -> Iterator[SourceFrame]:
+    def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
         index = 0
-        while True:
+        while not should_stop():
             ok, image = self._cap.read()
             if ok and image is not None:
                 yield SourceFrame(index, image, time.time_ns())
                 index += 1
                 continue
-            if not self.loop or index == 0:
-                if self.live:
-                    log.warning("video source %s ended or failed after %d frames", self.name, index)
+            if self.live:
+                log.warning("video source %s ended or failed after %d frames", self.name, index)
+                if not self.reconnect or not self._reopen(should_stop):
+                    return
+            elif self.loop and index > 0:
+                self._cap.release()
+                self._cap = self._open()
+                index = 0
+            else:
                 return
-            self._cap.release()
-            self._cap = self._open()
-            index = 0
+
+    def _reopen(self, should_stop: Callable[[], bool]) -> bool:
+        """Reopen a failed live source, pausing longer after each failed attempt; False once stopped."""
+        self._cap.release()
+        pause = RECONNECT_FIRST_S
+        while not sleep_unless(pause, should_stop):
+            try:
+                self._cap = self._open()
+            except ValueError:
+                pause = min(2 * pause, RECONNECT_MAX_S)
+                log.warning("cannot reopen %s, next attempt in %.1f s", self.name, pause)
+                continue
+            self.reconnects += 1
+            log.info("video source %s reopened (reconnection %d)", self.name, self.reconnects)
+            return True
+        return False
 
     def close(self) -> None:
         self._cap.release()
@@ -125,8 +177,8 @@ def _is_image(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
 
 
-def open_source(spec: str | int | Path, loop: bool = False) -> FrameSource:
-    """Open SOURCE as given on the command line.
+def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = True) -> FrameSource:
+    """Open SOURCE as given on the command line; a live one (camera, URL) reconnects after failures if `reconnect`.
 
     - ``scene`` (or ``scene:WxH``): the generated demo scene (endless, deterministic);
     - a digit string or an int: camera index;
@@ -135,14 +187,14 @@ def open_source(spec: str | int | Path, loop: bool = False) -> FrameSource:
     - an existing file: video file.
     """
     if isinstance(spec, int) or (isinstance(spec, str) and spec.isdigit()):
-        return CaptureSource(int(spec), live=True)
+        return CaptureSource(int(spec), live=True, reconnect=reconnect)
     text = str(spec)
     if text == SCENE_SPEC or text.startswith(SCENE_SPEC + ":"):
         from tacf_clients.scene import Scene, SceneSource
 
         return SceneSource(Scene.from_spec(text))
     if "://" in text:
-        return CaptureSource(text, live=True)
+        return CaptureSource(text, live=True, reconnect=reconnect)
     path = Path(text).expanduser()
     if path.is_dir():
         return ImageFolderSource(path, loop=loop)
@@ -159,15 +211,14 @@ class Pacer:
         self.period = 1.0 / fps if fps and fps > 0 else 0.0
         self._next: float | None = None
 
-    def wait(self, stop_check_s: float = 0.1, should_stop=lambda: False) -> None:
-        """Sleep until the next tick (in slices of `stop_check_s`, returning early if `should_stop()`)."""
+    def wait(self, should_stop: Callable[[], bool] = never_stop) -> None:
+        """Sleep until the next tick, returning early if `should_stop()`."""
         if not self.period:
             return
         now = time.monotonic()
         if self._next is None or now - self._next > self.period:
             self._next = now
-        while (remaining := self._next - time.monotonic()) > 0 and not should_stop():
-            time.sleep(min(remaining, stop_check_s))
+        sleep_unless(self._next - now, should_stop)
         self._next += self.period
 
 

@@ -1,6 +1,10 @@
-"""Frame sources, the generated scene and the frame publisher over real Zenoh sessions on loopback."""
+"""Frame sources, the generated scene and the frame publisher over real Zenoh sessions on loopback; live streams
+from a real HTTP MJPEG camera on loopback (the format of IP cameras and phone camera apps), read through OpenCV's
+FFmpeg: a stream that ends, stalls or goes away is reopened, and the publisher's seq runs on across reconnections."""
 from __future__ import annotations
 
+import http.server
+import socket
 import subprocess
 import sys
 import threading
@@ -16,7 +20,9 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
 from tacf_clients.publisher import FramePublisher, publish
 from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.sources import CaptureSource, ImageFolderSource, Pacer, Thinner, open_source
+import tacf_clients.sources as sources
+from tacf_clients.sources import (CaptureSource, ImageFolderSource, Pacer, SourceFrame, Thinner, never_stop,
+                                   open_source)
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
 from tacf_schemas.images import decode_frame
@@ -261,3 +267,182 @@ def test_publish_command_line_on_an_image_folder(tmp_path, collector):
     frames = collector.wait(5)
     assert [f.seq for f in frames] == list(range(5)) and frames[0].encoding == "png"
     assert "published 5 frames" in done.stderr + done.stdout
+
+
+# ----------------------------------------------------------------------------------------------- live streams
+
+
+class MjpegCamera:
+    """An HTTP camera serving multipart/x-mixed-replace JPEGs at 20 fps. Each connection sends
+    `frames_per_connection` frames, then closes (or, with `stall`, goes silent while keeping the connection);
+    `down()` closes the port (connection refused), `up()` reopens it. Frame i of connection k shows a white bar at
+    x = 8 i on a background of grey level 40 k, so a frame tells which connection delivered it."""
+
+    def __init__(self, frames_per_connection: int = 5, stall: bool = False):
+        self.frames_per_connection, self.stall = frames_per_connection, stall
+        self.connections = 0
+        self._lock = threading.Lock()
+        with socket.socket() as probe:  # a free port that stays this camera's across down() / up()
+            probe.bind(("127.0.0.1", 0))
+            self.port = probe.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}/video.mjpg"
+        self._server: http.server.ThreadingHTTPServer | None = None
+        self.up()
+
+    def _handler(self):
+        camera = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def do_GET(self):
+                with camera._lock:
+                    camera.connections += 1
+                    connection = camera.connections
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                for i in range(camera.frames_per_connection):
+                    jpeg = cv2.imencode(".jpg", camera.frame(connection, i))[1].tobytes()
+                    try:
+                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n%b\r\n"
+                                         % (len(jpeg), jpeg))
+                        self.wfile.flush()
+                    except OSError:
+                        return
+                    time.sleep(0.05)
+                if camera.stall:
+                    time.sleep(30)  # the link is dead but the connection lives: only a read timeout notices
+
+            def log_message(self, *args):
+                pass
+
+        return Handler
+
+    @staticmethod
+    def frame(connection: int, index: int) -> np.ndarray:
+        image = np.full((96, 128, 3), min(40 * connection, 240), np.uint8)
+        image[40:60, 8 * index:8 * index + 8] = 255
+        return image
+
+    @staticmethod
+    def connection_of(image: np.ndarray) -> int:
+        return int(round(float(np.median(image[:30])) / 40))
+
+    def up(self) -> None:
+        self._server = http.server.ThreadingHTTPServer(("127.0.0.1", self.port), self._handler())
+        self._server.daemon_threads = True
+        threading.Thread(target=self._server.serve_forever, daemon=True).start()
+
+    def down(self) -> None:
+        self._server.shutdown()
+        self._server.server_close()
+
+    def close(self) -> None:
+        self.down()
+
+
+@pytest.fixture
+def camera():
+    cameras = []
+
+    def make(**kwargs) -> MjpegCamera:
+        cameras.append(MjpegCamera(**kwargs))
+        return cameras[-1]
+
+    yield make
+    for cam in cameras:
+        cam.close()
+
+
+def _take(source: CaptureSource, n: int, should_stop=never_stop) -> list[SourceFrame]:
+    frames = []
+    for frame in source.frames(should_stop):
+        frames.append(frame)
+        if len(frames) == n:
+            break
+    return frames
+
+
+def test_a_stream_that_ends_is_reopened_and_its_frames_go_on(camera):
+    cam = camera(frames_per_connection=4)
+    with open_source(cam.url) as source:
+        assert isinstance(source, CaptureSource) and source.live
+        frames = _take(source, 10)
+        assert source.reconnects >= 2
+    assert [f.index for f in frames] == list(range(10))
+    assert [MjpegCamera.connection_of(f.image) for f in frames] == [1] * 4 + [2] * 4 + [3] * 2
+    assert frames[5].image[50, 8:16].min() > 200  # the second connection's frame 1: its bar at x = 8
+
+
+def test_a_stalled_stream_counts_as_failed_after_the_read_timeout(camera, monkeypatch):
+    monkeypatch.setattr(sources, "READ_TIMEOUT_MS", 1000)
+    cam = camera(frames_per_connection=3, stall=True)
+    with open_source(cam.url) as source:
+        started = time.monotonic()
+        frames = _take(source, 5)
+        elapsed = time.monotonic() - started
+    assert [MjpegCamera.connection_of(f.image) for f in frames] == [1, 1, 1, 2, 2]
+    assert 0.9 < elapsed < 6, "silence for the read timeout, then a reconnection"
+
+
+def test_a_camera_that_goes_away_is_retried_until_it_is_back(camera, monkeypatch):
+    cam = camera(frames_per_connection=3)
+    pauses = []
+    real_sleep_unless = sources.sleep_unless
+
+    def recorded(seconds, should_stop, slice_s=0.1):
+        pauses.append(seconds)
+        return real_sleep_unless(seconds, should_stop, slice_s)
+
+    monkeypatch.setattr(sources, "sleep_unless", recorded)
+    with open_source(cam.url) as source:
+        frames = source.frames()
+        first = [next(frames) for _ in range(3)]
+        cam.down()  # connection refused from now on
+        threading.Timer(2.0, cam.up).start()
+        started = time.monotonic()
+        after = next(frames)
+        waited = time.monotonic() - started
+    assert [MjpegCamera.connection_of(f.image) for f in first] == [1, 1, 1]
+    assert MjpegCamera.connection_of(after.image) == 2 and after.index == 3
+    assert 1.9 < waited < 6
+    assert pauses[:3] == [0.5, 1.0, 2.0], "the pauses double while the camera is away"
+    assert source.reconnects == 1
+
+
+def test_stopping_ends_a_reconnecting_source_promptly(camera):
+    cam = camera(frames_per_connection=3)  # FFmpeg reads two or three frames to open a stream
+    stop = threading.Event()
+    with open_source(cam.url) as source:
+        frames = source.frames(should_stop=stop.is_set)
+        cam.down()
+        assert len([next(frames) for _ in range(3)]) == 3
+        threading.Timer(0.8, stop.set).start()
+        started = time.monotonic()
+        assert next(frames, None) is None
+        assert time.monotonic() - started < 1.5
+
+
+def test_without_reconnect_a_stream_ends_with_its_connection(camera):
+    cam = camera(frames_per_connection=3)
+    with open_source(cam.url, reconnect=False) as source:
+        frames = list(source)
+    assert len(frames) == 3 and source.reconnects == 0 and cam.connections == 1
+
+
+def test_a_camera_that_is_not_there_is_a_clear_error_at_start(camera):
+    cam = camera()
+    cam.down()
+    with pytest.raises(ValueError, match="cannot open video source"):
+        open_source(cam.url)
+
+
+def test_publish_runs_on_through_reconnections_with_one_seq_count(camera, collector):
+    cam = camera(frames_per_connection=4)
+    with _publisher_session(collector.port) as session:
+        _wait_matched(session)
+        with open_source(cam.url) as source:
+            stats = publish(session, source, KEY, encoding="bgr8", max_frames=9)
+    frames = collector.wait(9)
+    assert stats.frames == 9 and [f.seq for f in frames] == list(range(9))
+    assert source.reconnects == 2
+    assert [MjpegCamera.connection_of(decode_frame(frame)) for frame in frames] == [1] * 4 + [2] * 4 + [3]
