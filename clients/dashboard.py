@@ -96,7 +96,8 @@ class SessionView:
                 "fps": h.fps, "processing_ms_mean": h.processing_ms_mean, "processing_ms_p95": h.processing_ms_p95,
                 "frame_age_ms": h.frame_age_ms, "frames_received": h.frames_received,
                 "frames_processed": h.frames_processed, "frames_dropped": h.frames_dropped,
-                "frames_rejected": h.frames_rejected, "pme": h.pme, "last_seq": h.last_seq,
+                "frames_rejected": h.frames_rejected, "frames_lost": h.frames_lost, "pme": h.pme,
+                "last_seq": h.last_seq,
                 "restarts": h.restarts, "message": h.message, "age_ms": _ms(now_ns - h.stamp_ns),
             },
         }

@@ -36,6 +36,8 @@ _SESSION_METRICS = (
      lambda v: v.health.frames_dropped if v.health else None),
     ("tacf_session_frames_rejected_total", "counter", "Frames that could not be decoded or used.",
      lambda v: v.health.frames_rejected if v.health else None),
+    ("tacf_session_frames_lost_total", "counter", "Frames processed with the target flagged lost (low PME).",
+     lambda v: v.health.frames_lost if v.health else None),
     ("tacf_session_restarts_total", "counter", "Worker restarts after a crash.",
      lambda v: v.health.restarts if v.health else None),
 )

@@ -61,7 +61,7 @@ def describe_session(info: SessionInfo) -> str:
     if info.health is not None:
         h = info.health
         text += (f", {h.fps:.1f} fps, {h.processing_ms_p95:.1f} ms p95, processed {h.frames_processed}, "
-                 f"dropped {h.frames_dropped}")
+                 f"lost {h.frames_lost}, dropped {h.frames_dropped}")
     return text
 
 
@@ -78,7 +78,8 @@ def session_table(sessions: list[SessionInfo]) -> str:
 def render_table(rows: list[SessionRow], now: float | None = None) -> str:
     """The live table: one line per session, newest data."""
     now = time.monotonic() if now is None else now
-    out = [("NODE", "SID", "STATE", "SEQ", "BOX x,y,w,h", "OK", "PME", "FPS", "MS p95", "AGE ms", "RECV", "DROP")]
+    out = [("NODE", "SID", "STATE", "SEQ", "BOX x,y,w,h", "OK", "PME", "FPS", "MS p95", "AGE ms", "RECV", "LOST",
+            "DROP")]
     for row in sorted(rows, key=lambda r: (r.node, r.sid)):
         b, h = row.box, row.health
         state = row.state + (" (stale)" if now - row.updated > STALE_S and row.state != "stopped" else "")
@@ -87,7 +88,7 @@ def render_table(rows: list[SessionRow], now: float | None = None) -> str:
                     ("yes" if b.ok else "LOST") if b else "-", _fmt(b and b.pme, ".1f"),
                     _fmt(h and h.fps, ".1f"), _fmt(h and h.processing_ms_p95, ".1f"),
                     _fmt(h and h.frame_age_ms, ".0f"), _fmt(h and h.frames_received, "d"),
-                    _fmt(h and h.frames_dropped, "d")))
+                    _fmt(h and h.frames_lost, "d"), _fmt(h and h.frames_dropped, "d")))
     if len(out) == 1:
         return columns(out) + "\n(no sessions yet)"
     return columns(out)

@@ -153,6 +153,7 @@ class Health(WireModel):
     frames_processed: Count = 0
     frames_dropped: Count = 0                # superseded by a newer frame before being processed (latest-only)
     frames_rejected: Count = 0               # undecodable, wrong size, wrong fields
+    frames_lost: Count = 0                   # processed with the target flagged lost (BoxResult.ok False)
     pme: Optional[FiniteFloat] = None
     last_seq: Optional[Seq] = None
     restarts: Count = 0                      # worker restarts after a crash

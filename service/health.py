@@ -18,6 +18,7 @@ class HealthStats:
         self.frames_processed = 0
         self.frames_dropped = 0
         self.frames_rejected = 0
+        self.frames_lost = 0
         self.last_seq: int | None = None
         self.last_pme: float | None = None
         self.last_stamp_ns: int | None = None
@@ -33,8 +34,9 @@ class HealthStats:
     def rejected(self) -> None:
         self.frames_rejected += 1
 
-    def processed(self, seq: int, stamp_ns: int, processing_ms: float, pme: float | None) -> None:
+    def processed(self, seq: int, stamp_ns: int, processing_ms: float, pme: float | None, ok: bool) -> None:
         self.frames_processed += 1
+        self.frames_lost += not ok
         self.last_seq, self.last_stamp_ns, self.last_pme = seq, stamp_ns, pme
         self._processing_ms.append(processing_ms)
         now = time.monotonic()
@@ -58,5 +60,6 @@ class HealthStats:
                       processing_ms_mean=mean, processing_ms_p95=p95, frame_age_ms=age,
                       frames_received=self.frames_received, frames_processed=self.frames_processed,
                       frames_dropped=self.frames_dropped, frames_rejected=self.frames_rejected,
+                      frames_lost=self.frames_lost,
                       pme=self.last_pme, last_seq=self.last_seq, restarts=restarts,
                       message=message[:1024] if message else None)

@@ -543,7 +543,7 @@ class SessionManager:
         """Health on behalf of a session whose worker cannot publish it (dead or stopped)."""
         last = session.health
         counters = last.model_dump(include={"frames_received", "frames_processed", "frames_dropped",
-                                            "frames_rejected", "pme", "last_seq"}) if last else {}
+                                            "frames_rejected", "frames_lost", "pme", "last_seq"}) if last else {}
         health = Health(node=self.node, sid=session.sid, state=state, stamp_ns=time.time_ns(), fps=0.0,
                         processing_ms_mean=0.0, processing_ms_p95=0.0, restarts=session.restarts,
                         message=(message or "")[:1024] or None, **counters)

@@ -339,7 +339,8 @@ class Worker:
                 log.exception("tracker learning failed on seq %d", frame.seq)
                 self._reject(f"tracker learning failed: {exc}")
                 return
-        self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, float(result.pme))
+        self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, float(result.pme),
+                              bool(result.ok))
 
     def _initialise(self, image, frame) -> None:
         from .frames import box_problem

@@ -123,12 +123,27 @@ def test_boxes_follow_moving_target_and_several_targets_in_one_feed(service, cli
             return h if h is not None and h.frames_processed > 0 else None
         health = wait_until(health_with_frames, 5)
         assert health.state == "tracking" and health.fps > 0 and health.processing_ms_p95 > 0
-        assert health.frames_received >= health.frames_processed > 0
+        assert health.frames_received >= health.frames_processed > 0 and health.frames_lost == 0
     finally:
         moving.close()
         static.close()
         for sid in ("mover", "patch"):
             call(client, NODE, "stop", StopRequest(sid=sid))
+
+
+def test_frames_with_the_target_lost_are_counted_in_health(service, client, feed):
+    """A floor no PME reaches flags every frame lost: each box says so, the state is lost, and Health counts them."""
+    results = Collector(client, NODE, "doubtful")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="doubtful",
+              overrides={"lost_pme": 1e9})
+        health = wait_until(lambda: (h := results.last_health()) and h.frames_processed >= 5 and h, 30)
+        assert health.state == "lost" and health.frames_lost == health.frames_processed
+        assert results.results() and not any(r.ok for r in results.results())
+        assert call(client, NODE, "status", StatusRequest(sid="doubtful")).state == "lost"
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="doubtful"))
 
 
 def test_init_uses_the_frame_the_box_was_drawn_on(service, client, feed):

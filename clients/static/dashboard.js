@@ -310,10 +310,10 @@ const rowsById = new Map();
 function makeRow(s) {
   const tr = document.createElement("tr");
   tr.dataset.id = s.id; tr.dataset.sid = s.sid;
-  for (let i = 0; i < 9; i++) tr.appendChild(document.createElement("td"));
+  for (let i = 0; i < 10; i++) tr.appendChild(document.createElement("td"));
   const badge = document.createElement("span");
   tr.cells[3].appendChild(badge); tr.cells[3].className = "state";
-  for (let i = 4; i < 9; i++) tr.cells[i].className = "num";
+  for (let i = 4; i < 10; i++) tr.cells[i].className = "num";
   const actions = document.createElement("td");
   const reinit = document.createElement("button");
   reinit.textContent = "re-init"; reinit.className = "reinit";
@@ -347,6 +347,7 @@ function renderTable() {
     const texts = [s.sid, s.node, s.image_key || "–", null, fmt(h.fps), fmt(s.box ? s.box.pme : h.pme),
                    h.frame_age_ms == null ? "–" : `${fmt(h.frame_age_ms, 0)} ms`,
                    s.box && s.box.latency_ms != null ? `${fmt(s.box.latency_ms, 0)} ms` : "–",
+                   h.frames_lost == null ? "–" : String(h.frames_lost),
                    h.frames_dropped == null ? "–" : String(h.frames_dropped)];
     texts.forEach((text, i) => { if (text !== null && tr.cells[i].textContent !== text) tr.cells[i].textContent = text; });
     const badge = tr.cells[3].firstChild;
