@@ -67,11 +67,12 @@ def describe_session(info: SessionInfo) -> str:
 
 def session_table(sessions: list[SessionInfo]) -> str:
     """A plain table of SessionInfos, for `tacf list`."""
-    rows = [("NODE", "SID", "STATE", "KEY", "PROFILE", "BOX", "FPS", "PROCESSED", "DROPPED")]
+    rows = [("NODE", "SID", "STATE", "KEY", "PROFILE", "BOX", "FPS", "PROCESSED", "LOST", "DROPPED")]
     for s in sessions:
         h = s.health
-        rows.append((s.node, s.sid, s.state, s.image_key, s.profile, _fmt_box(s.box),
-                     _fmt(h and h.fps, ".1f"), _fmt(h and h.frames_processed, "d"), _fmt(h and h.frames_dropped, "d")))
+        rows.append((s.node, s.sid, s.state, s.image_key, s.profile, _fmt_box(s.box), _fmt(h and h.fps, ".1f"),
+                     _fmt(h and h.frames_processed, "d"), _fmt(h and h.frames_lost, "d"),
+                     _fmt(h and h.frames_dropped, "d")))
     return columns(rows)
 
 
