@@ -13,10 +13,13 @@ published inside the window:
 - frames_sent, boxes_received, dropped = frames sent that got no box (superseded in a worker's latest-only slot,
   or lost in transit);
 - rss_mb_per_session: mean RSS of the worker processes, and pss_mb_per_session, their proportional set size
-  (shared library pages divided among the processes that map them: what each session really adds);
+  (pages shared with other processes, libraries and what the fork server loaded for every worker, divided among
+  those that map them: what each session really adds); pss_mb_total: the PSS of the service and every process
+  it started (workers, fork server, resource tracker), the whole footprint;
 - cpu_percent: CPU time of the service and its workers over the window / window length (100 = one core);
-- over_time: total RSS (MB) and open file descriptors of the service and its workers, sampled 20 times over
-  the window, so a long run (`--seconds 600`) is a soak test: both must stay flat.
+- over_time: total RSS and PSS (MB) and open file descriptors of the service and its processes, sampled 20
+  times over the window, so a long run (`--seconds 600`) is a soak test: all must stay flat (PSS also shows pages
+  the workers share with the fork server being copied into each, which RSS cannot).
 
 A looped sequence restarts with the target elsewhere; the session then tracks whatever it holds, which costs
 the same per frame, so the figures stay load figures, not accuracy.
@@ -136,18 +139,24 @@ class FeedPublisher:
             pub.undeclare()
 
 
+def _children(pid: int) -> list[int]:
+    """pid's child processes (Linux /proc)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:
+            continue
+    return found
+
+
 def _descendants(pid: int) -> list[int]:
-    """pid's child processes, recursively (Linux /proc)."""
+    """pid's child processes, recursively."""
     found, todo = [], [pid]
     while todo:
-        parent = todo.pop()
-        for task in Path(f"/proc/{parent}/task").glob("*"):
-            try:
-                children = [int(c) for c in (task / "children").read_text().split()]
-            except OSError:
-                continue
-            found += children
-            todo += children
+        children = _children(todo.pop())
+        found += children
+        todo += children
     return found
 
 
@@ -183,9 +192,9 @@ def _mean(values) -> float | None:
 
 
 def _is_worker(pid: int) -> bool:
-    """A session worker, not multiprocessing's resource tracker."""
+    """A session worker, not multiprocessing's resource tracker or fork server (the workers' parent)."""
     try:
-        return b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes()
+        return b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes() and not _children(pid)
     except OSError:
         return False
 
@@ -238,12 +247,13 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         processes = [service_pid, *children]
         cpu_before, wall_before = sum(map(_cpu_seconds, processes)), time.monotonic()
         first_seq = [len(s) for s in publisher.sent]
-        over_time = {"seconds": [], "rss_mb": [], "open_fds": []}
+        over_time = {"seconds": [], "rss_mb": [], "pss_mb": [], "open_fds": []}
         with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False) as bar:
             while (elapsed := time.monotonic() - wall_before) < seconds:
                 if elapsed >= len(over_time["seconds"]) * seconds / 20:
                     over_time["seconds"].append(round(elapsed, 1))
                     over_time["rss_mb"].append(round(sum(_memory_mb(p, "status", "VmRSS:") or 0 for p in processes)))
+                    over_time["pss_mb"].append(round(sum(_memory_mb(p, "smaps_rollup", "Pss:") or 0 for p in processes)))
                     over_time["open_fds"].append(sum(map(_open_fds, processes)))
                 time.sleep(min(0.2, seconds - elapsed))
                 bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
@@ -251,6 +261,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         cpu_percent = 100 * (sum(map(_cpu_seconds, processes)) - cpu_before) / (time.monotonic() - wall_before)
         rss = _mean(_memory_mb(pid, "status", "VmRSS:") for pid in workers)
         pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
+        pss_total = round(sum(_memory_mb(pid, "smaps_rollup", "Pss:") or 0 for pid in processes), 1)
         time.sleep(2.0)     # let the boxes of the window's last frames arrive
         with lock:
             sid_index = {f"feed{i}": i for i in range(n)}
@@ -273,7 +284,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         "latency_ms": {"p50": _percentile(latency, 0.50), "p95": _percentile(latency, 0.95),
                        "p99": _percentile(latency, 0.99), "max": _percentile(latency, 1.0)},
         "frames_sent": frames_sent, "boxes_received": boxes, "dropped": frames_sent - boxes,
-        "rss_mb_per_session": rss, "pss_mb_per_session": pss,
+        "rss_mb_per_session": rss, "pss_mb_per_session": pss, "pss_mb_total": pss_total,
         "cpu_percent": round(cpu_percent, 1), "cpus": os.cpu_count(), "over_time": over_time,
         "sequences": sorted({f.name for f in feeds}), "load_average": [round(v, 2) for v in os.getloadavg()],
     }

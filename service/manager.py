@@ -26,7 +26,7 @@ from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
-from .worker import Assignment, WorkerSpec, run_worker
+from .worker import Assignment, WorkerSpec, run_worker, worker_context
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ class SessionManager:
         self._tracker_factory = tracker_factory
         self._init_wait_s = init_wait_s
         self._log_level = log_level
-        self._mp = multiprocessing.get_context("spawn")
+        self._mp = worker_context()
         self._worker_spec = WorkerSpec(node=node, zenoh=zenoh_options, endpoints=tuple(endpoints),
                                        tracker_factory=tracker_factory, log_level=log_level)
         self._spare_target = spare_workers

@@ -1,7 +1,7 @@
 """The worker process of one tracking session.
 
-Each session runs in its own process (multiprocessing "spawn" context: Zenoh's runtime does not survive fork)
-so that N cores serve N feeds at full speed. The worker opens its own Zenoh session (client of the service),
+Each session runs in its own process (forked from a fork server, never from the service, whose Zenoh runtime
+does not survive fork: worker_context) so that N cores serve N feeds at full speed. The worker opens its own Zenoh session (client of the service),
 subscribes to the image key latest-only, runs the tracker on its main thread, and publishes a BoxResult per
 processed frame and Health about once a second itself: frames never pass through the service process.
 
@@ -30,6 +30,7 @@ The worker also stops when the pipe breaks (the service died), so no worker outl
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import os
 import signal
 import threading
@@ -105,6 +106,18 @@ class LatestFrame:
             if self._payload is not None:
                 self.overwritten += 1
             self._payload = None
+
+
+def worker_context():
+    """Where workers are started. A fork server where the platform has one (Linux, macOS): a process that imported
+    numpy, OpenCV and the tracker once (tacf_service.warm), from which each worker is forked, so a worker starts
+    without importing anything and shares that memory with the others. Elsewhere a fresh interpreter per worker.
+    Never a plain fork of the service, whose Zenoh runtime a child would inherit broken (ZENOH.md 2.5)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(["tacf_service.warm"])
+    return context
 
 
 def run_worker(spec: WorkerSpec, conn) -> None:

@@ -26,10 +26,13 @@ def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path):
     latency = report["latency_ms"]
     assert 0 < latency["p50"] <= latency["p95"] <= latency["p99"] <= latency["max"]
     assert report["rss_mb_per_session"] > 50 and report["pss_mb_per_session"] > 10
+    assert report["pss_mb_total"] > 2 * report["pss_mb_per_session"]   # the service and its fork server besides
     assert 0 < report["cpu_percent"] <= 100 * report["cpus"]
     over_time = report["over_time"]
-    assert len(over_time["seconds"]) == len(over_time["rss_mb"]) == len(over_time["open_fds"]) >= 10
+    assert len(over_time["seconds"]) == len(over_time["rss_mb"]) == len(over_time["pss_mb"]) == \
+        len(over_time["open_fds"]) >= 10
     assert min(over_time["open_fds"]) > 0 and min(over_time["rss_mb"]) > 100
+    assert 0 < max(over_time["pss_mb"]) < max(over_time["rss_mb"])
     assert all(name.startswith(("UAV123", "DTB70")) for name in report["sequences"])   # the 1280x720 ones
 
 

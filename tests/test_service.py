@@ -10,6 +10,7 @@ import os
 import signal
 import statistics
 import time
+from pathlib import Path
 
 import msgpack
 import pytest
@@ -144,6 +145,24 @@ def test_frames_with_the_target_lost_are_counted_in_health(service, client, feed
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="doubtful"))
+
+
+def test_workers_fork_from_a_server_with_one_thread_and_no_zenoh(service, client, feed):
+    """Workers are forked from a fork server that loaded the tracker once (tacf_service.warm). A fork keeps only
+    the forking thread, and Zenoh's runtime does not survive one (ZENOH.md 2.5): the server must have neither."""
+    start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="forked")
+    try:
+        worker = service.manager.worker_pids()["forked"]
+        server = int(Path(f"/proc/{worker}/stat").read_text().rsplit(")", 1)[1].split()[1])  # the parent pid
+        assert server != os.getpid(), "the worker is the service's own child, not the fork server's"
+        assert b"forkserver" in Path(f"/proc/{server}/cmdline").read_bytes()
+        assert len(os.listdir(f"/proc/{server}/task")) == 1
+        maps = Path(f"/proc/{server}/maps").read_text()
+        assert "numba" in maps and "cv2" in maps, "the tracker's libraries were not loaded before the fork"
+        assert "zenoh" not in maps
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="forked")).state == "tracking", 20)
+    finally:
+        call(client, NODE, "stop", StopRequest(sid="forked"))
 
 
 def test_init_uses_the_frame_the_box_was_drawn_on(service, client, feed):

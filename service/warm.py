@@ -1,0 +1,30 @@
+"""Imported once by the service's fork server (worker.worker_context): the workers' heavy imports and the
+tracker's first-call cost, numba loading fhog's compiled loops from its cache, are paid once instead of by every
+worker, and their memory is shared, copy-on-write, by every worker forked from the server.
+
+Nothing here may start a thread, which a forked child would inherit without: BLAS is held to one thread before
+numpy loads, OpenCV to no thread pool before its first call, and Zenoh is not imported at all (its runtime does
+not survive fork, ZENOH.md 2.5; each worker opens its session after the fork).
+"""
+import gc
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import cv2  # noqa: E402
+
+cv2.setNumThreads(1)
+
+import numpy as np  # noqa: E402
+
+import tacf.tracker  # noqa: E402,F401
+from tacf.features import fhog  # noqa: E402
+
+from . import worker  # noqa: E402,F401
+
+fhog(np.zeros((16, 16, 3), np.uint8), 4)
+
+# What is loaded by now lives as long as the workers: out of their garbage collector's sight, whose passes would
+# otherwise write to every object's header and so copy the shared pages into each worker (Python's gc.freeze docs).
+gc.freeze()
