@@ -179,6 +179,10 @@ def _memory_mb(pid: int, file: str, field: str) -> float | None:
     return None
 
 
+def _total_mb(pids: list[int], file: str, field: str) -> float:
+    return sum(_memory_mb(pid, file, field) or 0 for pid in pids)
+
+
 def _open_fds(pid: int) -> int:
     try:
         return len(os.listdir(f"/proc/{pid}/fd"))
@@ -252,8 +256,8 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
             while (elapsed := time.monotonic() - wall_before) < seconds:
                 if elapsed >= len(over_time["seconds"]) * seconds / 20:
                     over_time["seconds"].append(round(elapsed, 1))
-                    over_time["rss_mb"].append(round(sum(_memory_mb(p, "status", "VmRSS:") or 0 for p in processes)))
-                    over_time["pss_mb"].append(round(sum(_memory_mb(p, "smaps_rollup", "Pss:") or 0 for p in processes)))
+                    over_time["rss_mb"].append(round(_total_mb(processes, "status", "VmRSS:")))
+                    over_time["pss_mb"].append(round(_total_mb(processes, "smaps_rollup", "Pss:")))
                     over_time["open_fds"].append(sum(map(_open_fds, processes)))
                 time.sleep(min(0.2, seconds - elapsed))
                 bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
@@ -261,7 +265,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         cpu_percent = 100 * (sum(map(_cpu_seconds, processes)) - cpu_before) / (time.monotonic() - wall_before)
         rss = _mean(_memory_mb(pid, "status", "VmRSS:") for pid in workers)
         pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
-        pss_total = round(sum(_memory_mb(pid, "smaps_rollup", "Pss:") or 0 for pid in processes), 1)
+        pss_total = round(_total_mb(processes, "smaps_rollup", "Pss:"), 1)
         time.sleep(2.0)     # let the boxes of the window's last frames arrive
         with lock:
             sid_index = {f"feed{i}": i for i in range(n)}

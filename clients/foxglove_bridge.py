@@ -76,7 +76,8 @@ SESSION_SCHEMA = {"type": "object", "properties": {
     "health": {"type": "object", "properties": {
         "fps": _NUMBER, "processing_ms_mean": _NUMBER, "processing_ms_p95": _NUMBER, "frame_age_ms": _NUMBER,
         "frames_received": _WHOLE, "frames_processed": _WHOLE, "frames_dropped": _WHOLE, "frames_rejected": _WHOLE,
-        "frames_lost": _WHOLE, "pme": _NUMBER, "last_seq": _WHOLE, "restarts": _WHOLE, "message": _TEXT, "age_ms": _NUMBER}},
+        "frames_lost": _WHOLE, "pme": _NUMBER, "last_seq": _WHOLE, "restarts": _WHOLE, "message": _TEXT,
+        "age_ms": _NUMBER}},
 }}
 
 

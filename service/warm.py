@@ -2,9 +2,10 @@
 tracker's first-call cost, numba loading fhog's compiled loops from its cache, are paid once instead of by every
 worker, and their memory is shared, copy-on-write, by every worker forked from the server.
 
-Nothing here may start a thread, which a forked child would inherit without: BLAS is held to one thread before
-numpy loads, OpenCV to no thread pool before its first call, and Zenoh is not imported at all (its runtime does
-not survive fork, ZENOH.md 2.5; each worker opens its session after the fork).
+Nothing here may start a thread: a forked child has only the thread that forked, and a library whose pool of
+threads did not come along waits on it for ever. So BLAS is held to one thread before numpy loads, OpenCV to no
+thread pool before its first call, and Zenoh is not imported at all (its runtime does not survive fork, ZENOH.md
+2.5; each worker opens its session after the fork).
 """
 import gc
 import os

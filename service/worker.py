@@ -1,9 +1,10 @@
 """The worker process of one tracking session.
 
-Each session runs in its own process (forked from a fork server, never from the service, whose Zenoh runtime
-does not survive fork: worker_context) so that N cores serve N feeds at full speed. The worker opens its own Zenoh session (client of the service),
-subscribes to the image key latest-only, runs the tracker on its main thread, and publishes a BoxResult per
-processed frame and Health about once a second itself: frames never pass through the service process.
+Each session runs in its own process so that N cores serve N feeds at full speed, forked from a fork server, never
+from the service, whose Zenoh runtime does not survive fork (worker_context). The worker opens its own Zenoh
+session (client of the service), subscribes to the image key latest-only, runs the tracker on its main thread,
+and publishes a BoxResult per processed frame and Health about once a second itself: frames never pass through
+the service process.
 
 Latest-only: the subscriber is a RingChannel(1): Zenoh itself overwrites a frame nobody has taken yet, without
 needing the GIL, so a starved worker never builds a backlog (a callback subscriber would: its 256-deep FIFO
@@ -122,7 +123,7 @@ def worker_context():
 
 
 def run_worker(spec: WorkerSpec, conn) -> None:
-    """Process entry point (the target of the spawned Process)."""
+    """Process entry point (the target of the worker's Process)."""
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")      # one core per session; the service scales by processes
     logging.basicConfig(level=spec.log_level,
