@@ -2,7 +2,8 @@
 
 Covers start/list/status/stop, boxes following a moving target, init on the frame the box was drawn on,
 several sessions on one feed, reinit, latest-only under a fast publisher, every bad control input, bad frames
-counted in Health without harming other sessions, a worker SIGKILL and its recovery, too many sessions.
+counted in Health without harming other sessions, a worker SIGKILL and its recovery, the workers' fork server
+and its SIGKILL, too many sessions.
 """
 from __future__ import annotations
 
@@ -152,8 +153,7 @@ def test_workers_fork_from_a_server_with_one_thread_and_no_zenoh(service, client
     the forking thread, and Zenoh's runtime does not survive one (ZENOH.md 2.5): the server must have neither."""
     start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="forked")
     try:
-        worker = service.manager.worker_pids()["forked"]
-        server = int(Path(f"/proc/{worker}/stat").read_text().rsplit(")", 1)[1].split()[1])  # the parent pid
+        server = _parent_pid(service.manager.worker_pids()["forked"])
         assert server != os.getpid(), "the worker is the service's own child, not the fork server's"
         assert b"forkserver" in Path(f"/proc/{server}/cmdline").read_bytes()
         assert len(os.listdir(f"/proc/{server}/task")) == 1
@@ -389,6 +389,42 @@ def test_worker_sigkill_is_reported_and_recovers_from_its_last_box(service, clie
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="victim2"))
+
+
+def test_fork_server_sigkill_restarts_its_sessions_once(service, client, feed):
+    """The fork server dying takes its report of the workers' exits with it, so each of its sessions counts as
+    ended: the worker, still running, stops when the service closes its pipe, and the session restarts once from
+    its last box on a fork server started again, with no second worker publishing boxes for it."""
+    results = Collector(client, NODE, "orphan")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="orphan")
+        assert wait_until(lambda: len(results.results()) >= 8, 30)
+        old = service.manager.worker_pids()["orphan"]
+        os.kill(_parent_pid(old), signal.SIGKILL)
+        assert wait_until(lambda: not _running(old), 10), "the orphaned worker went on running"
+        assert wait_until(lambda: service.manager.worker_pids().get("orphan") not in (None, old), 10)
+        count = len(results.results())
+        assert wait_until(lambda: len(results.results()) >= count + 8, 30)
+        seqs = [r.seq for r in results.results()[count:]]
+        assert len(seqs) == len(set(seqs)), "two workers published boxes for one session"
+        info = call(client, NODE, "status", StatusRequest(sid="orphan"))
+        assert info.restarts == 1 and info.state in ("tracking", "lost")
+        assert mean_iou(results.results()[count:], feed.truth) > 0.5
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="orphan"))
+
+
+def _parent_pid(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (an orphan's new parent may be slow to reap it, or never do)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def test_too_many_sessions(endpoint, client, tmp_path):
