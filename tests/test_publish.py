@@ -4,7 +4,6 @@ FFmpeg: a stream that ends, stalls or goes away is reopened, and the publisher's
 from __future__ import annotations
 
 import http.server
-import socket
 import subprocess
 import sys
 import threading
@@ -282,9 +281,7 @@ class MjpegCamera:
         self.frames_per_connection, self.stall = frames_per_connection, stall
         self.connections = 0
         self._lock = threading.Lock()
-        with socket.socket() as probe:  # a free port that stays this camera's across down() / up()
-            probe.bind(("127.0.0.1", 0))
-            self.port = probe.getsockname()[1]
+        self.port = free_port()  # stays this camera's across down() / up()
         self.url = f"http://127.0.0.1:{self.port}/video.mjpg"
         self._server: http.server.ThreadingHTTPServer | None = None
         self.up()
