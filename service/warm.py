@@ -17,14 +17,19 @@ import cv2  # noqa: E402
 
 cv2.setNumThreads(1)
 
-import numpy as np  # noqa: E402
-
-import tacf.tracker  # noqa: E402,F401
-from tacf.features import fhog  # noqa: E402
-
 from . import worker  # noqa: E402,F401
 
-fhog(np.zeros((16, 16, 3), np.uint8), 4)
+# The fork server imports this with only ImportError caught: anything else raised here would leave no server to
+# fork workers from. A worker meets the same failure again and reports it with its session.
+try:
+    import numpy as np
+
+    import tacf.tracker  # noqa: F401
+    from tacf.features import fhog
+
+    fhog(np.zeros((16, 16, 3), np.uint8), 4)
+except Exception:  # noqa: BLE001
+    pass
 
 # What is loaded by now lives as long as the workers: out of their garbage collector's sight, whose passes would
 # otherwise write to every object's header and so copy the shared pages into each worker (Python's gc.freeze docs).
