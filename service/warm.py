@@ -8,16 +8,14 @@ thread pool before its first call, and Zenoh is not imported at all (its runtime
 2.5; each worker opens its session after the fork).
 """
 import gc
-import os
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+from .worker import hold_blas_to_one_thread  # imports neither numpy nor Zenoh
+
+hold_blas_to_one_thread()
 
 import cv2  # noqa: E402
 
 cv2.setNumThreads(1)
-
-from . import worker  # noqa: E402,F401
 
 # The fork server imports this with only ImportError caught: anything else raised here would leave no server to
 # fork workers from. A worker meets the same failure again and reports it with its session.

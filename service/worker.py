@@ -122,10 +122,15 @@ def worker_context():
     return context
 
 
+def hold_blas_to_one_thread() -> None:
+    """One core per session, the service scales by processes: BLAS reads these when numpy loads, so call it first."""
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
 def run_worker(spec: WorkerSpec, conn) -> None:
     """Process entry point (the target of the worker's Process)."""
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")      # one core per session; the service scales by processes
+    hold_blas_to_one_thread()
     logging.basicConfig(level=spec.log_level,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     worker = Worker(spec, conn)
