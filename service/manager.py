@@ -127,7 +127,6 @@ class SessionManager:
     # ------------------------------------------------------------------ lifecycle
 
     def start_supervisor(self) -> None:
-        self._replenish_spares()
         self._supervisor.start()
 
     def restore(self) -> int:
@@ -365,7 +364,13 @@ class SessionManager:
         for _ in range(missing):
             handle = self._new_worker()
             with self._lock:
-                self._spares.append(handle)
+                if not self._closing.is_set():
+                    self._spares.append(handle)
+                    continue
+            # shutdown() began while the worker started (the first can wait ~1 s for the fork server) and has
+            # already taken the spares it stops: this one is stopped here.
+            handle.process.terminate()
+            _quiet_close(handle.conn)
 
     def _drain_spares(self) -> None:
         with self._lock:
@@ -434,6 +439,9 @@ class SessionManager:
                 time.sleep(SUPERVISE_PERIOD_S)
 
     def _supervise_once(self) -> None:
+        # Spares start here, not in open(): the first worker waits for the fork server to load the tracker, and
+        # the service answers in the meantime.
+        self._replenish_spares()
         with self._lock:
             sessions = [s for s in self._sessions.values() if s.process is not None]
         waitables = [s.conn for s in sessions if s.conn is not None] + [s.process.sentinel for s in sessions]
@@ -464,7 +472,6 @@ class SessionManager:
             if not self._closing.is_set():
                 self._restart(session)
         self._drain_spares()
-        self._replenish_spares()
         self._save()
 
     def _drain(self, session: Session) -> None:

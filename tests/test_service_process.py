@@ -244,3 +244,34 @@ def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
         out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE],
                              capture_output=True, text=True, timeout=30)
     assert out.returncode == 1 and "cannot start the service" in out.stderr
+
+
+COLD_OPEN_AND_CLOSE = """
+import multiprocessing, sys, time
+from tacf_service.app import ServiceOptions, TrackingService
+from tacf_service.config import ZenohOptions
+
+if __name__ == "__main__":
+    service = TrackingService(ServiceOptions(node="cold", zenoh=ZenohOptions(listen=(sys.argv[1],)))).open()
+    at_open = len(multiprocessing.active_children())
+    manager = service.manager           # held, so that a spare it kept could not end by being collected
+    started = time.monotonic()
+    service.close()
+    took = time.monotonic() - started
+    time.sleep(3.0)                     # the first worker's start, under way when close() began, ends meanwhile
+    print(at_open, len(multiprocessing.active_children()), round(took, 2))
+"""
+
+
+def test_a_cold_service_answers_before_its_first_worker_and_stops_one_still_starting(tmp_path):
+    """The first worker waits for the fork server to load the tracker: open() does not wait for it, and a close()
+    that comes while it starts stops it as soon as it exists instead of keeping it as a spare."""
+    script = tmp_path / "cold.py"
+    script.write_text(COLD_OPEN_AND_CLOSE)
+    out = subprocess.run([sys.executable, str(script), f"tcp/127.0.0.1:{free_port()}"], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    at_open, left, took = out.stdout.split()
+    assert int(at_open) == 0, "open() waited for a worker process"
+    assert int(left) == 0, "a worker started during close() was kept"
+    assert float(took) < 2.0
