@@ -30,8 +30,8 @@ from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
 from tacf_schemas.codec import MSGPACK_ENCODING, DecodeError, decode, decode_error_reply, encode, is_deadline_reply
-from tacf_schemas.models import (BoxResult, Error, Health, ListRequest, ReinitRequest, SessionInfo, SessionList,
-                                 StartRequest, StatusRequest, StopRequest, WireModel)
+from tacf_schemas.models import (BoxResult, Error, Frame, Health, ListRequest, ReinitRequest, SessionInfo,
+                                 SessionList, StartRequest, StatusRequest, StopRequest, WireModel)
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +84,18 @@ class TrackingClient:
     # --- control ops --------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: BoxLike, seq: int | None = None, profile: str | None = None, *,
               sid: str | None = None, overrides: dict[str, bool | int | float] | None = None,
-              node: str | None = None) -> SessionInfo:
+              node: str | None = None, frames: Sequence[Frame] = ()) -> SessionInfo:
         """Start following the target in `box` (x, y, w, h pixels) on the frames of `image_key`.
 
         seq: the frame the box was drawn on (the service applies it to that frame if it still holds it).
-        sid: a session id of your choice (else the service makes one). node: the service to run it on; needed
-        only when several services are on the network; LEAST_LOADED picks one (see `least_loaded`).
+        frames: that Frame itself, when you have it, then up to 7 newer ones (oldest first): the service then
+        initialises on it and catches up through them even when it does not hold them (it keeps a feed's frames
+        only while a session follows it). sid: a session id of your choice
+        (else the service makes one). node: the service to run it on; needed only when several services are on
+        the network; LEAST_LOADED picks one (see `least_loaded`).
         """
-        request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, sid=sid,
-                         profile=profile, overrides=dict(overrides or {}))
+        request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, frames=list(frames),
+                         sid=sid, profile=profile, overrides=dict(overrides or {}))
         target = node or self.node
         if target == LEAST_LOADED:
             target = least_loaded(self.services(node=keys.WILDCARD))     # every service, even with self.node set
@@ -109,9 +112,11 @@ class TrackingClient:
             self._nodes_of_sid.pop(sid, None)
         return info
 
-    def reinit(self, sid: str, box: BoxLike, seq: int | None = None, *, node: str | None = None) -> SessionInfo:
-        """Re-initialise session `sid` on a new box (drawn on frame `seq`, if given)."""
-        return self._call_session(sid, node, "reinit", _build(ReinitRequest, sid=_sid(sid), box=_box(box), seq=seq))
+    def reinit(self, sid: str, box: BoxLike, seq: int | None = None, *, node: str | None = None,
+               frames: Sequence[Frame] = ()) -> SessionInfo:
+        """Re-initialise session `sid` on a new box (drawn on frame `seq`, if given; `frames` as for start)."""
+        return self._call_session(sid, node, "reinit", _build(ReinitRequest, sid=_sid(sid), box=_box(box), seq=seq,
+                                                              frames=list(frames)))
 
     def status(self, sid: str, *, node: str | None = None) -> SessionInfo:
         """The session's current SessionInfo (state, last box, latest health)."""

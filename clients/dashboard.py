@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -31,7 +31,8 @@ from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas.codec import DecodeError, decode
 from tacf_schemas.keys import validate_image_key
-from tacf_schemas.models import BoxResult, Frame, Health, SessionInfo
+from tacf_schemas.limits import MAX_CARRIED_FRAMES
+from tacf_schemas.models import BoxResult, Frame, Health, SessionInfo, catch_up_subset
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,9 @@ LIST_TIMEOUT_S = 2.0         # reply timeout of that list query
 SILENT_DROP_S = 30.0         # a session of a node that stopped answering is dropped after this long without news
 TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here are ignored for this long
 MAX_IMAGE_KEYS = 32          # watched image keys (each one is a subscriber + a thread)
+SHOWN_KEEP = 64              # frames shown to a browser, kept by seq: an operator may draw a box for seconds,
+SHOWN_KEEP_BYTES = 64 * 2**20  # and the start carries the frame it was drawn on (the service may not hold it)
+CARRY_BYTES = 32 * 2**20     # at most this much of frames carried by one start (the service takes 48 MiB)
 
 
 @dataclass
@@ -121,8 +125,9 @@ class FrameSnapshot:
 class FrameWatcher:
     """The newest frames of one image key: a RingChannel(1) subscriber drained by one worker thread that reads
     at most `max_fps` frames a second (the ring keeps only the newest meanwhile). The last `keep` frames stay,
-    so that a box can be drawn on the very frame it was computed on. Non-JPEG frames are turned into JPEG when
-    someone asks for them."""
+    so that a box can be drawn on the very frame it was computed on, and the frames shown lately (`SHOWN_KEEP`),
+    so that a box drawn on one can be sent with it. Non-JPEG frames are turned into JPEG when someone asks for
+    them."""
 
     def __init__(self, session: zenoh.Session, key: str, max_fps: float = 30.0, keep: int = 32):
         self.key = key
@@ -131,6 +136,7 @@ class FrameWatcher:
         self._lock = threading.Lock()
         self._frames: deque[tuple[Frame, int]] = deque(maxlen=max(1, keep))   # (frame, received_ns), oldest first
         self._jpeg: FrameSnapshot | None = None          # the last non-JPEG frame converted
+        self._shown: OrderedDict[int, Frame] = OrderedDict()   # seq -> frame, the frames snapshot() returned
         self._closed = threading.Event()
         self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
         self._thread = threading.Thread(target=self._run, name=f"tacf-dashboard-frames-{key}", daemon=True)
@@ -149,6 +155,7 @@ class FrameWatcher:
                 with self._lock:
                     if self._frames and frame.seq < self._frames[-1][0].seq:
                         self._frames.clear()               # the camera restarted its seq
+                        self._shown.clear()
                     self._frames.append((frame, time.time_ns()))
                     self.received += 1
                 if self._closed.wait(max(0.0, self._min_period - (time.monotonic() - started))):
@@ -170,6 +177,7 @@ class FrameWatcher:
             if seq is not None:
                 frame, received_ns = next(((f, r) for f, r in reversed(self._frames) if f.seq <= seq),
                                           self._frames[0])
+            self._remember_shown(frame)
             cached = self._jpeg
         if frame.encoding == "jpeg":
             jpeg = frame.data
@@ -182,6 +190,28 @@ class FrameWatcher:
             with self._lock:
                 self._jpeg = snap
         return snap
+
+    def frames_since(self, seq: int) -> list[Frame]:
+        """What a start carries for a box drawn on frame `seq`: that frame, then up to MAX_CARRIED_FRAMES - 1
+        newer ones evenly spaced, ending on the newest, all from the last frames received and those shown lately
+        ([] when frame `seq` is in neither)."""
+        with self._lock:
+            known = {f.seq: f for f in self._shown.values()}
+            known.update((f.seq, f) for f, _ in self._frames)
+        if seq not in known:
+            return []
+        frames = [known[s] for s in sorted(s for s in known if s >= seq)]
+        carried = catch_up_subset(frames, MAX_CARRIED_FRAMES - 1)
+        while len(carried) > 1 and sum(len(f.data) for f in carried) > CARRY_BYTES:
+            carried = catch_up_subset(frames, len(carried) - 2)
+        return carried
+
+    def _remember_shown(self, frame: Frame) -> None:
+        self._shown[frame.seq] = frame
+        self._shown.move_to_end(frame.seq)
+        while len(self._shown) > 1 and (len(self._shown) > SHOWN_KEEP or
+                                        sum(len(f.data) for f in self._shown.values()) > SHOWN_KEEP_BYTES):
+            self._shown.popitem(last=False)
 
     def close(self) -> None:
         self._closed.set()
@@ -298,6 +328,12 @@ class Dashboard:
         with self._lock:
             return sorted(self._watchers)
 
+    def _drawn_on(self, key: str | None, seq: int | None) -> list[Frame]:
+        """The frames to send with a box drawn on frame `seq` of `key` (FrameWatcher.frames_since)."""
+        with self._lock:
+            watcher = self._watchers.get(key) if key is not None and seq is not None else None
+        return [] if watcher is None else watcher.frames_since(seq)
+
     def frame_counts(self) -> dict[str, tuple[int, int]]:
         """key -> (frames received, frames rejected) by the dashboard's own frame subscribers."""
         with self._lock:
@@ -400,7 +436,8 @@ class Dashboard:
     # --- control ----------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: Sequence[float], seq: int | None = None, *, sid: str | None = None,
               profile: str | None = None, node: str | None = None) -> SessionInfo:
-        info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, node=node)
+        info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, node=node,
+                                 frames=self._drawn_on(image_key, seq))
         with self._changed:
             self._tombstones.pop(f"{info.node}/{info.sid}", None)
             self._update_from_info(info)
@@ -419,7 +456,10 @@ class Dashboard:
 
     def reinit(self, sid: str, box: Sequence[float], seq: int | None = None, *,
                node: str | None = None) -> SessionInfo:
-        info = self.client.reinit(sid, box, seq=seq, node=node)
+        with self._lock:
+            key = next((v.image_key for v in self._sessions.values()
+                        if v.sid == sid and (node is None or v.node == node)), None)
+        info = self.client.reinit(sid, box, seq=seq, node=node, frames=self._drawn_on(key, seq))
         with self._changed:
             self._update_from_info(info)
             self._changed.notify_all()

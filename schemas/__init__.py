@@ -15,7 +15,7 @@ from .keys import (ALL_LIVELINESS, InvalidIdError, InvalidKeyError, box_key, con
 from .limits import SCHEMA_VERSION
 from .models import (CONTROL_OPS, CONTROL_REPLIES, CONTROL_REQUESTS, ENCODINGS, ERROR_CODES, MODELS,
                      SESSION_STATES, BoxResult, Error, Frame, Health, ListRequest, ReinitRequest, SessionInfo,
-                     SessionList, StartRequest, StatusRequest, StopRequest, WireModel)
+                     SessionList, StartRequest, StatusRequest, StopRequest, WireModel, catch_up_subset)
 
 __all__ = [
     "SCHEMA_VERSION", "MSGPACK_ENCODING", "DecodeError", "decode", "decode_error_reply", "encode",
@@ -25,5 +25,5 @@ __all__ = [
     "session_key", "session_liveliness_key", "validate_id", "validate_image_key",
     "CONTROL_OPS", "CONTROL_REPLIES", "CONTROL_REQUESTS", "ENCODINGS", "ERROR_CODES", "MODELS", "SESSION_STATES",
     "BoxResult", "Error", "Frame", "Health", "ListRequest", "ReinitRequest", "SessionInfo", "SessionList",
-    "StartRequest", "StatusRequest", "StopRequest", "WireModel",
+    "StartRequest", "StatusRequest", "StopRequest", "WireModel", "catch_up_subset",
 ]

@@ -14,4 +14,5 @@ MAX_FRAME_BYTES = 48 * 1024 * 1024      # covers raw 4096x4096 BGR (48 MiB); enc
 MAX_PAYLOAD_BYTES = MAX_FRAME_BYTES + 64 * 1024   # a Frame's data plus its msgpack envelope
 
 MAX_OVERRIDES = 64
+MAX_CARRIED_FRAMES = 8                  # frames a start or reinit may carry (all within MAX_PAYLOAD_BYTES)
 MAX_MESSAGE_LENGTH = 1024               # Error.message and similar free text

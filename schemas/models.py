@@ -10,10 +10,10 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Optional, Union
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
-from .limits import (MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_WIDTH, MAX_ID_LENGTH, MAX_IMAGE_KEY_LENGTH,
-                     MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
+from .limits import (MAX_CARRIED_FRAMES, MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_WIDTH, MAX_ID_LENGTH,
+                     MAX_IMAGE_KEY_LENGTH, MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
 
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 
@@ -86,16 +86,51 @@ class Frame(WireModel):
 
 # ---------------------------------------------------------------- control requests (client -> service)
 
-class StartRequest(WireModel):
-    """Start a session following the target in `box` on the feed `image_key`.
-
-    `seq`: the frame the box was drawn on; the service initialises on that frame when it still holds it, else
-    on the newest frame it has (SessionInfo.init_seq says which). `sid`: optional client-chosen session id;
-    the service generates one when absent. `profile` / `overrides`: TrackerConfig.profile(profile, **overrides).
-    """
-    image_key: Annotated[str, Field(min_length=1, max_length=MAX_IMAGE_KEY_LENGTH)]
+class _InitOnFrame(WireModel):
+    """A box drawn on a frame. `seq` names the frame; `frames` may carry it (first), then newer frames, oldest
+    first, for the tracker to catch up through. A service keeps the last few frames of a feed only while a
+    session follows it, so the first session on a feed never had the frame its box was drawn on, and an
+    operator drawing for a few seconds outlasts the frames kept. The service initialises on frame `seq` if it
+    holds it, else on the carried frames, else on the newest frame it has (SessionInfo.init_seq says which),
+    then catches up through the newer frames it holds."""
     box: InitBox
     seq: Optional[Seq] = None
+    frames: Annotated[list[Frame], Field(max_length=MAX_CARRIED_FRAMES)] = []
+
+    @model_validator(mode="after")
+    def _frames_start_at_seq(self):
+        seqs = [f.seq for f in self.frames]
+        if seqs and self.seq is not None and seqs[0] != self.seq:
+            raise ValueError(f"the first frame carried is seq {seqs[0]}, not seq {self.seq}")
+        if any(newer <= older for older, newer in zip(seqs, seqs[1:])):
+            raise ValueError(f"the frames carried are not in increasing seq order: {seqs}")
+        return self
+
+    @property
+    def drawn_on(self) -> Optional[int]:
+        """The seq of the frame the box was drawn on (`seq`, or the first carried frame's)."""
+        return self.frames[0].seq if self.frames else self.seq
+
+
+def catch_up_subset(frames: list, limit: int) -> list:
+    """The first frame (the one a box was drawn on), then at most `limit` newer ones evenly spaced, ending on the
+    newest: a tracker initialised on the first follows the target's motion through them without falling far
+    behind a live feed. (What a client carries with a start, and what the service sends its worker.)"""
+    if limit <= 0:
+        return list(frames[:1])
+    if len(frames) <= limit + 1:
+        return list(frames)
+    rest = frames[1:]
+    step = len(rest) / limit
+    return [frames[0]] + [rest[min(len(rest) - 1, round((i + 1) * step) - 1)] for i in range(limit)]
+
+
+class StartRequest(_InitOnFrame):
+    """Start a session following the target in `box` on the feed `image_key`, drawn on frame `seq` (see
+    _InitOnFrame for `seq` and `frames`). `sid`: optional client-chosen session id; the service generates one when
+    absent. `profile` / `overrides`: TrackerConfig.profile(profile, **overrides).
+    """
+    image_key: Annotated[str, Field(min_length=1, max_length=MAX_IMAGE_KEY_LENGTH)]
     sid: Optional[Id] = None
     profile: Optional[Annotated[str, Field(max_length=32)]] = None
     overrides: Annotated[dict[str, Union[bool, int, float]], Field(max_length=MAX_OVERRIDES)] = {}
@@ -105,11 +140,9 @@ class StopRequest(WireModel):
     sid: Id
 
 
-class ReinitRequest(WireModel):
-    """Re-initialise a running session on a new box (e.g. the operator redraws it)."""
+class ReinitRequest(_InitOnFrame):
+    """Re-initialise a running session on a new box (e.g. the operator redraws it), drawn on frame `seq`."""
     sid: Id
-    box: InitBox
-    seq: Optional[Seq] = None
 
 
 class ListRequest(WireModel):

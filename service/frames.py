@@ -4,6 +4,7 @@ A start or reinit request may name the seq of the frame its box was drawn on; by
 arrives, newer frames have come in. The service keeps the last `depth` frames of each subscribed key (as the
 raw msgpack payloads, never decoded here) so that a worker is initialised on the frame the box belongs to
 and then catches up through the newer ones, instead of applying the box to a frame where the target has moved.
+A key is kept only while a session follows it: a request may carry its frame for when the service does not hold it.
 """
 from __future__ import annotations
 
@@ -130,20 +131,16 @@ class FrameHistory:
                     return frames[i:]
         return frames[-1:]
 
+    def frames_newer(self, key: str, seq: int) -> list[StoredFrame]:
+        """The kept frames of `key` with a seq above `seq` (in arrival order)."""
+        with self._cond:
+            history = self._keys.get(key)
+            return [f for f in history.frames if f.seq > seq] if history else []
+
     def frame(self, key: str, seq: int) -> StoredFrame | None:
         """The kept frame of `key` with `seq`, if any."""
         frames = self.frames_from(key, seq)
         return frames[0] if frames and frames[0].seq == seq else None
-
-    def frames_after(self, key: str, last: StoredFrame) -> list[StoredFrame]:
-        """Frames of `key` that arrived after `last` (all kept frames if `last` has left the ring)."""
-        with self._cond:
-            history = self._keys.get(key)
-            frames = list(history.frames) if history else []
-        for i, frame in enumerate(frames):
-            if frame is last:
-                return frames[i + 1:]
-        return frames
 
     def wait_for(self, key: str, seq: int | None, timeout: float, cancel: threading.Event | None = None) -> None:
         """Wait up to `timeout` s for a first frame of `key` (and, when seq is given, for that seq when it is

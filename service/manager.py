@@ -14,10 +14,11 @@ import secrets
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from tacf_schemas import (DecodeError, Health, ReinitRequest, SessionInfo, SessionList, StartRequest, decode, encode,
-                          health_key)
+from tacf_schemas import (DecodeError, Frame, Health, ReinitRequest, SessionInfo, SessionList, StartRequest,
+                          catch_up_subset, decode, encode, health_key)
 from tacf_schemas import Health as HealthModel
 from tacf_schemas.keys import InvalidKeyError, validate_image_key
 
@@ -146,10 +147,11 @@ class SessionManager:
             with self._lock:
                 self._sessions[session.sid] = session
             self._history.acquire(session.image_key)
-            self._queue_init(session, session.box, saved.last_seq, released=True)
-            last_frame = self._saved_frame(saved)
-            if last_frame is not None:          # the frame the last box belongs to: init there, then catch up
-                session.init_frames, session.saved_frame_seq = [last_frame], last_frame.seq
+            last_frame = self._saved_frame(saved)     # the frame the last box belongs to: init there, catch up
+            self._queue_init(session, session.box, saved.last_seq, released=True,
+                             carried=[last_frame] if last_frame is not None else [])
+            if last_frame is not None:
+                session.saved_frame_seq = last_frame.seq
             self._spawn(session)
             restored += 1
         if restored:
@@ -221,10 +223,12 @@ class SessionManager:
                                                         f"session(s) (--max-sessions {self.max_sessions})")
             self._sessions[sid] = session                      # reserved: the id and the slot
         try:
+            carried = _carried_frames(request.frames)
             self._history.acquire(image_key)
-            self._history.wait_for(image_key, request.seq, self._init_wait_s, cancel=self._closing)
+            if not carried:
+                self._history.wait_for(image_key, request.seq, self._init_wait_s, cancel=self._closing)
             self._check_open()
-            self._queue_init(session, session.box, request.seq, released=False)
+            self._queue_init(session, session.box, request.drawn_on, released=False, carried=carried)
             if session.init_frames:
                 _check_box_in_frame(session.box, session.init_frames[0])
             self._spawn(session)
@@ -234,7 +238,7 @@ class SessionManager:
         self._release_init(session)
         self._mark_dirty(save_now=True)
         log.info("started session %s on %s (profile %s, box %s, asked seq %s, init seq %s)", sid, image_key,
-                 profile, session.box, request.seq, session.init_seq)
+                 profile, session.box, request.drawn_on, session.init_seq)
         return session.info(self.node)
 
     def stop(self, sid: str) -> SessionInfo:
@@ -255,14 +259,15 @@ class SessionManager:
     def reinit(self, request: ReinitRequest) -> SessionInfo:
         with self._lock:
             session = self._get(request.sid)
-        frames = self._history.frames_from(session.image_key, request.seq)
+        carried = _carried_frames(request.frames)
+        frames = self._init_frames(session.image_key, request.drawn_on, carried)
         if frames:
             _check_box_in_frame(tuple(request.box), frames[0])
         with self._lock:
             session.box = tuple(request.box)
             session.gave_up, session.crashes = False, deque()
             session.state, session.message = "starting", None
-            self._queue_init(session, session.box, request.seq, released=True)
+            self._queue_init(session, session.box, request.drawn_on, released=True, carried=carried)
             needs_worker = session.process is None or session.process.exitcode is not None
             reply = session.info(self.node)
         if needs_worker:
@@ -271,7 +276,7 @@ class SessionManager:
         else:
             self._flush_init(session)
         self._mark_dirty(save_now=True)
-        log.info("re-initialised session %s with box %s (seq %s)", session.sid, request.box, request.seq)
+        log.info("re-initialised session %s with box %s (seq %s)", session.sid, request.box, request.drawn_on)
         return reply
 
     def list(self) -> SessionList:
@@ -391,10 +396,19 @@ class SessionManager:
             except (EOFError, OSError):
                 pass
 
-    def _queue_init(self, session: Session, box: tuple, seq: int | None, released: bool) -> None:
-        """Pin the frames to initialise on now (the frame `seq`, or the newest, and any newer ones), so that
-        they are still there when the worker is ready."""
-        frames = self._history.frames_from(session.image_key, seq)
+    def _init_frames(self, key: str, seq: int | None, carried: Sequence[StoredFrame]) -> list[StoredFrame]:
+        """The frames to initialise on: frame `seq` and the newer ones kept; else the carried frames (the one the
+        box was drawn on, then newer ones, sent with the request) and the newer ones kept; else the newest kept."""
+        frames = self._history.frames_from(key, seq)
+        if carried and not (frames and frames[0].seq == seq):
+            return list(carried) + self._history.frames_newer(key, carried[-1].seq)
+        return frames
+
+    def _queue_init(self, session: Session, box: tuple, seq: int | None, released: bool,
+                    carried: Sequence[StoredFrame] = ()) -> None:
+        """Pin the frames to initialise on now (see _init_frames), so that they are still there when the worker
+        is ready."""
+        frames = self._init_frames(session.image_key, seq, carried)
         if seq is not None and frames and frames[0].seq != seq:
             log.warning("session %s: frame seq %d is no longer kept; initialising on seq %d", session.sid, seq,
                         frames[0].seq)
@@ -415,10 +429,10 @@ class SessionManager:
             session.init_pending = False
             box, pinned, session.init_frames = session.init_box, session.init_frames, []
         if pinned:
-            frames = pinned + self._history.frames_after(session.image_key, pinned[-1])
+            frames = pinned + self._history.frames_newer(session.image_key, pinned[-1].seq)
         else:
             frames = self._history.frames_from(session.image_key, None)
-        frames = _catch_up_subset(frames, CATCHUP_FRAMES)
+        frames = catch_up_subset(frames, CATCHUP_FRAMES)
         self._send(session, ("init", box, [f.payload for f in frames]))
 
     def _send(self, session: Session, message: tuple) -> None:
@@ -605,14 +619,18 @@ def _new_sid() -> str:
     return "s" + secrets.token_hex(4)
 
 
-def _catch_up_subset(frames: list, limit: int) -> list:
-    """The first frame (the init frame), then at most `limit` newer ones evenly spaced, ending on the newest:
-    the tracker follows the target's motion without falling far behind a live feed."""
-    if len(frames) <= limit + 1:
-        return frames
-    rest = frames[1:]
-    step = len(rest) / limit
-    return [frames[0]] + [rest[min(len(rest) - 1, round((i + 1) * step) - 1)] for i in range(limit)]
+def _carried_frames(frames: list[Frame]) -> list[StoredFrame]:
+    """The frames a start or reinit request carries, each checked to decode (else the request is refused)."""
+    if not frames:
+        return []
+    from tacf_schemas.images import FrameError, decode_frame     # OpenCV, loaded only when frames come
+    for frame in frames:
+        try:
+            decode_frame(frame)
+        except FrameError as exc:
+            raise ServiceError("frame_rejected", f"the request's frame {frame.seq} cannot be decoded: {exc}") \
+                from None
+    return [StoredFrame(frame.seq, frame.width, frame.height, encode(frame)) for frame in frames]
 
 
 def _check_box_in_frame(box: tuple, frame: StoredFrame) -> None:

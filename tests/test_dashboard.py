@@ -165,6 +165,31 @@ def test_api_validates_and_reports_service_errors(stack):
     assert status == 200 and body["sid"] == "pre", body
 
 
+def test_a_box_drawn_on_a_shown_frame_starts_on_it_after_the_frame_is_gone(stack):
+    """An operator draws for seconds on a frame of a feed no session follows yet, so the service never held that
+    frame: the dashboard sends it with the start (it keeps the frames it showed), and the session starts on it."""
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, _ = stack
+    base = app.url.rstrip("/")
+    key = "test/dashboard/unfollowed"
+    with FramePublisher(client.session, key, MovingTargetScene(320, 240, target=48, speed=3.0), fps=10) as feed:
+        assert _post(base + "/api/watch", {"key": key})[0] == 200
+        status, headers, _ = _wait(lambda: (r := _get(f"{base}/frame/{key}")) and r[0] == 200 and r)
+        shown = int(headers["X-Seq"])
+        time.sleep(4.0)              # the operator draws; the dashboard's last received frames move past it
+        assert shown < feed.seq - 32
+        status, body = _post(base + "/api/start", {"image_key": key, "box": list(feed.truth[shown]), "seq": shown,
+                                                   "sid": "late"})
+        try:
+            assert status == 200 and body["init_seq"] == shown, body
+            first = next(client.iter_boxes("late", timeout=40))
+            assert box_iou(tuple(first.box), feed.truth[first.seq]) > 0.5, (first, feed.truth[first.seq])
+        finally:
+            client.stop("late")
+
+
 def test_event_stream_is_latest_only_and_rate_capped(stack):
     """Boxes arrive at ~20 Hz; a browser gets at most ~10 messages a second, each session once per message."""
     app, client, camera, service = stack

@@ -357,7 +357,8 @@ def test_lichtblick_gets_the_protocol_under_its_older_name(rig):
 def test_each_service_advertises_a_request_schema_lichtblick_can_parse(client):
     """Lichtblick builds each service's request writer from its advertised JSON schema and offers no service without
     one it can parse: an object whose fields are plain (boolean, string, number, integer, object, or an array of
-    those), no null and no anyOf. The fields are those of the service's request model, plus node."""
+    those), no null and no anyOf. The fields are those of the service's request model, plus node, less the frames
+    a box was drawn on: the bridge sends those itself, from the frames it showed."""
     from tacf_clients.foxglove_bridge import REQUEST_FIELDS
     from tacf_schemas.models import ListRequest, ReinitRequest, StartRequest, StopRequest
 
@@ -370,7 +371,7 @@ def test_each_service_advertises_a_request_schema_lichtblick_can_parse(client):
         assert request["schemaName"] == f"tacf.{name}_Request"
         schema = json.loads(request["schema"])
         assert_lichtblick_can_parse(schema, name)
-        assert set(schema["properties"]) == (set(models[name].model_fields) - {"v"}) | {"node"}, name
+        assert set(schema["properties"]) == (set(models[name].model_fields) - {"v", "frames"}) | {"node"}, name
         assert schema["properties"] == REQUEST_FIELDS[name]
         assert advertised["response"]["encoding"] == "json"
 

@@ -257,3 +257,11 @@ def test_error_replies_are_the_services_or_zenohs_own():
     text = decode_error_reply(b"\xffsome transport error")
     assert isinstance(text, str) and "transport error" in text and not is_deadline_reply(text)
     assert not is_deadline_reply(decode_error_reply(encode(Error(code="internal", message="timeout"))))
+
+
+def test_catch_up_subset_keeps_the_first_and_ends_on_the_newest():
+    from tacf_schemas import catch_up_subset
+    assert catch_up_subset(list(range(20)), 6) == [0, 3, 6, 10, 13, 16, 19]
+    assert catch_up_subset(list(range(5)), 6) == [0, 1, 2, 3, 4]
+    assert catch_up_subset(list(range(5)), 0) == [0]
+    assert catch_up_subset([], 3) == []

@@ -1,7 +1,7 @@
 """The tracking service in-process, over real Zenoh sessions on loopback (one service for the module).
 
 Covers start/list/status/stop, boxes following a moving target, init on the frame the box was drawn on,
-several sessions on one feed, reinit, latest-only under a fast publisher, every bad control input, bad frames
+several sessions on one feed, a box sent with its frame, reinit, latest-only under a fast publisher, every bad control input, bad frames
 counted in Health without harming other sessions, a worker SIGKILL and its recovery, the workers' fork server
 and its SIGKILL, too many sessions.
 """
@@ -23,7 +23,7 @@ zenoh = pytest.importorskip("zenoh")
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
 from tacf_schemas import (Frame, ReinitRequest, StartRequest, StatusRequest, StopRequest,
-                          control_key, encode, session_liveliness_key)
+                          catch_up_subset, control_key, decode, encode, session_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
@@ -184,6 +184,50 @@ def test_init_uses_the_frame_the_box_was_drawn_on(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="anchor"))
 
 
+def test_a_box_sent_with_its_frame_starts_there_on_a_feed_nobody_followed(service, client):
+    """The service keeps a feed's frames only while a session follows it, so the first session on a feed never
+    had the frame its box was drawn on. Sent with the request, that frame (and newer ones to catch up through)
+    is where the session starts; without it, the box lands on a newer frame, where the target has moved."""
+    seen: dict[int, Frame] = {}
+
+    def keep(sample):
+        frame = decode(sample.payload.to_bytes(), Frame)
+        seen[frame.seq] = frame
+
+    watcher = client.declare_subscriber("test/cam/first", keep)
+    scene = MovingTargetScene(640, 360, speed=4.0)
+    with FramePublisher(client, "test/cam/first", scene, fps=10) as feed:
+        try:
+            assert wait_until(lambda: feed.seq >= 12, 10)
+            drawn = feed.seq - 10                            # drawn on a frame 1 s old, before any session
+            assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+            since = catch_up_subset([seen[s] for s in sorted(seen) if s >= drawn], 7)
+            info = start(client, image_key=feed.key, box=feed.truth[drawn], seq=drawn, frames=since, sid="carried")
+            assert info.init_seq == drawn
+            results = Collector(client, NODE, "carried")
+            assert wait_until(lambda: len(results.results()) >= 10, 30)
+            assert mean_iou(results.results(), feed.truth) > 0.6
+            results.close()
+
+            drawn = feed.seq - 10
+            info = call(client, NODE, "reinit", ReinitRequest(sid="carried", box=feed.truth[drawn],
+                                                              frames=[seen[drawn]]))
+            assert info.init_seq == drawn                    # older than any frame the service holds
+            call(client, NODE, "stop", StopRequest(sid="carried"))
+
+            drawn = feed.seq - 10
+            assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+            info = start(client, image_key=feed.key, box=feed.truth[drawn], seq=drawn, sid="bare")
+            assert info.init_seq > drawn                     # the newest frame, with a box 40 px behind
+        finally:
+            for sid in ("carried", "bare"):
+                try:
+                    call(client, NODE, "stop", StopRequest(sid=sid))
+                except ControlError:
+                    pass
+            watcher.undeclare()
+
+
 def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
     results = Collector(client, NODE, "re")
     try:
@@ -246,6 +290,13 @@ def test_latest_only_under_a_fast_publisher(service, client):
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), overrides={"nope": 1})), "invalid_config"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), overrides={"cell_size": -3})),
      "invalid_config"),
+    ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), frames=[Frame(
+        seq=3, stamp_ns=0, encoding="jpeg", width=64, height=48, data=b"not a jpeg")])), "frame_rejected"),
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "seq": 4, "frames": [{
+        "seq": 3, "stamp_ns": 0, "encoding": "mono8", "width": 2, "height": 1, "data": b"ab"}]}), "invalid_request"),
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "frames": [
+        {"seq": s, "stamp_ns": 0, "encoding": "mono8", "width": 2, "height": 1, "data": b"ab"} for s in (3, 3)]}),
+     "invalid_request"),
     ("stop", encode(StopRequest(sid="nobody")), "unknown_session"),
     ("status", encode(StatusRequest(sid="nobody")), "unknown_session"),
     ("reinit", encode(ReinitRequest(sid="nobody", box=(1, 1, 5, 5))), "unknown_session"),
