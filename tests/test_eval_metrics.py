@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -108,6 +108,10 @@ def test_matches_got10k_formulas(pairs):
     pred = np.array([p for p, _ in pairs], float)
     gt = np.array([g for _, g in pairs], float)
     auc, p20, succ, prec = got10k_scores(pred, gt)
+    # got10k divides by union + eps, so an IoU within float noise of a threshold (hypothesis finds exact 0.5s)
+    # may fall on either side of it there and here: the curves are compared away from such ties.
+    ious = got10k_rect_iou(pred, gt)
+    assume(np.all(np.abs(ious[:, None] - np.linspace(0, 1, 21)[None, 1:-1]) > 1e-9))
     s = metrics.score(pred, gt)
     np.testing.assert_allclose(metrics.iou(pred, gt), got10k_rect_iou(pred, gt), atol=1e-9)
     np.testing.assert_allclose(s.success, succ)
