@@ -90,9 +90,9 @@ class TrackingClient:
         seq: the frame the box was drawn on (the service applies it to that frame if it still holds it).
         frames: that Frame itself, when you have it, then up to 7 newer ones (oldest first): the service then
         initialises on it and catches up through them even when it does not hold them (it keeps a feed's frames
-        only while a session follows it). sid: a session id of your choice
-        (else the service makes one). node: the service to run it on; needed only when several services are on
-        the network; LEAST_LOADED picks one (see `least_loaded`).
+        only while a session follows it).
+        sid: a session id of your choice (else the service makes one). node: the service to run it on; needed
+        only when several services are on the network; LEAST_LOADED picks one (see `least_loaded`).
         """
         request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, frames=list(frames),
                          sid=sid, profile=profile, overrides=dict(overrides or {}))

@@ -211,6 +211,7 @@ class SessionManager:
             check_tracker_config(profile, overrides)
         except (ValueError, TypeError) as exc:
             raise ServiceError("invalid_config", str(exc)) from None
+        carried = _carried_frames(request.frames)
         sid = request.sid or _new_sid()
         session = Session(sid=sid, image_key=image_key, profile=profile, overrides=overrides,
                           box=tuple(request.box), created_ns=time.time_ns())
@@ -223,7 +224,6 @@ class SessionManager:
                                                         f"session(s) (--max-sessions {self.max_sessions})")
             self._sessions[sid] = session                      # reserved: the id and the slot
         try:
-            carried = _carried_frames(request.frames)
             self._history.acquire(image_key)
             if not carried:
                 self._history.wait_for(image_key, request.seq, self._init_wait_s, cancel=self._closing)

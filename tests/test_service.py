@@ -209,6 +209,13 @@ def test_a_box_sent_with_its_frame_starts_there_on_a_feed_nobody_followed(servic
             assert mean_iou(results.results(), feed.truth) > 0.6
             results.close()
 
+            broken = seen[drawn].model_copy(update={"data": b"not a jpeg"})
+            with pytest.raises(ControlError) as err:
+                start(client, image_key=feed.key, box=feed.truth[drawn], frames=[broken], sid="broken")
+            assert err.value.code == "frame_rejected"
+            time.sleep(0.3)             # the refused start took nothing from the session that follows the feed
+            assert service.manager._history.frame(feed.key, feed.seq - 1) is not None
+
             drawn = feed.seq - 10
             info = call(client, NODE, "reinit", ReinitRequest(sid="carried", box=feed.truth[drawn],
                                                               frames=[seen[drawn]]))
