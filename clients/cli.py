@@ -306,11 +306,20 @@ def _print_info(info, as_json: bool, verb: str = "") -> None:
         print((verb + " " if verb else "") + describe_session(info))
 
 
+def _note_other_frame(asked: int | None, info) -> None:
+    """Say so when the box went onto another frame than the one named: the service no longer held it."""
+    if asked is not None and info.init_seq is not None and info.init_seq != asked:
+        print(f"note: the service did not hold frame {asked}; the box was applied to frame {info.init_seq} "
+              f"(a client that sends the frame with the request, as the dashboard does, avoids this)",
+              file=sys.stderr)
+
+
 def cmd_start(args: argparse.Namespace) -> int:
     with _client(args) as client:
         info = client.start(args.key, args.box, seq=args.seq, profile=args.profile, sid=args.sid,
                             overrides=dict(args.overrides), node=args.node)
         _print_info(info, args.json, "started")
+        _note_other_frame(args.seq, info)
     return 0
 
 
@@ -322,7 +331,9 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
 def cmd_reinit(args: argparse.Namespace) -> int:
     with _client(args) as client:
-        _print_info(client.reinit(args.sid, args.box, seq=args.seq), args.json, "re-initialised")
+        info = client.reinit(args.sid, args.box, seq=args.seq)
+        _print_info(info, args.json, "re-initialised")
+        _note_other_frame(args.seq, info)
     return 0
 
 
