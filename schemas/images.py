@@ -1,4 +1,5 @@
-"""Frame <-> image (numpy). Kept apart from the models so that importing tacf_schemas never loads OpenCV.
+"""Frame <-> image (numpy). Kept apart from the models so that importing tacf_schemas never loads OpenCV; here
+OpenCV is loaded only to encode or decode pixels, so check_frame serves processes that never need it.
 
 decode_frame accepts jpeg, png, bgr8 and mono8 and returns an HxWx3 BGR or HxW gray uint8 array. Encoded
 images have their header read *before* decoding, so a frame whose real size differs from width/height, or a
@@ -9,7 +10,6 @@ from __future__ import annotations
 import struct
 import time
 
-import cv2
 import numpy as np
 
 from .limits import MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH
@@ -34,18 +34,19 @@ def check_dimensions(width: int, height: int) -> None:
                                       f"({MAX_FRAME_WIDTH}x{MAX_FRAME_HEIGHT}, {MAX_FRAME_PIXELS} pixels)")
 
 
-def decode_frame(frame: Frame) -> np.ndarray:
-    """The frame's pixels: HxWx3 BGR uint8 (jpeg, png, bgr8) or HxW uint8 (mono8, gray jpeg/png).
-
-    Raw encodings return a read-only view of frame.data (no copy)."""
+def check_frame(frame: Frame) -> None:
+    """Everything decode_frame checks before it decodes the pixels (encoding, sizes, the image's header), without
+    OpenCV: FrameError if the frame cannot be an image of its stated size."""
     width, height, data = frame.width, frame.height, frame.data
     check_dimensions(width, height)
     if len(data) > MAX_FRAME_BYTES:
         raise FrameError("too_large", f"frame data of {len(data)} bytes exceeds {MAX_FRAME_BYTES}")
-    if frame.encoding == "bgr8":
-        return _raw(data, height, width, 3)
-    if frame.encoding == "mono8":
-        return _raw(data, height, width, 1)
+    if frame.encoding in ("bgr8", "mono8"):
+        channels = 3 if frame.encoding == "bgr8" else 1
+        if len(data) != height * width * channels:
+            raise FrameError("size_mismatch", f"raw frame of {width}x{height}x{channels} needs "
+                                              f"{height * width * channels} bytes, got {len(data)}")
+        return
     if frame.encoding == "jpeg":
         header_size = jpeg_size(data)
     elif frame.encoding == "png":
@@ -56,15 +57,29 @@ def decode_frame(frame: Frame) -> np.ndarray:
     if header_size != (width, height):
         raise FrameError("size_mismatch", f"{frame.encoding} image is {header_size[0]}x{header_size[1]} but "
                                           f"the frame says {width}x{height}")
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+
+
+def decode_frame(frame: Frame) -> np.ndarray:
+    """The frame's pixels: HxWx3 BGR uint8 (jpeg, png, bgr8) or HxW uint8 (mono8, gray jpeg/png).
+
+    Raw encodings return a read-only view of frame.data (no copy)."""
+    check_frame(frame)
+    if frame.encoding in ("bgr8", "mono8"):
+        shape = (frame.height, frame.width) if frame.encoding == "mono8" else (frame.height, frame.width, 3)
+        return np.frombuffer(frame.data, np.uint8).reshape(shape)
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise FrameError("corrupt", f"corrupt {frame.encoding} data ({len(data)} bytes)")
-    return _normalise(image, width, height, frame.encoding)
+        raise FrameError("corrupt", f"corrupt {frame.encoding} data ({len(frame.data)} bytes)")
+    return _normalise(image, frame.width, frame.height, frame.encoding)
 
 
 def encode_frame(image: np.ndarray, seq: int, encoding: str = "jpeg", *, quality: int = 90,
                  stamp_ns: int | None = None) -> Frame:
     """A Frame of an HxWx3 BGR or HxW gray uint8 image. bgr8 needs 3 channels, mono8 one."""
+    import cv2
+
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
         raise ValueError("image must be an HxW or HxWx3 uint8 numpy array")
     height, width = image.shape[:2]
@@ -87,16 +102,9 @@ def encode_frame(image: np.ndarray, seq: int, encoding: str = "jpeg", *, quality
                  width=width, height=height, data=data)
 
 
-def _raw(data: bytes, height: int, width: int, channels: int) -> np.ndarray:
-    expected = height * width * channels
-    if len(data) != expected:
-        raise FrameError("size_mismatch", f"raw frame of {width}x{height}x{channels} needs {expected} bytes, "
-                                          f"got {len(data)}")
-    shape = (height, width) if channels == 1 else (height, width, channels)
-    return np.frombuffer(data, np.uint8).reshape(shape)
-
-
 def _normalise(image: np.ndarray, width: int, height: int, encoding: str) -> np.ndarray:
+    import cv2
+
     if image.dtype != np.uint8:
         raise FrameError("unsupported_encoding", f"{encoding} with {image.dtype} pixels; only 8-bit is supported")
     if image.ndim == 3 and image.shape[2] == 4:

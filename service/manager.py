@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from tacf_schemas import (DecodeError, Frame, Health, ReinitRequest, SessionInfo, SessionList, StartRequest,
                           catch_up_subset, decode, encode, health_key)
 from tacf_schemas import Health as HealthModel
+from tacf_schemas.images import FrameError, check_frame
 from tacf_schemas.keys import InvalidKeyError, validate_image_key
 
 from .config import ZenohOptions
@@ -620,16 +621,14 @@ def _new_sid() -> str:
 
 
 def _carried_frames(frames: list[Frame]) -> list[StoredFrame]:
-    """The frames a start or reinit request carries, each checked to decode (else the request is refused)."""
-    if not frames:
-        return []
-    from tacf_schemas.images import FrameError, decode_frame     # OpenCV, loaded only when frames come
+    """The frames a start or reinit request carries, each checked as far as it can be without decoding its pixels
+    (encoding, sizes, the image's header; else the request is refused), so that this process never loads OpenCV.
+    A frame corrupt beyond its header is counted as rejected by the worker, which goes on to the next."""
     for frame in frames:
         try:
-            decode_frame(frame)
+            check_frame(frame)
         except FrameError as exc:
-            raise ServiceError("frame_rejected", f"the request's frame {frame.seq} cannot be decoded: {exc}") \
-                from None
+            raise ServiceError("frame_rejected", f"the request's frame {frame.seq} is not an image: {exc}") from None
     return [StoredFrame(frame.seq, frame.width, frame.height, encode(frame)) for frame in frames]
 
 
