@@ -217,7 +217,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
     from tacf_clients.client import TrackingClient
     from tacf_clients.local_service import LocalService
     from tacf_clients.zconfig import open_session
-    from tacf_schemas import BoxResult
+    from tacf_schemas import BoxResult, Frame
 
     n = len(feeds)
     service = LocalService(node=NODE, extra_args=("--max-sessions", str(n), "--spare-workers", "0")).start()
@@ -236,8 +236,10 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         client = TrackingClient(session=session, node=NODE, timeout=30.0)
         subscription = client.subscribe(on_box=on_box)
         publisher = FeedPublisher(session, feeds, fps).start()
-        for i, feed in enumerate(feeds):   # the box of frame 0; the service applies it to the next frame it gets
-            client.start(publisher.keys[i], feed.first_box, seq=0, profile=profile, sid=f"feed{i}")
+        for i, feed in enumerate(feeds):   # the box of frame 0, sent with frame 0 (the service may not have it)
+            first = Frame(seq=0, stamp_ns=time.time_ns(), encoding="jpeg", width=FRAME_SIZE[0], height=FRAME_SIZE[1],
+                          data=feed.jpegs[0])
+            client.start(publisher.keys[i], feed.first_box, seq=0, frames=[first], profile=profile, sid=f"feed{i}")
         deadline = time.monotonic() + 120      # worker processes start cold (--spare-workers 0)
         while time.monotonic() < deadline:
             with lock:
