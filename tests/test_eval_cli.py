@@ -148,7 +148,8 @@ def test_eval_result_files_are_one_based_got10k_format(evaluated):
 def test_eval_records_and_judges_each_tracker_s_lost_flag(evaluated):
     summary = json.loads((evaluated / "summary.json").read_text())
     flags = summary["lost_flag"]
-    assert (flags["failure_iou"], flags["tracked_iou"]) == (0.1, 0.5) and sorted(flags["trackers"]) == sorted(EVAL_TRACKERS)
+    assert (flags["failure_iou"], flags["tracked_iou"]) == (0.1, 0.5)
+    assert sorted(flags["trackers"]) == sorted(EVAL_TRACKERS)
     gt = {seq: np.loadtxt(SEQUENCES / seq / "groundtruth.txt", delimiter=",") for seq in ("UAV123_10fps/wakeboard7",
                                                                                       "UAVDT/S0601")}
     for name, judged in flags["trackers"].items():

@@ -1,9 +1,9 @@
 """The tracking service in-process, over real Zenoh sessions on loopback (one service for the module).
 
 Covers start/list/status/stop, boxes following a moving target, init on the frame the box was drawn on,
-several sessions on one feed, a box sent with its frame, reinit, latest-only under a fast publisher, every bad control input, bad frames
-counted in Health without harming other sessions, a worker SIGKILL and its recovery, the workers' fork server
-and its SIGKILL, too many sessions.
+several sessions on one feed, a box sent with its frame, reinit, latest-only under a fast publisher, every bad
+control input, bad frames counted in Health without harming other sessions, a worker SIGKILL and its recovery,
+the workers' fork server and its SIGKILL, too many sessions.
 """
 from __future__ import annotations
 
@@ -201,7 +201,8 @@ def test_a_box_sent_with_its_frame_starts_there_on_a_feed_nobody_followed(servic
             assert wait_until(lambda: feed.seq >= 12, 10)
             drawn = feed.seq - 10                            # drawn on a frame 1 s old, before any session
             assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
-            since = catch_up_subset([seen[s] for s in sorted(seen) if s >= drawn], 7)
+            shown = seen.copy()                              # the callback goes on adding frames
+            since = catch_up_subset([shown[s] for s in sorted(shown) if s >= drawn], 7)
             info = start(client, image_key=feed.key, box=feed.truth[drawn], seq=drawn, frames=since, sid="carried")
             assert info.init_seq == drawn
             results = Collector(client, NODE, "carried")
