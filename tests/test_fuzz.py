@@ -117,9 +117,10 @@ _INFO = SessionInfo(node="n1", sid="s1", image_key="uav1/cam", profile="kcc", ov
 SAMPLES = {
     "Frame": FRAMES["png"],
     "StartRequest": StartRequest(image_key="uav1/cam", box=(1, 2, 3, 4), seq=7, sid="fuzz-sid", profile="kcc",
-                                 overrides={"learning_rate": 0.02, "fast_fft": True, "cell_size": 4}),
+                                 overrides={"learning_rate": 0.02, "fast_fft": True, "cell_size": 4},
+                                 frames=[FRAMES["jpeg"], FRAMES["png"].model_copy(update={"seq": 8})]),
     "StopRequest": StopRequest(sid="fuzz-sid"),
-    "ReinitRequest": ReinitRequest(sid="fuzz-sid", box=(1, 2, 3, 4), seq=7),
+    "ReinitRequest": ReinitRequest(sid="fuzz-sid", box=(1, 2, 3, 4), seq=7, frames=[FRAMES["bgr8"]]),
     "ListRequest": ListRequest(),
     "StatusRequest": StatusRequest(sid="fuzz-sid"),
     "BoxResult": BoxResult(node="n1", sid="s1", seq=3, stamp_ns=4, box=(1.5, 2.5, 3.5, 4.5), width=640, height=360,
