@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -118,7 +119,8 @@ def got10k_auc(result_file: Path, gt_file: Path) -> float:
 
 def test_eval_summary_shape_and_values(evaluated):
     summary = json.loads((evaluated / "summary.json").read_text())
-    assert set(summary) == {"trackers", "lost_flag"} and sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
+    assert set(summary) == {"trackers", "lost_flag", "attributes"}
+    assert sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
     for name, t in summary["trackers"].items():
         assert set(t) == ENTRY_KEYS | {"sequences"}
         assert sorted(t["sequences"]) == ["UAV123_10fps/wakeboard7", "UAVDT/S0601"]
@@ -180,6 +182,40 @@ def test_eval_reports_plots_and_markdown(evaluated):
     md = (evaluated / "summary.md").read_text()
     assert md.startswith("| tracker | AUC | precision@20 | FPS |")
     assert all(name in md for name in EVAL_TRACKERS) and "UAVDT/S0601" in md
+
+
+def test_eval_scores_each_attribute_of_the_sequences(evaluated, tmp_path, capsys):
+    summary = json.loads((evaluated / "summary.json").read_text())
+    attributes = summary["attributes"]
+    # without labels they are derived from the ground truth: wakeboard7's target grows, changes shape and moves
+    # fast at 10 fps; S0601's car does none of that
+    assert attributes["source"] == "derived"
+    assert {a: v["sequences"] for a, v in attributes["attributes"].items()} == {
+        "SV": ["UAV123_10fps/wakeboard7"], "ARC": ["UAV123_10fps/wakeboard7"], "FM": ["UAV123_10fps/wakeboard7"]}
+    for name, t in summary["trackers"].items():
+        assert attributes["attributes"]["FM"]["trackers"][name] == {
+            "auc": t["sequences"]["UAV123_10fps/wakeboard7"]["auc"],
+            "precision20": t["sequences"]["UAV123_10fps/wakeboard7"]["precision20"], "sequences": 1}
+    assert "| FM (fast motion) | 1 |" in (evaluated / "summary.md").read_text()
+    assert (evaluated / "attributes_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # a table instead: nothing runs again, the attributes come from it
+    out = tmp_path / "out"
+    shutil.copytree(evaluated, out)
+    table = tmp_path / "attributes.txt"
+    table.write_text("S0601 LR POC\nUAV123_10fps/wakeboard7 LR\n")
+    assert main(["eval", str(SEQUENCES), "--sequences", EVAL_SEQS, "--trackers", ",".join(EVAL_TRACKERS),
+                 "--out", str(out), "--attributes", str(table), "--no-progress"]) == 0
+    attributes = json.loads((out / "summary.json").read_text())["attributes"]
+    assert attributes["source"] == "table"
+    assert {a: v["sequences"] for a, v in attributes["attributes"].items()} == {
+        "LR": ["UAV123_10fps/wakeboard7", "UAVDT/S0601"], "POC": ["UAVDT/S0601"]}
+    lr = attributes["attributes"]["LR"]["trackers"]["opencv-csrt"]
+    assert lr["auc"] == pytest.approx(summary["trackers"]["opencv-csrt"]["auc"]) and lr["sequences"] == 2
+    assert "Success AUC per attribute (from the --attributes table)" in capsys.readouterr().out
+    table.write_text("S0601 LR\nS0601 FM\n")
+    assert main(["eval", str(SEQUENCES), "--sequences", EVAL_SEQS, "--trackers", "opencv-csrt",
+                 "--out", str(out), "--attributes", str(table), "--no-progress"]) == 2
 
 
 def test_eval_resumes_and_force_reruns(evaluated, capsys):

@@ -9,6 +9,7 @@ import json
 import logging
 import re
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -58,6 +59,9 @@ def register(subparsers) -> None:
                    help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking, the "
                         "UAV123 MATLAB toolkit; one x,y,w,h row per frame, in the ground truth's pixel frame) as "
                         "tracker NAME, one pass; repeatable. With --results and no --trackers, nothing runs")
+    p.add_argument("--attributes", type=Path, metavar="FILE",
+                   help="sequence attributes for the per-attribute scores: 'name ATTR ATTR ...' lines (default: the "
+                        "benchmark's own, UAV123's att files, else SV, ARC, LR and FM derived from the ground truth)")
     p.add_argument("--videos", action="store_true",
                    help="also write videos/<sequence>.mp4: every tracker's boxes and the ground truth on the frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -89,7 +93,7 @@ def register_bench(bench_subparsers) -> None:
 
 
 def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frames: int | None = None):
-    from .datasets import Sequence, detect_layout, load_sequences
+    from .datasets import detect_layout, load_sequences
 
     layout = detect_layout(root)
     kwargs = {"ranges": ranges} if ranges is not None and layout == "uav123" else {}
@@ -97,7 +101,7 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
     if max_frames is not None:
         if max_frames < 1:
             raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
-        seqs = [Sequence(s.name, s.frames[:max_frames], s.gt[:max_frames]) for s in seqs]
+        seqs = [replace(s, frames=s.frames[:max_frames], gt=s.gt[:max_frames]) for s in seqs]
     log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
     return seqs
 
@@ -134,6 +138,7 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
 
 def cmd_eval(args: argparse.Namespace) -> int:
     from . import report
+    from .attributes import attributes_of, read_attribute_table
     from .runner import Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
     from .trackers import ABLATION
 
@@ -144,7 +149,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         trackers = list(ABLATION) if args.ablation else _names(args.trackers, default)
         seqs = _load(args.root, args.sequences, args.ranges, args.max_frames)
         imported = _imported(args.results, trackers, seqs, allow_longer=args.max_frames is not None)
-    except (ValueError, FileNotFoundError) as exc:
+        attribute_table = read_attribute_table(args.attributes) if args.attributes else None
+    except (ValueError, OSError) as exc:
         log.error("%s", exc)
         return 2
     if not seqs:
@@ -182,6 +188,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     lost_flag = report.lost_flag_summary(reports)
     if lost_flag["trackers"]:
         summary["lost_flag"] = lost_flag
+    source, attributes = attributes_of(seqs, attribute_table)
+    summary["attributes"] = report.attribute_scores(summary, attributes, source)
     paths = report.write_reports(args.out, summary, reports, seqs)
     if args.videos:
         paths["videos"] = _write_videos(args.out / "videos", seqs, reports, progress=not args.no_progress)

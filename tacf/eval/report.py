@@ -7,18 +7,21 @@ summary.json shape (read by other tools; docs DESIGN.md 6):
 A tracker's auc and precision20 are the means over its sequences (as benchmark tables report them);
 fps = total frames / total tracker seconds; frames = total frames tracked.
 With `tacf eval --shifts` summary.json also has "robustness", with `--tre` "temporal_robustness" (see `robustness`),
-and for the trackers that recorded their lost flag, "lost_flag" (see `lost_flag_summary`).
+for the trackers that recorded their lost flag, "lost_flag" (see `lost_flag_summary`), and "attributes", the scores
+per sequence attribute (see `attribute_scores`).
 """
 from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from . import metrics
+from .attributes import UAV123_ATTRIBUTES
 from .datasets import Sequence
 from .runner import read_confidence, read_run, result_path
 
@@ -67,8 +70,11 @@ class TrackerReport:
                 "frames": int(self.frames),
                 "sequences": self.sequences}
 
-    def mean_curves(self) -> tuple[np.ndarray, np.ndarray]:
-        return np.nanmean(self.success, axis=0), np.nanmean(self.precision, axis=0)
+    def mean_curves(self, names=None) -> tuple[np.ndarray, np.ndarray]:
+        """Mean success and precision curves over the sequences scored, or over those of them in `names`."""
+        picked = [i for i, name in enumerate(self.sequences) if names is None or name in names]
+        return (np.nanmean([self.success[i] for i in picked], axis=0),
+                np.nanmean([self.precision[i] for i in picked], axis=0))
 
 
 def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> TrackerReport:
@@ -159,6 +165,82 @@ def lost_flag_table(result: dict) -> str:
                      f"{t['failures']} | {percent(t['tracked_flagged'])} of {t['tracked']} | "
                      f"{percent(t['flags_on_failures'])} |")
     return "\n".join(lines) + "\n"
+
+
+def attribute_scores(summary: dict, attributes: dict[str, frozenset[str]], source: str) -> dict:
+    """summary.json's "attributes": for each attribute some sequence has, its sequences and every tracker's mean
+    AUC and precision over those it scored, as the benchmarks' per-attribute plots average them:
+    {"source": how the attributes were found, "attributes": {ATTR: {"name": f, "sequences": [SEQ, ...],
+    "trackers": {NAME: {"auc": f, "precision20": f, "sequences": n}}}}}"""
+    present = {a for labels in attributes.values() for a in labels}
+    known = [a for a in UAV123_ATTRIBUTES if a in present]
+    result = {"source": source, "attributes": {}}
+    for attribute in known + sorted(present - set(known)):
+        names = sorted(name for name, labels in attributes.items() if attribute in labels)
+        trackers = {}
+        for tracker, entry in summary["trackers"].items():
+            scored = [entry["sequences"][name] for name in names if name in entry["sequences"]]
+            trackers[tracker] = {key: float(np.mean([s[key] for s in scored])) if scored else float("nan")
+                                 for key in ("auc", "precision20")}
+            trackers[tracker]["sequences"] = len(scored)
+        result["attributes"][attribute] = {"name": UAV123_ATTRIBUTES.get(attribute, attribute), "sequences": names,
+                                           "trackers": trackers}
+    return result
+
+
+ATTRIBUTE_SOURCES = {"table": "from the --attributes table", "dataset": "the benchmark's own labels",
+                     "derived": "derived from the ground truth by UAV123's definitions"}
+
+
+def attribute_table(summary: dict) -> str:
+    """summary.json's "attributes" as markdown: one row per attribute, one AUC column per tracker (ranked)."""
+    result = summary.get("attributes", {})
+    if not result.get("attributes"):
+        return ""
+    ranked = [name for name, _ in _ranked(summary)]
+    lines = [f"Success AUC per attribute ({ATTRIBUTE_SOURCES[result['source']]}):", "",
+             "| attribute | sequences | " + " | ".join(ranked) + " |", "|---|---|" + "---|" * len(ranked)]
+    for attribute, a in result["attributes"].items():
+        cells = [_f(a["trackers"][name]["auc"]) for name in ranked]
+        lines.append(f"| {attribute} ({a['name']}) | {len(a['sequences'])} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_attributes(reports: list[TrackerReport], result: dict, out_dir: Path) -> Path:
+    """attributes_plot.png: a success plot per attribute, each tracker's mean curve over that attribute's
+    sequences, best first in each legend, as the benchmark papers draw them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    attributes = result["attributes"]
+    cols = math.ceil(math.sqrt(len(attributes)))
+    rows = math.ceil(len(attributes) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols, 3.6 * rows), dpi=100, squeeze=False)
+    xs = metrics.IOU_THRESHOLDS
+    for ax, (attribute, a) in zip(axes.flat, attributes.items()):
+        curves = []
+        for i, r in enumerate(reports):
+            names = set(a["sequences"]) & set(r.sequences)
+            if names:
+                success, _ = r.mean_curves(names)
+                curves.append((float(np.mean(success)), i, r.name, success))
+        for auc, i, name, success in sorted(curves, key=lambda c: -c[0]):
+            ax.plot(xs, success, label=f"{name} [{auc:.3f}]", linewidth=1.5, **_line_style(i))
+        ax.set(title=f"{a['name']} ({attribute}, {len(a['sequences'])} sequences)", xlabel="Overlap threshold",
+               ylabel="Success rate", xlim=(xs[0], xs[-1]), ylim=(0, 1.01))
+        ax.grid(alpha=0.3)
+        if curves:
+            ax.legend(loc="upper right", fontsize=7)
+    for ax in axes.flat[len(attributes):]:
+        ax.axis("off")
+    fig.suptitle(f"Success plots of OPE per attribute ({ATTRIBUTE_SOURCES[result['source']]})")
+    fig.tight_layout()
+    path = Path(out_dir) / "attributes_plot.png"
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def _ranked(summary: dict) -> list[tuple[str, dict]]:
@@ -391,9 +473,10 @@ ROBUSTNESS_KEYS = {"shifts": "robustness", "tre": "temporal_robustness"}  # prot
 
 
 def analysis_tables(summary: dict) -> str:
-    """The robustness and lost-flag tables a summary holds, each after a blank line; empty when it holds none."""
+    """The robustness, lost-flag and attribute tables a summary holds, each after a blank line; empty when it holds
+    none."""
     tables = [robustness_table(summary[key]) for key in ROBUSTNESS_KEYS.values() if summary.get(key, {}).get("trackers")]
-    tables.append(lost_flag_table(summary.get("lost_flag", {})))
+    tables += [lost_flag_table(summary.get("lost_flag", {})), attribute_table(summary)]
     return "".join("\n" + table for table in tables if table)
 
 
@@ -438,8 +521,8 @@ def _finite(obj):
 
 def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
                   sequences: list[Sequence]) -> dict[str, Path]:
-    """summary.json, summary.md, the two plots, one overlap plot per sequence and, with a robustness entry, its
-    plot, in `out_dir`."""
+    """summary.json, summary.md, the two plots, one overlap plot per sequence and, with a robustness, lost-flag or
+    attribute entry, its plot, in `out_dir`."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {}
@@ -451,6 +534,8 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
     plot_overlaps(reports, sequences, out_dir)
     if summary.get("lost_flag", {}).get("trackers"):
         paths["lost_flag_plot"] = plot_lost_flags(reports, summary["lost_flag"], out_dir)
+    if summary.get("attributes", {}).get("attributes"):
+        paths["attributes_plot"] = plot_attributes(reports, summary["attributes"], out_dir)
     paths.update({"json": js, "markdown": md, "success_plot": success, "precision_plot": precision,
                   "overlap_plots": out_dir / "overlap"})
     for key in ROBUSTNESS_KEYS.values():

@@ -17,7 +17,7 @@ import logging
 import multiprocessing
 import time
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -124,7 +124,7 @@ class Start:
         if not len(candidates):
             return None
         first = segment_start + int(candidates[0])
-        return Sequence(seq.name, seq.frames[first:], seq.gt[first:])
+        return replace(seq, frames=seq.frames[first:], gt=seq.gt[first:])
 
     def sequences(self, seqs: list[Sequence]) -> list[Sequence]:
         return [part for part in map(self.sequence, seqs) if part is not None]

@@ -18,11 +18,13 @@ _DIGITS = re.compile(r"(\d+)")
 @dataclass(frozen=True, eq=False)
 class Sequence:
     """One annotated sequence: `name` relative to the dataset root (posix, e.g. 'UAV123_10fps/wakeboard7'),
-    `frames` the image paths in order, `gt` an N x 4 float array of 0-based x,y,w,h (NaN rows = target absent)."""
+    `frames` the image paths in order, `gt` an N x 4 float array of 0-based x,y,w,h (NaN rows = target absent),
+    `attributes` the benchmark's own attribute labels (e.g. 'FM', 'SV'), None where it ships none."""
 
     name: str
     frames: tuple[Path, ...]
     gt: np.ndarray = field(repr=False)
+    attributes: frozenset[str] | None = None
 
     def __post_init__(self) -> None:
         gt = np.asarray(self.gt, dtype=np.float64)
@@ -87,9 +89,10 @@ def list_frames(folder: Path, prefix: str = "") -> list[Path]:
     return sorted(files, key=natural_key)
 
 
-def make_sequence(name: str, frames: list[Path], gt: np.ndarray) -> Sequence:
+def make_sequence(name: str, frames: list[Path], gt: np.ndarray,
+                  attributes: frozenset[str] | None = None) -> Sequence:
     """A Sequence, cutting frames or ground truth to the shorter of the two (with a warning)."""
     n = min(len(frames), len(gt))
     if len(frames) != len(gt):
         log.warning("%s: %d frames but %d ground-truth rows; using the first %d", name, len(frames), len(gt), n)
-    return Sequence(name, tuple(frames[:n]), gt[:n])
+    return Sequence(name, tuple(frames[:n]), gt[:n], attributes)

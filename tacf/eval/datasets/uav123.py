@@ -2,6 +2,7 @@
 
     <ROOT>/data_seq/<set>/<folder>/000001.jpg ...
     <ROOT>/anno/<set>/<seq>.txt                   (comma-separated x,y,w,h, 1-based, NaN rows = absent)
+    <ROOT>/anno/<set>/att/<seq>.txt               (12 attribute flags, optional; see ..attributes)
 
 Several sequences are frame ranges of one folder (group1_2 = frames 445..839 of data_seq/UAV123_10fps/group1).
 The ranges come from the benchmark's own table: the `configSeqs.m` the release ships (struct('name','group1_2',
@@ -17,6 +18,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..attributes import read_uav123_flags
 from .base import Sequence, list_frames, make_sequence, read_boxes
 
 log = logging.getLogger(__name__)
@@ -112,5 +114,8 @@ def load(root: Path, ranges: dict[str, FrameRange] | Path | None = None) -> list
                 continue
             gt = read_boxes(anno)
             last = rng.last if rng.last else rng.first + len(gt) - 1
-            seqs.append(make_sequence(f"{set_dir.name}/{name}", _frame_range(frames, rng.first, last), gt))
+            flags = set_dir / "att" / anno.name
+            attributes = read_uav123_flags(flags) if flags.is_file() else None
+            seqs.append(make_sequence(f"{set_dir.name}/{name}", _frame_range(frames, rng.first, last), gt,
+                                      attributes))
     return seqs
