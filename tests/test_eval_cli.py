@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -14,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 
+import tacf
 from tacf.cli import main
 from tacf.config import TrackerConfig
 from tacf.eval import metrics, trackers
@@ -119,8 +121,13 @@ def got10k_auc(result_file: Path, gt_file: Path) -> float:
 
 def test_eval_summary_shape_and_values(evaluated):
     summary = json.loads((evaluated / "summary.json").read_text())
-    assert set(summary) == {"trackers", "lost_flag", "attributes"}
+    assert set(summary) == {"trackers", "lost_flag", "attributes", "run"}
     assert sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
+    run = summary["run"]      # where the numbers came from
+    assert run["arguments"]["trackers"] == [",".join(EVAL_TRACKERS)] and run["arguments"]["root"] == str(SEQUENCES)
+    assert (run["pairs_run"], run["pairs_recorded_before"]) == (6, 0)
+    assert run["tacf"] == tacf.__version__ and run["numpy"] == np.__version__ and run["cpus"] >= 1
+    assert run["commit"] is None or re.fullmatch(r"[0-9a-f]{40}(\+dirty)?", run["commit"])
     for name, t in summary["trackers"].items():
         assert set(t) == ENTRY_KEYS | {"sequences"}
         assert sorted(t["sequences"]) == ["UAV123_10fps/wakeboard7", "UAVDT/S0601"]
@@ -292,6 +299,24 @@ def test_track_bad_arguments(tmp_path):
     assert main(["track", str(tmp_path), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2   # empty folder
 
 
+def test_the_commit_recorded_is_the_checkout_s_and_says_when_it_was_changed(tmp_path):
+    from tacf.eval.provenance import source_commit
+
+    assert source_commit(tmp_path) is None                          # not a checkout (an installed wheel)
+    (tmp_path / "tacf").mkdir()
+    (tmp_path / "tacf" / "a.py").write_text("x = 1\n")
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run(git + ["init", "-q"], check=True)
+    subprocess.run(git + ["add", "."], check=True)
+    subprocess.run(git + ["commit", "-q", "-m", "a"], check=True)
+    head = subprocess.run(git + ["rev-parse", "HEAD"], check=True, capture_output=True, text=True).stdout.strip()
+    assert source_commit(tmp_path) == head
+    (tmp_path / "notes.txt").write_text("untracked files do not count\n")
+    assert source_commit(tmp_path) == head
+    (tmp_path / "tacf" / "a.py").write_text("x = 2\n")
+    assert source_commit(tmp_path) == head + "+dirty"
+
+
 # --- tacf bench tracker -------------------------------------------------------------------------------------
 @needs_data
 def test_bench_tracker_json(tmp_path):
@@ -304,7 +329,8 @@ def test_bench_tracker_json(tmp_path):
     assert set(r["ms_per_frame"]) >= {"p50", "p95"} and r["ms_per_frame"]["p95"] >= r["ms_per_frame"]["p50"]
     assert r["peers"]["opencv-csrt"]["fps"] > 0 and r["peers"]["opencv-csrt"]["frames"] == 10
     assert r["sequences"]["UAV123_10fps/wakeboard7"]["frames"] == 10
-    assert r["opencv"] == cv2.__version__
+    assert r["opencv"] == r["run"]["opencv"] == cv2.__version__
+    assert r["run"]["arguments"]["trackers"] == ["opencv-kcf"] and r["run"]["arguments"]["max_frames"] == 10
     assert 0 < r["cores"] < 1.5 and 0 < r["peers"]["opencv-csrt"]["cores"] < 1.5, "one core each"
 
 

@@ -139,6 +139,7 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
 def cmd_eval(args: argparse.Namespace) -> int:
     from . import report
     from .attributes import attributes_of, read_attribute_table
+    from .provenance import provenance
     from .runner import Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
     from .trackers import ABLATION
 
@@ -190,6 +191,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         summary["lost_flag"] = lost_flag
     source, attributes = attributes_of(seqs, attribute_table)
     summary["attributes"] = report.attribute_scores(summary, attributes, source)
+    summary["run"] = {**provenance(args), "pairs_run": len(jobs), "pairs_recorded_before": skipped}
     paths = report.write_reports(args.out, summary, reports, seqs)
     if args.videos:
         paths["videos"] = _write_videos(args.out / "videos", seqs, reports, progress=not args.no_progress)
@@ -246,6 +248,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import bench, is_uav
+    from .provenance import provenance
 
     root = args.root
     if root is None:
@@ -264,7 +267,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if not seqs:
         log.error("no sequences to benchmark in %s", root)
         return 2
-    result = bench(trackers, seqs, max_frames=args.max_frames)
+    result = {**bench(trackers, seqs, max_frames=args.max_frames), "run": provenance(args)}
     text = json.dumps(result, indent=2) + "\n"
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
