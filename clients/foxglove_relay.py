@@ -68,7 +68,8 @@ class SubprotocolRelay:
                 for task in (forward, back):
                     task.cancel()
                 await asyncio.gather(forward, back, return_exceptions=True)
-        except (OSError, TimeoutError, ConnectionClosed) as exc:
+        # asyncio.TimeoutError: before Python 3.11 it is not the builtin TimeoutError (an OSError)
+        except (OSError, asyncio.TimeoutError, ConnectionClosed) as exc:
             log.info("foxglove relay: %s closed: %s", client.remote_address, exc)
         finally:
             self._clients.discard(client)
@@ -83,7 +84,7 @@ class SubprotocolRelay:
         self._server.close()          # also closes every connection, politely
         try:
             await asyncio.wait_for(self._server.wait_closed(), CLOSE_TIMEOUT_S)
-        except TimeoutError:          # a viewer that stopped reading blocks its own close: drop it
+        except asyncio.TimeoutError:  # a viewer that stopped reading blocks its own close: drop it
             for client in self._clients:
                 client.transport.abort()
             await self._server.wait_closed()
