@@ -124,7 +124,8 @@ def test_eval_summary_shape_and_values(evaluated):
     assert set(summary) == {"trackers", "lost_flag", "attributes", "run"}
     assert sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
     run = summary["run"]      # where the numbers came from
-    assert run["arguments"]["trackers"] == [",".join(EVAL_TRACKERS)] and run["arguments"]["root"] == str(SEQUENCES.resolve())
+    assert run["arguments"]["trackers"] == [",".join(EVAL_TRACKERS)]
+    assert run["arguments"]["root"] == str(SEQUENCES.resolve())
     assert (run["pairs_run"], run["pairs_recorded_before"]) == (6, 0)
     assert run["tacf"] == tacf.__version__ and run["numpy"] == np.__version__ and run["cpus"] >= 1
     assert run["commit"] is None or re.fullmatch(r"[0-9a-f]{40}(\+dirty)?", run["commit"])
