@@ -17,8 +17,8 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from tacf_schemas import (DecodeError, Frame, Health, ReinitRequest, SessionInfo, SessionList, StartRequest,
-                          catch_up_subset, decode, encode, health_key)
+from tacf_schemas import (MSGPACK_ENCODING, DecodeError, Frame, Health, ReinitRequest, SessionInfo, SessionList,
+                          StartRequest, catch_up_subset, decode, encode, health_key)
 from tacf_schemas import Health as HealthModel
 from tacf_schemas.images import FrameError, check_frame
 from tacf_schemas.keys import InvalidKeyError, validate_image_key
@@ -28,7 +28,7 @@ from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
-from .worker import Assignment, WorkerSpec, run_worker, worker_context
+from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, run_worker, worker_context
 
 log = logging.getLogger(__name__)
 
@@ -563,6 +563,8 @@ class SessionManager:
 
     def _publish_health(self, session: Session, state: str, message: str | None) -> None:
         """Health on behalf of a session whose worker cannot publish it (dead or stopped)."""
+        import zenoh
+
         last = session.health
         counters = last.model_dump(include={"frames_received", "frames_processed", "frames_dropped",
                                             "frames_rejected", "frames_lost", "pme", "last_seq"}) if last else {}
@@ -570,8 +572,10 @@ class SessionManager:
                         processing_ms_mean=0.0, processing_ms_p95=0.0, restarts=session.restarts,
                         message=(message or "")[:1024] or None, **counters)
         session.health = health
+        priority = getattr(zenoh.Priority, HEALTH_PRIORITY)
         try:
-            self._zenoh.put(health_key(self.node, session.sid), encode(health))
+            self._zenoh.put(health_key(self.node, session.sid), encode(health),
+                            encoding=zenoh.Encoding(MSGPACK_ENCODING), priority=priority)
         except Exception as exc:
             log.debug("cannot publish health of %s: %s", session.sid, exc)
 

@@ -48,6 +48,9 @@ HEALTH_PERIOD_S = 1.0
 STALL_S = 2.0               # no frame for this long: health says the session is waiting for frames
 STALE_WINDOW = 64           # a frame up to this many seqs behind the last one used, and not newer, is stale
 MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogus seq, not frames lost in the ring
+# Zenoh priorities, by name (Zenoh loads only after the fork): above the frames' DATA, so that on a link that also
+# carries frames Zenoh sends boxes and health ahead of the frames queued for it (docs/service.md, "A thin link").
+BOX_PRIORITY, HEALTH_PRIORITY = "INTERACTIVE_HIGH", "DATA_HIGH"
 CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
 COMMAND_POLL_S = 0.1
 
@@ -219,8 +222,10 @@ class Worker:
         encoding = zenoh.Encoding(MSGPACK_ENCODING)
         node, sid = self.spec.node, self.job.sid
         token = session.liveliness().declare_token(session_liveliness_key(node, sid))
-        self._box_pub = session.declare_publisher(box_key(node, sid), encoding=encoding, express=True)
-        self._health_pub = session.declare_publisher(health_key(node, sid), encoding=encoding)
+        self._box_pub = session.declare_publisher(box_key(node, sid), encoding=encoding, express=True,
+                                                  priority=getattr(zenoh.Priority, BOX_PRIORITY))
+        self._health_pub = session.declare_publisher(health_key(node, sid), encoding=encoding,
+                                                     priority=getattr(zenoh.Priority, HEALTH_PRIORITY))
         frames = session.declare_subscriber(self.job.image_key, zenoh.handlers.RingChannel(1))
         self._pump = threading.Thread(target=self._pump_frames, args=(frames.handler,), name="frames", daemon=True)
         self._pump.start()

@@ -22,7 +22,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
-from tacf_schemas import (Frame, ReinitRequest, StartRequest, StatusRequest, StopRequest,
+from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
                           catch_up_subset, control_key, decode, encode, session_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
@@ -131,6 +131,25 @@ def test_boxes_follow_moving_target_and_several_targets_in_one_feed(service, cli
         static.close()
         for sid in ("mover", "patch"):
             call(client, NODE, "stop", StopRequest(sid=sid))
+
+
+def test_boxes_and_health_go_out_ahead_of_frames(service, client, feed):
+    """Above the frames' default priority (DATA), so that on a link that also carries frames (a ground station
+    pulling the feed over a radio link) Zenoh sends them first; docs/service.md measures what that buys."""
+    samples = []                                          # (box or health, priority, payload)
+    sub = client.declare_subscriber(f"tacf/{NODE}/sessions/ahead/*", lambda s: samples.append(
+        (str(s.key_expr).rsplit("/", 1)[1], s.priority, s.payload.to_bytes())))
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="ahead")
+        assert wait_until(lambda: {"box", "health"} <= {kind for kind, _, _ in list(samples)}, 20)
+        call(client, NODE, "stop", StopRequest(sid="ahead"))    # the last health is the service's, for the worker
+        assert wait_until(lambda: any(kind == "health" and decode(payload, Health).state == "stopped"
+                                      for kind, _, payload in list(samples)), 10)
+        priorities = {kind: {str(priority) for k, priority, _ in list(samples) if k == kind}
+                      for kind in ("box", "health")}
+        assert priorities == {"box": {str(zenoh.Priority.INTERACTIVE_HIGH)}, "health": {str(zenoh.Priority.DATA_HIGH)}}
+    finally:
+        sub.undeclare()
 
 
 def test_frames_with_the_target_lost_are_counted_in_health(service, client, feed):
