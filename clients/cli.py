@@ -465,6 +465,7 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
         return 2
     from tacf_clients.dashboard import Dashboard
     from tacf_clients.dashboard_http import tls_context
+    from tacf_clients.zconfig import viewer_options
 
     try:
         if args.keyfile and not args.certfile:
@@ -475,7 +476,7 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
         return 2
     with stop_on_signals() as stop:
         try:
-            with Dashboard(options_from_args(args), image_keys=args.keys, node=args.node,
+            with Dashboard(viewer_options(options_from_args(args)), image_keys=args.keys, node=args.node,
                            max_frame_fps=args.image_hz) as board, \
                  FoxgloveBridge(board, host=args.host, port=args.port, image_hz=args.image_hz,
                                 control=args.control, tls=tls, record=args.record) as bridge:
@@ -500,6 +501,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     from tacf.zenoh_options import options_from_args
     from tacf_clients.dashboard_access import TOKEN_ENV, DashboardAccess
     from tacf_clients.dashboard_http import serve, tls_context
+    from tacf_clients.zconfig import viewer_options
 
     def ready(url: str) -> None:
         print(f"tacf dashboard: open {url} in a browser (Ctrl-C to stop)", flush=True)
@@ -518,7 +520,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
         return 2
     with stop_on_signals() as stop:
         try:
-            return serve(options_from_args(args), host=args.host, port=args.port, image_keys=args.keys,
+            return serve(viewer_options(options_from_args(args)), host=args.host, port=args.port, image_keys=args.keys,
                          node=args.node, history_s=args.history * 60, access=access, tls=tls, stop=stop,
                          on_ready=ready)
         except OSError as exc:

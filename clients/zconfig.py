@@ -12,6 +12,7 @@ these arguments) never load it.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -47,6 +48,18 @@ def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
     for key, value in options.extra:
         conf.insert_json5(key, value)
     return conf
+
+
+def viewer_options(options: ZenohOptions) -> ZenohOptions:
+    """The options of a client that shows frames (dashboard, Foxglove bridge). From another machine (every
+    --connect endpoint off this host, no --listen, --mode or config file) it runs as a Zenoh *client*: it listens
+    nowhere then, and as a peer it would get boxes (the service routes its workers') but no frames, since a
+    camera on the edge box listens on loopback only and peers do not relay for peers; the box it connects to
+    routes everything for a client (measured across two network namespaces, docs/thin_link.md)."""
+    remote = options.connect and not any(map(_is_loopback, options.connect))
+    if remote and options.mode is None and options.config_file is None and not options.listen:
+        return dataclasses.replace(options, mode="client")
+    return options
 
 
 def _is_loopback(endpoint: str) -> bool:

@@ -49,7 +49,7 @@ STALL_S = 2.0               # no frame for this long: health says the session is
 STALE_WINDOW = 64           # a frame up to this many seqs behind the last one used, and not newer, is stale
 MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogus seq, not frames lost in the ring
 # Zenoh priorities, by name (Zenoh loads only after the fork): above the frames' DATA, so that on a link that also
-# carries frames Zenoh sends boxes and health ahead of the frames queued for it (docs/service.md, "A thin link").
+# carries frames Zenoh sends boxes and health ahead of the frames queued for it (docs/thin_link.md).
 BOX_PRIORITY, HEALTH_PRIORITY = "INTERACTIVE_HIGH", "DATA_HIGH"
 CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
 COMMAND_POLL_S = 0.1

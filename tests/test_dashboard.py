@@ -8,6 +8,7 @@ Set TACF_DASHBOARD_SCREENSHOT=docs/dashboard.png to keep the browser's screensho
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import http.client
 import json
@@ -31,6 +32,7 @@ from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
+from tacf_clients.zconfig import ZenohOptions, viewer_options
 from tacf_service.loopback import wait_until
 from camera_rig import no_service_options, service_and_camera, tacf_command
 
@@ -221,6 +223,19 @@ def test_event_stream_is_latest_only_and_rate_capped(stack):
         assert len(ids) == len(set(ids))
     seqs = [s["box"]["seq"] for data in updates for s in data["sessions"] if s["sid"] == "pre" and s["box"]]
     assert seqs == sorted(seqs) and len(set(seqs)) > 3, seqs
+
+
+def test_a_viewer_on_another_machine_runs_as_a_zenoh_client():
+    """As a peer listening nowhere it would get boxes but no frames from a camera on the edge box, which listens
+    on loopback only (measured across two network namespaces, docs/thin_link.md)."""
+    remote = ZenohOptions(connect=("tcp/10.0.0.5:7447",))
+    assert viewer_options(remote) == dataclasses.replace(remote, mode="client")
+    for kept in (ZenohOptions(), ZenohOptions(connect=("tcp/127.0.0.1:7447",)),
+                 ZenohOptions(connect=("tcp/10.0.0.5:7447",), mode="peer"),
+                 ZenohOptions(connect=("tcp/10.0.0.5:7447",), listen=("tcp/10.0.0.9:7447",)),
+                 ZenohOptions(connect=("tcp/10.0.0.5:7447",), config_file="ground.json5"),
+                 ZenohOptions(connect=("tcp/10.0.0.5:7447", "tcp/127.0.0.1:7447"))):
+        assert viewer_options(kept) is kept          # told otherwise, or able to reach this host's cameras
 
 
 def test_healthz_without_any_service():

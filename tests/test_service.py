@@ -135,7 +135,7 @@ def test_boxes_follow_moving_target_and_several_targets_in_one_feed(service, cli
 
 def test_boxes_and_health_go_out_ahead_of_frames(service, client, feed):
     """Above the frames' default priority (DATA), so that on a link that also carries frames (a ground station
-    pulling the feed over a radio link) Zenoh sends them first; docs/service.md measures what that buys."""
+    pulling the feed over a radio link) Zenoh sends them first; docs/thin_link.md measures what that buys."""
     samples = []                                          # (box or health, priority, payload)
     sub = client.declare_subscriber(f"tacf/{NODE}/sessions/ahead/*", lambda s: samples.append(
         (str(s.key_expr).rsplit("/", 1)[1], s.priority, s.payload.to_bytes())))
