@@ -53,18 +53,19 @@ def two_hosts():
         try:
             _ip("netns", "add", edge)
             _ip("netns", "add", ground)
+            _ip("link", "add", f"tacfe{tag}", "type", "veth", "peer", "name", f"tacfg{tag}")
+            for ns, device, address in ((edge, f"tacfe{tag}", EDGE_ADDRESS), (ground, f"tacfg{tag}", "10.213.0.2")):
+                _ip("link", "set", device, "netns", ns)
+                _ip("-n", ns, "addr", "add", f"{address}/24", "dev", device)
+                _ip("-n", ns, "link", "set", "lo", "up")
+                _ip("-n", ns, "link", "set", device, "up")
         except subprocess.CalledProcessError as exc:
-            pytest.skip(f"cannot make network namespaces here: {exc.stderr.strip()}")
-        _ip("link", "add", f"tacfe{tag}", "type", "veth", "peer", "name", f"tacfg{tag}")
-        for ns, device, address in ((edge, f"tacfe{tag}", EDGE_ADDRESS), (ground, f"tacfg{tag}", "10.213.0.2")):
-            _ip("link", "set", device, "netns", ns)
-            _ip("-n", ns, "addr", "add", f"{address}/24", "dev", device)
-            _ip("-n", ns, "link", "set", "lo", "up")
-            _ip("-n", ns, "link", "set", device, "up")
+            pytest.skip(f"cannot link two network namespaces here: {exc.stderr.strip()}")
         yield edge, ground
     finally:
-        for ns in (edge, ground):          # takes the veth pair with it
+        for ns in (edge, ground):          # takes the veth pair with it, once moved in
             subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=10)
+        subprocess.run(["ip", "link", "del", f"tacfe{tag}"], capture_output=True, timeout=10)  # if it never was
 
 
 def _in(namespace: str, *command: str) -> list[str]:
