@@ -142,8 +142,8 @@ def test_boxes_and_health_go_out_ahead_of_frames(service, client, feed):
     try:
         start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="ahead")
         assert wait_until(lambda: {"box", "health"} <= {kind for kind, _, _ in list(samples)}, 20)
-        call(client, NODE, "stop", StopRequest(sid="ahead"))    # the last health is the service's, for the worker
-        assert wait_until(lambda: any(kind == "health" and decode(payload, Health).state == "stopped"
+        call(client, NODE, "stop", StopRequest(sid="ahead"))    # the service publishes a health for the worker
+        assert wait_until(lambda: any(kind == "health" and decode(payload, Health).message == "stopped by request"
                                       for kind, _, payload in list(samples)), 10)
         priorities = {kind: {str(priority) for k, priority, _ in list(samples) if k == kind}
                       for kind in ("box", "health")}
