@@ -149,8 +149,9 @@ class SessionManager:
                 self._sessions[session.sid] = session
             self._history.acquire(session.image_key)
             last_frame = self._saved_frame(saved)     # the frame the last box belongs to: init there, catch up
-            self._queue_init(session, session.box, saved.last_seq, released=True,
-                             carried=[last_frame] if last_frame is not None else [])
+            carried = [last_frame] if last_frame is not None else []
+            frames = self._init_frames(session.image_key, saved.last_seq, carried)
+            self._queue_init(session, session.box, saved.last_seq, released=True, frames=frames)
             if last_frame is not None:
                 session.saved_frame_seq = last_frame.seq
             self._spawn(session)
@@ -229,9 +230,10 @@ class SessionManager:
             if not carried:
                 self._history.wait_for(image_key, request.seq, self._init_wait_s, cancel=self._closing)
             self._check_open()
-            self._queue_init(session, session.box, request.drawn_on, released=False, carried=carried)
-            if session.init_frames:
-                _check_box_in_frame(session.box, session.init_frames[0])
+            frames = self._init_frames(image_key, request.drawn_on, carried)
+            if frames:
+                _check_box_in_frame(session.box, frames[0])
+            self._queue_init(session, session.box, request.drawn_on, released=False, frames=frames)
             self._spawn(session)
         except BaseException:
             self._discard(session)
@@ -268,7 +270,7 @@ class SessionManager:
             session.box = tuple(request.box)
             session.gave_up, session.crashes = False, deque()
             session.state, session.message = "starting", None
-            self._queue_init(session, session.box, request.drawn_on, released=True, carried=carried)
+            self._queue_init(session, session.box, request.drawn_on, released=True, frames=frames)
             needs_worker = session.process is None or session.process.exitcode is not None
             reply = session.info(self.node)
         if needs_worker:
@@ -406,10 +408,9 @@ class SessionManager:
         return frames
 
     def _queue_init(self, session: Session, box: tuple, seq: int | None, released: bool,
-                    carried: Sequence[StoredFrame] = ()) -> None:
-        """Pin the frames to initialise on now (see _init_frames), so that they are still there when the worker
-        is ready."""
-        frames = self._init_frames(session.image_key, seq, carried)
+                    frames: list[StoredFrame]) -> None:
+        """Pin `frames`, those to initialise on (_init_frames: the ones the box was checked against), so that they
+        are still there when the worker is ready."""
         if seq is not None and frames and frames[0].seq != seq:
             log.warning("session %s: frame seq %d is no longer kept; initialising on seq %d", session.sid, seq,
                         frames[0].seq)
@@ -555,7 +556,8 @@ class SessionManager:
             if self._sessions.get(session.sid) is not session:
                 return
             session.restarts += 1
-            self._queue_init(session, session.box, session.last_seq, released=True)
+            self._queue_init(session, session.box, session.last_seq, released=True,
+                             frames=self._init_frames(session.image_key, session.last_seq, ()))
         log.info("restarting session %s from box %s (seq %s), restart #%d", session.sid, session.box,
                  session.last_seq, session.restarts)
         self._spawn(session)
