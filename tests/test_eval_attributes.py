@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from tacf.eval.attributes import (UAV123_ATTRIBUTES, attributes_of, derived_attributes, read_attribute_table,
-                                  read_uav123_flags)
+from tacf.eval.attributes import (OTB_ATTRIBUTES, UAV123_ATTRIBUTES, attributes_of, derived_attributes,
+                                  read_attribute_table, read_uav123_flags)
 from tacf.eval.datasets import Sequence, load_sequences
 from tacf.eval.report import attribute_scores, attribute_table
 
@@ -81,6 +81,34 @@ def test_the_uav123_loader_reads_the_att_files_beside_the_annotations(tmp_path):
     assert source == "dataset" and found == {"UAV123_10fps/boat1": {"FM"}, "UAV123_10fps/boat2": frozenset()}
 
 
+def test_otb_folders_carry_their_attributes_in_attrs_txt(tmp_path):
+    """The OTB benchmark's Python toolkit keeps each sequence's attributes in its folder: `SV, DEF, FM, OPR, BC`."""
+    image = cv2.imencode(".jpg", np.zeros((4, 6, 3), np.uint8))[1].tobytes()
+    for name in ("Crossing", "Jogging", "Couple"):
+        (tmp_path / name / "img").mkdir(parents=True)
+        for i in range(1, 4):
+            (tmp_path / name / "img" / f"{i:04d}.jpg").write_bytes(image)
+    (tmp_path / "Crossing" / "groundtruth_rect.txt").write_text("1,1,2,2\n" * 3)
+    (tmp_path / "Crossing" / "attrs.txt").write_text("SV, DEF, FM, OPR, BC")
+    for target in (1, 2):  # a two-target folder: its attributes are both targets'
+        (tmp_path / "Jogging" / f"groundtruth_rect.{target}.txt").write_text("1\t1\t2\t2\n" * 3)
+    (tmp_path / "Jogging" / "attrs.txt").write_text("OCC, DEF, OPR\n")
+    (tmp_path / "Couple" / "groundtruth_rect.txt").write_text("1,1,2,2\n" * 3)
+    seqs = {s.name: s for s in load_sequences(tmp_path)}
+    assert seqs["Crossing"].attributes == frozenset({"SV", "DEF", "FM", "OPR", "BC"})
+    assert seqs["Jogging-1"].attributes == seqs["Jogging-2"].attributes == frozenset({"OCC", "DEF", "OPR"})
+    assert seqs["Couple"].attributes is None
+    source, found = attributes_of(seqs.values())
+    assert source == "dataset" and found["Couple"] == frozenset()
+    summary = {"trackers": {"a": {"auc": 0.5, "sequences": {name: {"auc": 0.5, "precision20": 0.5}
+                                                             for name in seqs}}}}
+    result = attribute_scores(summary, found, source)
+    # UAV123's codes in its order first, then OTB's own, each named
+    assert list(result["attributes"]) == ["SV", "FM", "BC", "OCC", "DEF", "OPR"]
+    assert [result["attributes"][a]["name"] for a in ("BC", "OPR")] == ["background clutter", "out-of-plane rotation"]
+    assert len(OTB_ATTRIBUTES) == 11
+
+
 def test_an_attribute_table_names_sequences_in_full_or_by_their_last_part(tmp_path, caplog):
     table = tmp_path / "attributes.txt"
     table.write_text("# name attributes\nUAV123_10fps/truck2 FM,SOB\nwakeboard7  ARC   # the short name\n\n")
@@ -94,6 +122,8 @@ def test_an_attribute_table_names_sequences_in_full_or_by_their_last_part(tmp_pa
     assert "UAVDT/S0601: not in the attribute table" in caplog.text
     refused(read_attribute_table, table, "a FM\na SV\n", "'a' listed twice")
     refused(read_attribute_table, table, "# nothing\n", "no sequences listed")
+    table.write_text("Basketball\tIV, OCC, DEF, OPR, BC\nBiker\tFM, LR\n")  # OTB's own attribute list
+    assert read_attribute_table(table) == {"Basketball": {"IV", "OCC", "DEF", "OPR", "BC"}, "Biker": {"FM", "LR"}}
 
 
 def test_without_labels_the_attributes_are_derived_from_the_ground_truth():

@@ -2,9 +2,12 @@
 
 Three sources, one per run (`attributes_of`):
 - a table given with `tacf eval --attributes FILE`: one line per sequence, its name (as `--sequences` matches it,
-  or only its last part) then its attributes, e.g. `UAV123_10fps/truck2 FM SOB`;
+  or only its last part) then its attributes, e.g. `UAV123_10fps/truck2 FM SOB`; OTB's attribute lists
+  (`Basketball<TAB>IV, OCC, DEF, OPR, BC`) are such tables;
 - the benchmark's own files: the UAV123 release's `anno/<set>/att/<seq>.txt`, one line of 12 flags in the order
-  of UAV123_ATTRIBUTES (read by the uav123 loader);
+  of UAV123_ATTRIBUTES (read by the uav123 loader), and the `attrs.txt` that OTB sequence folders carry in the
+  OTB benchmark's Python toolkit (jwlim/tracker_benchmark), one line of codes such as `SV, DEF, FM, OPR, BC`
+  (read by the folders loader);
 - otherwise the four that UAV123 defines by the ground truth alone (`derived_attributes`), for any dataset.
 """
 from __future__ import annotations
@@ -24,6 +27,12 @@ UAV123_ATTRIBUTES = {"SV": "scale variation", "ARC": "aspect ratio change", "LR"
                      "FM": "fast motion", "FOC": "full occlusion", "POC": "partial occlusion", "OV": "out of view",
                      "BC": "background clutter", "IV": "illumination variation", "VC": "viewpoint change",
                      "CM": "camera motion", "SOB": "similar object"}
+#: OTB's attributes (Wu et al., TPAMI 2015), in the order of its tables.
+OTB_ATTRIBUTES = {"IV": "illumination variation", "SV": "scale variation", "OCC": "occlusion", "DEF": "deformation",
+                  "MB": "motion blur", "FM": "fast motion", "IPR": "in-plane rotation", "OPR": "out-of-plane rotation",
+                  "OV": "out of view", "BC": "background clutter", "LR": "low resolution"}
+#: Every attribute code known by name, UAV123's first; the six codes the two share have the same names.
+ATTRIBUTE_NAMES = {**UAV123_ATTRIBUTES, **OTB_ATTRIBUTES}
 
 # UAV123's definitions (Mueller et al., ECCV 2016, table 1): a change by more than a factor 2 from the first box,
 # a box under 400 pixels, a move of more than 20 pixels between consecutive frames.
@@ -72,6 +81,11 @@ def read_uav123_flags(path: Path) -> frozenset[str]:
     if len(flags) != len(UAV123_ATTRIBUTES):
         raise ValueError(f"{path}: expected {len(UAV123_ATTRIBUTES)} 0/1 flags, got {len(flags)}")
     return frozenset(name for name, flag in zip(UAV123_ATTRIBUTES, flags) if flag > 0)
+
+
+def read_attribute_list(path: Path) -> frozenset[str]:
+    """An OTB sequence folder's attrs.txt: the sequence's attribute codes, separated by commas or spaces."""
+    return frozenset(p for p in _SEPARATORS.split(Path(path).read_text()) if p)
 
 
 def read_attribute_table(path: Path) -> dict[str, frozenset[str]]:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics
-from .attributes import UAV123_ATTRIBUTES
+from .attributes import ATTRIBUTE_NAMES
 from .datasets import Sequence
 from .runner import read_confidence, read_run, result_path
 
@@ -173,7 +173,7 @@ def attribute_scores(summary: dict, attributes: dict[str, frozenset[str]], sourc
     {"source": how the attributes were found, "attributes": {ATTR: {"name": f, "sequences": [SEQ, ...],
     "trackers": {NAME: {"auc": f, "precision20": f, "sequences": n}}}}}"""
     present = {a for labels in attributes.values() for a in labels}
-    known = [a for a in UAV123_ATTRIBUTES if a in present]
+    known = [a for a in ATTRIBUTE_NAMES if a in present]
     result = {"source": source, "attributes": {}}
     for attribute in known + sorted(present - set(known)):
         names = sorted(name for name, labels in attributes.items() if attribute in labels)
@@ -183,7 +183,7 @@ def attribute_scores(summary: dict, attributes: dict[str, frozenset[str]], sourc
             trackers[tracker] = {key: float(np.mean([s[key] for s in scored])) if scored else float("nan")
                                  for key in ("auc", "precision20")}
             trackers[tracker]["sequences"] = len(scored)
-        result["attributes"][attribute] = {"name": UAV123_ATTRIBUTES.get(attribute, attribute), "sequences": names,
+        result["attributes"][attribute] = {"name": ATTRIBUTE_NAMES.get(attribute, attribute), "sequences": names,
                                            "trackers": trackers}
     return result
 

@@ -4,6 +4,7 @@ generic: <ROOT>/[<dataset>/...]<seq>/img/*.jpg + groundtruth.txt (comma-separate
          VOT folders also hold groundtruth_poly.txt, which is ignored.
 OTB:     <ROOT>/<seq>/img/*.jpg + groundtruth_rect.txt (comma, tab or space separated, 1-based); the
          two-target sequences ship groundtruth_rect.1.txt / .2.txt and become <seq>-1 / <seq>-2.
+         An attrs.txt beside them (OTB's Python toolkit: `SV, DEF, FM, OPR, BC`) gives the attributes.
 Folders may be nested to any depth; a sequence's name is its folder path relative to ROOT.
 """
 from __future__ import annotations
@@ -13,11 +14,13 @@ import os
 import re
 from pathlib import Path
 
+from ..attributes import read_attribute_list
 from .base import Sequence, list_frames, make_sequence, read_boxes
 
 log = logging.getLogger(__name__)
 
 GENERIC_GT = "groundtruth.txt"
+ATTRIBUTES = "attrs.txt"
 OTB_GT = re.compile(r"^groundtruth_rect(?:\.(\d+))?\.txt$")
 # OTB sequences whose annotation starts later than image 1 (OTB-100 configSeqs: David starts at frame 300).
 OTB_FIRST_FRAME = {"david": 300}
@@ -65,8 +68,9 @@ def load(root: Path) -> list[Sequence]:
         rel = folder.relative_to(root).as_posix()
         base = folder.name if rel == "." else rel
         frames = _frames_of(folder)
+        attributes = read_attribute_list(folder / ATTRIBUTES) if (folder / ATTRIBUTES).is_file() else None
         for suffix, gt_path in _gt_files(folder):
             gt = read_boxes(gt_path)
             first = OTB_FIRST_FRAME.get(folder.name.lower(), 1) if len(frames) > len(gt) else 1
-            seqs.append(make_sequence(base + suffix, frames[first - 1:], gt))
+            seqs.append(make_sequence(base + suffix, frames[first - 1:], gt, attributes))
     return seqs
