@@ -64,7 +64,8 @@ class Session:
     box: tuple                          # the last box (initial box until the first result)
     created_ns: int
     init_seq: int | None = None         # the frame to (re)initialise on, then the one it was initialised on
-    last_seq: int | None = None
+    last_seq: int | None = None         # the frame `box` belongs to
+    box_frame: StoredFrame | None = None   # that frame while it may be in no history (carried by a request)
     restarts: int = 0
     state: str = "starting"
     message: str | None = None
@@ -83,6 +84,7 @@ class Session:
     awaiting_init: bool = False         # results older than the pending init are ignored until "initialised"
     gave_up: bool = False               # failed for good (bad box or config, crash loop): no restart
     stopping: bool = False
+    holds_history: bool = False         # holds a reference on its image key's frame history (released once)
     saved_frame_seq: int | None = None  # the seq of the frame stored with the persisted table
     restart_at: float | None = None
     crashes: deque = field(default_factory=deque)
@@ -147,7 +149,7 @@ class SessionManager:
                               init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts)
             with self._lock:
                 self._sessions[session.sid] = session
-            self._history.acquire(session.image_key)
+            self._hold_history(session)
             last_frame = self._saved_frame(saved)     # the frame the last box belongs to: init there, catch up
             carried = [last_frame] if last_frame is not None else []
             frames = self._init_frames(session.image_key, saved.last_seq, carried)
@@ -226,7 +228,7 @@ class SessionManager:
                                                         f"session(s) (--max-sessions {self.max_sessions})")
             self._sessions[sid] = session                      # reserved: the id and the slot
         try:
-            self._history.acquire(image_key)
+            self._hold_history(session)
             if not carried:
                 self._history.wait_for(image_key, request.seq, self._init_wait_s, cancel=self._closing)
             self._check_open()
@@ -249,10 +251,11 @@ class SessionManager:
             session = self._get(sid)
             del self._sessions[sid]
             session.stopping = True
+            process = session.process           # _spawn attaches a worker under the lock, or not at all now
         self._send(session, ("stop",))
-        _reap([session.process] if session.process else [], time.monotonic() + STOP_GRACE_S)
+        _reap([process] if process else [], time.monotonic() + STOP_GRACE_S)
         _close_conn(session)
-        self._history.release(session.image_key)
+        self._release_history(session)
         session.state = "stopped"
         self._publish_health(session, "stopped", "stopped by request")
         self._mark_dirty(save_now=True)
@@ -323,29 +326,59 @@ class SessionManager:
         if session.process is not None:
             _reap([session.process], time.monotonic() + STOP_GRACE_S)
         _close_conn(session)
-        self._history.release(session.image_key)
+        self._release_history(session)
+
+    def _hold_history(self, session: Session) -> None:
+        self._history.acquire(session.image_key)
+        with self._lock:
+            session.holds_history = True
+
+    def _release_history(self, session: Session) -> None:
+        """Release the session's reference on its frame history, once: a stop and a failing start may both try."""
+        with self._lock:
+            held, session.holds_history = session.holds_history, False
+        if held:
+            self._history.release(session.image_key)
+
+    def _is_gone(self, session: Session) -> bool:
+        """Stopped, or replaced in the table: a start, reinit or restart still running for it must not go on."""
+        return session.stopping or self._sessions.get(session.sid) is not session
 
     # ------------------------------------------------------------------ workers
 
     def _spawn(self, session: Session) -> None:
-        """Give the session a worker: a warm spare when there is one, else a new process."""
+        """Give the session a worker: a warm spare when there is one, else a new process. A session stopped in
+        the meantime (a stop while a start waited for a frame) gets none: ServiceError unknown_session. The
+        check and the attachment are one step under the lock, and stop() reads the worker under it, so a worker
+        is either attached before the stop, which then stops it, or never."""
         assignment = Assignment(sid=session.sid, image_key=session.image_key, profile=session.profile,
                                 overrides=session.overrides, restarts=session.restarts)
         with self._lock:
+            if self._is_gone(session):
+                raise _stopped_meanwhile(session, self.node)
             idle = [w for w in self._spares if w.idle and w.process.exitcode is None]
             handle = idle[0] if idle else None
             if handle is not None:
                 self._spares.remove(handle)
         if handle is None:
             handle = self._new_worker()
+        with self._lock:
+            gone = self._is_gone(session)
+            if gone and idle:
+                self._spares.append(handle)     # still a warm, unassigned spare
+            elif not gone:
+                session.worker = handle
+                session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
+                session.restart_at = None
+                if session.state == "failed" and not session.gave_up:
+                    session.state = "starting"
+        if gone:
+            if not idle:
+                handle.process.terminate()
+                _quiet_close(handle.conn)
+            raise _stopped_meanwhile(session, self.node)
         with handle.recv_lock:
             handle.owner = session
-        with self._lock:
-            session.worker = handle
-            session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
-            session.restart_at = None
-            if session.state == "failed" and not session.gave_up:
-                session.state = "starting"
         self._send(session, ("assign", assignment))
         log.debug("worker pid %d serves session %s%s", handle.process.pid, session.sid,
                   " (warm spare)" if idle else "")
@@ -416,6 +449,10 @@ class SessionManager:
                         frames[0].seq)
         session.init_box, session.init_frames = tuple(box), frames
         session.init_seq = frames[0].seq if frames else seq
+        # The box now belongs to the init frame: a restart or a restored service initialises there, not on the
+        # frame the last result came from.
+        session.box, session.last_seq = tuple(box), session.init_seq
+        session.box_frame = frames[0] if frames else None
         session.init_pending, session.init_released = True, released
         session.awaiting_init = True
 
@@ -503,7 +540,7 @@ class SessionManager:
             with self._lock:
                 if session.awaiting_init:
                     return              # computed before the new init reached the worker: stale
-                session.last_seq, session.box = seq, tuple(box)
+                session.last_seq, session.box, session.box_frame = seq, tuple(box), None
                 if not session.gave_up:
                     session.state = "tracking" if ok else "lost"
             self._dirty = True
@@ -553,14 +590,18 @@ class SessionManager:
 
     def _restart(self, session: Session) -> None:
         with self._lock:
-            if self._sessions.get(session.sid) is not session:
-                return
+            if self._is_gone(session) or session.restart_at is None:
+                return                          # stopped, or given a worker by a reinit since it was due
             session.restarts += 1
+            carried = [session.box_frame] if session.box_frame is not None else []
             self._queue_init(session, session.box, session.last_seq, released=True,
-                             frames=self._init_frames(session.image_key, session.last_seq, ()))
+                             frames=self._init_frames(session.image_key, session.last_seq, carried))
         log.info("restarting session %s from box %s (seq %s), restart #%d", session.sid, session.box,
                  session.last_seq, session.restarts)
-        self._spawn(session)
+        try:
+            self._spawn(session)
+        except ServiceError:
+            return                              # stopped meanwhile
         self._dirty = True
 
     def _publish_health(self, session: Session, state: str, message: str | None) -> None:
@@ -597,13 +638,16 @@ class SessionManager:
         with self._lock:
             sessions = list(self._sessions.values())
             table = [s.persisted() for s in sessions]
+            box_frames = [s.box_frame for s in sessions]
             self._dirty = False
         self._saved_at = now
         try:
-            for session, entry in zip(sessions, table):
+            for session, entry, box_frame in zip(sessions, table, box_frames):
                 if entry.last_seq is None or entry.last_seq == session.saved_frame_seq:
                     continue
                 frame = self._history.frame(session.image_key, entry.last_seq)
+                if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:
+                    frame = box_frame               # carried by a start or reinit: in no history
                 if frame is not None:
                     self._store.save_frame(session.sid, frame.payload)
                     session.saved_frame_seq = entry.last_seq
@@ -636,6 +680,10 @@ def _carried_frames(frames: list[Frame]) -> list[StoredFrame]:
         except FrameError as exc:
             raise ServiceError("frame_rejected", f"the request's frame {frame.seq} is not an image: {exc}") from None
     return [StoredFrame(frame.seq, frame.width, frame.height, encode(frame)) for frame in frames]
+
+
+def _stopped_meanwhile(session: Session, node: str) -> ServiceError:
+    return ServiceError("unknown_session", f"session {session.sid!r} on node {node!r} was stopped meanwhile")
 
 
 def _check_box_in_frame(box: tuple, frame: StoredFrame) -> None:

@@ -52,6 +52,7 @@ MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogu
 # carries frames Zenoh sends boxes and health ahead of the frames queued for it (docs/thin_link.md).
 BOX_PRIORITY, HEALTH_PRIORITY = "INTERACTIVE_HIGH", "DATA_HIGH"
 CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
+RESIZE_ASPECT_TOLERANCE = 0.02   # a new frame size within this of the old aspect ratio shows the same view
 COMMAND_POLL_S = 0.1
 
 
@@ -158,6 +159,7 @@ class Worker:
         self._tracker = None
         self._init_box: tuple | None = None      # box to initialise on the next frame
         self._image_shape: tuple | None = None   # shape of the frame the tracker was initialised on
+        self._last_box: tuple | None = None      # the box of the last frame tracked (or initialised on)
         self._state = "starting"
         self._message: str | None = None
         self._stats = None
@@ -343,8 +345,7 @@ class Worker:
             self._initialise(image, frame)
             return
         if image.shape != self._image_shape:
-            self._reject(f"frame size {image.shape[1]}x{image.shape[0]} differs from the init frame "
-                         f"{self._image_shape[1]}x{self._image_shape[0]}; reinit the session")
+            self._follow_new_size(image, frame)
             return
         # A tracker with locate() and learn() (tacf.Tracker) gives the box before it learns from the frame: the
         # box is sent in between, so its latency excludes the model update.
@@ -382,11 +383,30 @@ class Worker:
             self._send(("failed", self._message))
             self._publish_health()
             return
-        self._image_shape = image.shape
+        self._image_shape, self._last_box = image.shape, tuple(box)
         self._init_box = None
         self._state = "tracking"
         self._send(("initialised", frame.seq))
         log.info("initialised on seq %d with box %s", frame.seq, box)
+
+    def _follow_new_size(self, image, frame) -> None:
+        """A feed whose frame size changes (a stream adapting its resolution to the link, a camera reopened, a
+        colour camera switching to grey) mostly shows the same view: the tracker starts again on this frame from
+        the last box, scaled. A different aspect ratio is a different view (a crop) that no scaling maps: the
+        session is then lost until a reinit gives it a box on the new frames."""
+        (old_height, old_width), (height, width) = self._image_shape[:2], image.shape[:2]
+        scale_x, scale_y = width / old_width, height / old_height
+        change = f"frame size {old_width}x{old_height} -> {width}x{height}"
+        if abs(scale_x / scale_y - 1.0) > RESIZE_ASPECT_TOLERANCE:
+            self._state = "lost"
+            self._reject(f"{change} changes the aspect ratio; reinit the session with a box on the new frames")
+            return
+        x, y, w, h = self._last_box
+        self._init_box = (x * scale_x, y * scale_y, w * scale_x, h * scale_y)
+        log.info("%s: re-initialising from the last box, scaled", change)
+        self._initialise(image, frame)
+        if self._state == "tracking":
+            self._message = f"{change}: re-initialised on seq {frame.seq} from the last box, scaled"
 
     def _reject(self, reason: str) -> None:
         self._stats.rejected()
@@ -397,6 +417,7 @@ class Worker:
     def _publish_box(self, frame, result, processing_ms: float) -> None:
         from tacf_schemas import BoxResult, encode
         box = tuple(float(c) for c in result.box)
+        self._last_box = box
         message = BoxResult(node=self.spec.node, sid=self.job.sid, seq=frame.seq, stamp_ns=frame.stamp_ns,
                             box=box, width=frame.width, height=frame.height, ok=bool(result.ok),
                             pme=_finite(result.pme), score=_finite(result.score), scale=_finite(result.scale),

@@ -10,9 +10,11 @@ from __future__ import annotations
 import os
 import signal
 import statistics
+import threading
 import time
 from pathlib import Path
 
+import cv2
 import msgpack
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -27,6 +29,7 @@ from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequ
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
+from tacf_service.frames import StoredFrame
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
@@ -491,6 +494,115 @@ def test_fork_server_sigkill_restarts_its_sessions_once(service, client, feed):
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="orphan"))
+
+
+def test_a_session_stopped_while_it_starts_gets_no_worker(service, client, feed):
+    """A start waits up to init_wait_s for the frame its box was drawn on; a stop meanwhile ends the session. The
+    start then fails (no worker goes on serving the stopped session, publishing "starting" health for it), and a
+    start failing for its own reason afterwards (a box outside the frame) does not release the frame history a
+    second time, which would take it from another session on the same feed."""
+    start(client, service, image_key=feed.key, box=feed.truth[feed.seq], sid="keeper")
+    watch = Collector(client, NODE, "racy")
+    try:
+        for box in (feed.truth[feed.seq], (5000.0, 5000.0, 64.0, 64.0)):
+            assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+            outcome = {}
+
+            def starting():
+                try:
+                    outcome["info"] = start(client, image_key=feed.key, box=box, seq=feed.seq + 1000, sid="racy")
+                except ControlError as exc:
+                    outcome["error"] = exc.code
+            thread = threading.Thread(target=starting)
+            thread.start()
+            time.sleep(0.3)                                     # the start is waiting for seq + 1000
+            assert call(client, NODE, "stop", StopRequest(sid="racy")).state == "stopped"
+            thread.join(10)
+            assert outcome.get("error") in ("unknown_session", "invalid_box"), outcome
+            time.sleep(2.5)                                     # an orphaned worker says "starting" every second
+            assert {h.state for h in watch.health} == {"stopped"}, [h.state for h in watch.health]
+            assert not list(client.liveliness().get(session_liveliness_key(NODE, "racy"), timeout=1))
+            assert "racy" not in service.manager.worker_pids()
+            assert service.manager._history.frame(feed.key, feed.seq - 1) is not None   # still kept for keeper
+    finally:
+        watch.close()
+        call(client, NODE, "stop", StopRequest(sid="keeper"))
+
+
+def test_a_reinit_box_stays_with_its_frame_through_a_worker_restart(service, client):
+    """A reinit pairs the new box with the frame it was drawn on, here one the request carries and the service
+    never received. Until the next result that pair is what a restart initialises on, and what the state file
+    keeps for a restarted service: not the new box on the last frame tracked before the reinit."""
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher("test/cam/paused")
+    results = Collector(client, NODE, "paired")
+
+    def play(first: int, end: int) -> None:
+        for i in range(first, end):
+            publisher.put(encode(encode_frame(scene.frame(i)[0], i, "jpeg", quality=85)))
+            time.sleep(0.1)
+    try:
+        play(0, 5)
+        start(client, service, image_key="test/cam/paused", box=scene.box(4), seq=4, sid="paired")
+        play(5, 15)
+        assert wait_until(lambda: results.results() and results.results()[-1].seq == 14, 10)
+        carried = encode_frame(scene.frame(90)[0], 90, "jpeg", quality=85)   # the camera paused; drawn on 90
+        call(client, NODE, "reinit", ReinitRequest(sid="paired", box=scene.box(90), seq=90, frames=[carried]))
+        info = call(client, NODE, "status", StatusRequest(sid="paired"))
+        assert (info.init_seq, info.last_seq, info.box) == (90, 90, scene.box(90))
+        store = service.manager._store
+        assert wait_until(lambda: StoredFrame.from_payload(store.load_frame("paired")).seq == 90, 5)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="paired")).state == "tracking", 10)
+        os.kill(service.manager.worker_pids()["paired"], signal.SIGKILL)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="paired")).restarts == 1, 10)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="paired")).state == "tracking", 30)
+        assert call(client, NODE, "status", StatusRequest(sid="paired")).init_seq == 90
+        count = len(results.results())
+        play(91, 106)                                           # the camera is back
+        assert wait_until(lambda: results.results()[-1].seq == 105, 10)
+        assert mean_iou(results.results()[count:], {i: scene.box(i) for i in range(91, 106)}) > 0.6
+    finally:
+        results.close()
+        publisher.undeclare()
+        call(client, NODE, "stop", StopRequest(sid="paired"))
+
+
+def test_a_feed_that_changes_its_frame_size_goes_on_being_tracked(service, client):
+    """A stream adapting its resolution to the link keeps its view: the session starts again on the first frame
+    of the new size from its last box, scaled, and follows on. A new aspect ratio is another view (a crop): the
+    session says it is lost, and why, until a reinit gives it a box on the new frames."""
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher("test/cam/resized")
+    results = Collector(client, NODE, "resized")
+
+    def play(first: int, end: int, size: tuple[int, int] = (640, 360)) -> None:
+        for i in range(first, end):
+            image = cv2.resize(scene.frame(i)[0], size, interpolation=cv2.INTER_AREA)
+            publisher.put(encode(encode_frame(image, i, "jpeg", quality=85)))
+            time.sleep(0.1)
+    try:
+        play(0, 5)
+        start(client, service, image_key="test/cam/resized", box=scene.box(4), seq=4, sid="resized")
+        play(5, 15)
+        assert wait_until(lambda: results.results() and results.results()[-1].seq == 14, 10)
+        count = len(results.results())
+        play(15, 35, size=(320, 180))                           # half the resolution, the same view
+        assert wait_until(lambda: results.results()[-1].seq == 34, 10)
+        halved = {i: tuple(c / 2 for c in scene.box(i)) for i in range(16, 35)}
+        assert mean_iou(results.results()[count:], halved) > 0.6
+        assert all((r.width, r.height) == (320, 180) for r in results.results()[count:])
+        count = len(results.results())
+        play(35, 45, size=(300, 300))                           # a square crop: no box maps onto it
+        assert wait_until(lambda: results.health and results.health[-1].state == "lost"
+                          and "aspect ratio" in (results.health[-1].message or ""), 5)
+        assert len(results.results()) == count
+        call(client, NODE, "reinit", ReinitRequest(sid="resized", box=(100.0, 100.0, 50.0, 50.0)))
+        play(45, 50, size=(300, 300))
+        assert wait_until(lambda: len(results.results()) > count, 10)
+    finally:
+        results.close()
+        publisher.undeclare()
+        call(client, NODE, "stop", StopRequest(sid="resized"))
 
 
 def _parent_pid(pid: int) -> int:
