@@ -538,9 +538,7 @@ def test_a_reinit_box_stays_with_its_frame_through_a_worker_restart(service, cli
     results = Collector(client, NODE, "paired")
 
     def play(first: int, end: int) -> None:
-        for i in range(first, end):
-            publisher.put(encode(encode_frame(scene.frame(i)[0], i, "jpeg", quality=85)))
-            time.sleep(0.1)
+        play_frames(publisher, scene, first, end)
     try:
         play(0, 5)
         start(client, service, image_key="test/cam/paused", box=scene.box(4), seq=4, sid="paired")
@@ -575,11 +573,8 @@ def test_a_feed_that_changes_its_frame_size_goes_on_being_tracked(service, clien
     publisher = client.declare_publisher("test/cam/resized")
     results = Collector(client, NODE, "resized")
 
-    def play(first: int, end: int, size: tuple[int, int] = (640, 360)) -> None:
-        for i in range(first, end):
-            image = cv2.resize(scene.frame(i)[0], size, interpolation=cv2.INTER_AREA)
-            publisher.put(encode(encode_frame(image, i, "jpeg", quality=85)))
-            time.sleep(0.1)
+    def play(first: int, end: int, size: tuple[int, int] | None = None) -> None:
+        play_frames(publisher, scene, first, end, size)
     try:
         play(0, 5)
         start(client, service, image_key="test/cam/resized", box=scene.box(4), seq=4, sid="resized")
@@ -603,6 +598,16 @@ def test_a_feed_that_changes_its_frame_size_goes_on_being_tracked(service, clien
         results.close()
         publisher.undeclare()
         call(client, NODE, "stop", StopRequest(sid="resized"))
+
+
+def play_frames(publisher, scene, first: int, end: int, size: tuple[int, int] | None = None) -> None:
+    """Publish frames first..end-1 of a scene at 10 fps, resized to `size` (w, h) if given."""
+    for i in range(first, end):
+        image = scene.frame(i)[0]
+        if size is not None:
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        publisher.put(encode(encode_frame(image, i, "jpeg", quality=85)))
+        time.sleep(0.1)
 
 
 def _parent_pid(pid: int) -> int:
