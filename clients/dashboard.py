@@ -41,6 +41,8 @@ LIST_TIMEOUT_S = 2.0         # reply timeout of that list query
 SILENT_DROP_S = 30.0         # a session of a node that stopped answering is dropped after this long without news
 TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here are ignored for this long
 MAX_IMAGE_KEYS = 32          # watched image keys (each one is a subscriber + a thread)
+KEEP = 32                    # the last frames received, for a box to be drawn on its own frame; a 4K bgr8
+KEEP_BYTES = 64 * 2**20      # frame is 25 MB, so the bytes are capped too
 SHOWN_KEEP = 64              # frames shown to a browser, kept by seq: an operator may draw a box for seconds,
 SHOWN_KEEP_BYTES = 64 * 2**20  # and the start carries the frame it was drawn on (the service may not hold it)
 CARRY_BYTES = 32 * 2**20     # at most this much of frames carried by one start (the service takes 48 MiB)
@@ -124,17 +126,19 @@ class FrameSnapshot:
 
 class FrameWatcher:
     """The newest frames of one image key: a RingChannel(1) subscriber drained by one worker thread that reads
-    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). The last `keep` frames stay,
-    so that a box can be drawn on the very frame it was computed on, and the frames shown lately (`SHOWN_KEEP`),
-    so that a box drawn on one can be sent with it. Non-JPEG frames are turned into JPEG when someone asks for
-    them."""
+    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). The last `keep` frames stay (at
+    most KEEP_BYTES of them, but always the newest), so that a box can be drawn on the very frame it was computed
+    on, and the frames shown lately (`SHOWN_KEEP`), so that a box drawn on one can be sent with it. Non-JPEG
+    frames are turned into JPEG when someone asks for them."""
 
-    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 30.0, keep: int = 32):
+    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 30.0, keep: int = KEEP):
         self.key = key
         self.received = self.rejected = 0
         self._min_period = 1.0 / max_fps if max_fps > 0 else 0.0
         self._lock = threading.Lock()
-        self._frames: deque[tuple[Frame, int]] = deque(maxlen=max(1, keep))   # (frame, received_ns), oldest first
+        self._keep = max(1, keep)
+        self._frames: deque[tuple[Frame, int]] = deque()   # (frame, received_ns), oldest first
+        self._frames_bytes = 0
         self._jpeg: FrameSnapshot | None = None          # the last non-JPEG frame converted
         self._shown: OrderedDict[int, Frame] = OrderedDict()   # seq -> frame, the frames snapshot() returned
         self._closed = threading.Event()
@@ -155,8 +159,13 @@ class FrameWatcher:
                 with self._lock:
                     if self._frames and frame.seq < self._frames[-1][0].seq:
                         self._frames.clear()               # the camera restarted its seq
+                        self._frames_bytes = 0
                         self._shown.clear()
                     self._frames.append((frame, time.time_ns()))
+                    self._frames_bytes += len(frame.data)
+                    while len(self._frames) > 1 and (len(self._frames) > self._keep
+                                                     or self._frames_bytes > KEEP_BYTES):
+                        self._frames_bytes -= len(self._frames.popleft()[0].data)
                     self.received += 1
                 if self._closed.wait(max(0.0, self._min_period - (time.monotonic() - started))):
                     return

@@ -23,16 +23,20 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import numpy as np
 import pytest
+import zenoh
 
 from tacf.eval.metrics import box_iou
-from tacf_clients import dashboard_metrics
+from tacf_clients import dashboard, dashboard_metrics
 from tacf_clients.client import TrackingClient
 from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from tacf_clients.zconfig import ZenohOptions, viewer_options
+from tacf_clients.zconfig import ZenohOptions, make_config, viewer_options
+from tacf_schemas.codec import encode
+from tacf_schemas.images import encode_frame
 from tacf_service.loopback import wait_until
 from camera_rig import no_service_options, service_and_camera, tacf_command
 
@@ -248,6 +252,23 @@ def test_healthz_without_any_service():
         assert status == 503 and body["error"] == "no_service", body
         status, _, text = _get(base + "/metrics")
         assert status == 200 and "tacf_dashboard_up 1" in text.decode()
+
+
+def test_frames_kept_are_capped_in_bytes(monkeypatch):
+    """32 frames of a 4K bgr8 camera were 800 MB: the frames kept stop at KEEP_BYTES, but the newest stays."""
+    key = "test/dashboard/raw"
+    frames = [encode_frame(np.full((60, 80, 3), seq, np.uint8), seq, "bgr8") for seq in range(8)]
+    monkeypatch.setattr(dashboard, "KEEP_BYTES", len(frames[0].data) * 5 // 2)
+    with zenoh.open(make_config(no_service_options())) as session, \
+            dashboard.Dashboard(session=session, image_keys=[key], max_frame_fps=0) as board:
+        for frame in frames[:7]:
+            session.put(key, encode(frame))
+            assert _wait(lambda: board.frame_counts()[key][0] == frame.seq + 1), board.frame_counts()
+        assert board.frame(key, seq=0).seq == 5, "the oldest kept: frames 5 and 6 fit in 2.5 frames' bytes"
+        monkeypatch.setattr(dashboard, "KEEP_BYTES", 1)
+        session.put(key, encode(frames[7]))
+        assert _wait(lambda: board.frame_counts()[key][0] == 8)
+        assert board.frame(key, seq=0).seq == 7, "the newest stays, whatever its size"
 
 
 def test_on_loopback_only_loopback_host_names_are_answered():
