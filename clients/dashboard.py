@@ -11,8 +11,9 @@ HTTP side, dashboard_http.py; the Foxglove bridge) copy what they need under a l
 thread, so a slow browser cannot slow the service.
 
 A poller lists the sessions of every service once a second (a Zenoh query): that gives each session's image
-key, state and node, and drops sessions that a service no longer lists. The dashboard never imports the
-tracker: it only talks to services through TrackingClient.
+key, state and node, and drops sessions that a service no longer lists, and the frames of a key that no session
+uses any more (unless it was asked for). The dashboard never imports the tracker: it only talks to services
+through TrackingClient.
 """
 from __future__ import annotations
 
@@ -247,7 +248,7 @@ class Dashboard:
     frame of each watched image key; control calls go through TrackingClient.
 
     options / session: how to reach the Zenoh network (a given session is not closed here).
-    image_keys: keys to watch from the start (the keys of listed sessions are watched automatically).
+    image_keys: keys to watch from the start, for good (the key of a session is watched while a session uses it).
     node: only this service (None: every service that answers).
     history_s: how many seconds of chart points each session keeps.
     """
@@ -267,6 +268,7 @@ class Dashboard:
         self._sessions: dict[str, SessionView] = {}
         self._tombstones: dict[str, float] = {}
         self._watchers: dict[str, FrameWatcher] = {}
+        self._asked: set[str] = set()                     # keys watched for good (image_keys, watch())
         self._nodes: dict[str, int] = {}                  # node -> max_sessions, from the last list round
         self.list_ok_at: float | None = None              # monotonic time of the last list round that ran
         self.list_error: str | None = None
@@ -312,19 +314,24 @@ class Dashboard:
 
     # --- image keys -----------------------------------------------------------------------------------------
     def watch(self, key: str) -> bool:
-        """Subscribe to the frames of image key `key` (idempotent). True if it is (now) watched; ValueError for
-        an invalid key or when MAX_IMAGE_KEYS are watched already."""
+        """Subscribe to the frames of image key `key` for as long as the dashboard runs (idempotent). True if it
+        is (now) watched; ValueError for an invalid key or when MAX_IMAGE_KEYS are watched already."""
+        return self._watch(key, asked=True)
+
+    def _watch(self, key: str, asked: bool) -> bool:
+        """watch(); asked=False for a session's key, which is dropped once no session uses it."""
         key = validate_image_key(key)
         with self._lock:
-            if key in self._watchers:
-                return True
-            if len(self._watchers) >= MAX_IMAGE_KEYS:
-                raise ValueError(f"already watching {MAX_IMAGE_KEYS} image keys")
-            if self.closed.is_set():
-                return False
-            self._watchers[key] = FrameWatcher(self.session, key, self.max_frame_fps)
-            self._changed.notify_all()
-        log.info("watching frames on %s", key)
+            if key not in self._watchers:
+                if len(self._watchers) >= MAX_IMAGE_KEYS:
+                    raise ValueError(f"already watching {MAX_IMAGE_KEYS} image keys")
+                if self.closed.is_set():
+                    return False
+                self._watchers[key] = FrameWatcher(self.session, key, self.max_frame_fps)
+                self._changed.notify_all()
+                log.info("watching frames on %s", key)
+            if asked:
+                self._asked.add(key)
         return True
 
     def frame(self, key: str, seq: int | None = None) -> FrameSnapshot | None:
@@ -418,10 +425,16 @@ class Dashboard:
                 silent = now - view.seen > SILENT_DROP_S                            # its service went quiet
                 if gone or silent:
                     del self._sessions[sid_id]
+            # sessions come and go: without this the keys of past ones would use up MAX_IMAGE_KEYS
+            used = self._asked | {view.image_key for view in self._sessions.values()}
+            unused = [self._watchers.pop(key) for key in list(self._watchers) if key not in used]
             self._changed.notify_all()
+        for watcher in unused:
+            log.info("no session uses %s any more: not watching its frames", watcher.key)
+            watcher.close()
         for key in to_watch:
             try:
-                self.watch(key)
+                self._watch(key, asked=False)
             except ValueError as exc:
                 log.debug("not watching %s: %s", key, exc)
 
@@ -451,7 +464,10 @@ class Dashboard:
             self._tombstones.pop(f"{info.node}/{info.sid}", None)
             self._update_from_info(info)
             self._changed.notify_all()
-        self.watch(info.image_key)
+        try:
+            self._watch(info.image_key, asked=False)
+        except ValueError as exc:      # the session runs all the same: a 400 would tell the operator it does not
+            log.warning("session %s started, but its frames are not shown: %s", info.sid, exc)
         return info
 
     def stop(self, sid: str, *, node: str | None = None) -> SessionInfo:

@@ -196,6 +196,31 @@ def test_a_box_drawn_on_a_shown_frame_starts_on_it_after_the_frame_is_gone(stack
             client.stop("late")
 
 
+def test_a_start_beyond_the_key_limit_succeeds_and_keys_no_session_uses_are_dropped(stack, monkeypatch):
+    """Watched keys were never dropped, so a dashboard up for long reached MAX_IMAGE_KEYS through sessions come
+    and gone, and a start the service had accepted was then answered 400."""
+    _, client, _, service = stack
+    monkeypatch.setattr(dashboard, "MAX_IMAGE_KEYS", 3)
+    asked, first, second = "test/dashboard/asked", "test/dashboard/first", "test/dashboard/second"
+    with DashboardApp(service.options, port=0, image_keys=[KEY]) as app:
+        base = app.url.rstrip("/")
+        board = app.dashboard
+        assert _post(base + "/api/watch", {"key": asked})[0] == 200
+        try:
+            for sid, key in (("keys-first", first), ("keys-second", second)):
+                status, body = _post(base + "/api/start", {"image_key": key, "box": [10, 10, 40, 40], "sid": sid})
+                assert status == 200 and body["sid"] == sid, body
+            assert board.image_keys() == sorted([asked, first, KEY]), "the limit: the second key is not watched"
+            assert _post(base + "/api/stop", {"sid": "keys-first"})[0] == 200
+            assert _wait(lambda: board.image_keys() == sorted([asked, second, KEY])), board.image_keys()
+            assert _post(base + "/api/stop", {"sid": "keys-second"})[0] == 200
+            assert _wait(lambda: board.image_keys() == sorted([asked, KEY])), board.image_keys()
+        finally:
+            for info in client.list():
+                if info.sid.startswith("keys-"):
+                    client.stop(info.sid)
+
+
 def test_event_stream_is_latest_only_and_rate_capped(stack):
     """Boxes arrive at ~20 Hz; a browser gets at most ~10 messages a second, each session once per message."""
     app, client, camera, service = stack
