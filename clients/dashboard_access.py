@@ -19,7 +19,6 @@ import hmac
 import ipaddress
 import re
 import secrets
-from http.cookies import CookieError, SimpleCookie
 
 COOKIE = "tacf_dashboard_token"
 TOKEN_ENV = "TACF_DASHBOARD_TOKEN"
@@ -77,11 +76,13 @@ class DashboardAccess:
         scheme, _, value = (headers.get("Authorization") or "").partition(" ")
         if scheme.lower() == "bearer" and value.strip():
             return value.strip()
-        try:
-            morsel = SimpleCookie(headers.get("Cookie") or "").get(COOKIE)
-        except CookieError:
-            return None
-        return morsel.value if morsel is not None else None
+        # not SimpleCookie: it drops the whole header for one malformed cookie, and browsers send the cookies of
+        # every port of this host (other web apps' too)
+        for pair in (headers.get("Cookie") or "").split(";"):
+            name, sep, value = pair.partition("=")
+            if sep and name.strip() == COOKIE:
+                return value.strip()
+        return None
 
     def cookie(self, secure: bool = False) -> str:
         """The login cookie; `secure` (over HTTPS) keeps browsers from ever sending it over plain HTTP."""

@@ -352,6 +352,8 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         assert reply.startswith(b"HTTP/1.1 401") and reply.count(b"HTTP/1.1 ") == 1, reply
         status, _, page = _get(base + "/", {"Cookie": "other=1; " + cookie.split(";")[0]})
         assert status == 200 and b"TACF ground station" in page
+        # another app on this host (any port) with a cookie SimpleCookie finds malformed
+        assert _get(base + "/api/state", {"Cookie": 'prefs={"theme":"dark"}; ' + cookie.split(";")[0]})[0] == 200
         assert _get(base + "/", {"Cookie": f"{COOKIE}=wrong-wrong-wrong-wrong"})[0] == 401
 
 
