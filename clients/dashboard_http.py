@@ -25,6 +25,8 @@ from __future__ import annotations
 import json
 import logging
 import mimetypes
+import select
+import socket
 import ssl
 import sys
 import threading
@@ -49,6 +51,7 @@ KEEPALIVE_S = 15.0               # an SSE comment when nothing changed for this 
 WRITE_TIMEOUT_S = 10.0           # a browser that does not read for this long is dropped
 MAX_BODY = 64 * 1024
 MJPEG_FPS = 10.0
+MAX_SEQ_DIGITS = 20              # a seq is a 64-bit count (and int() refuses a string of over 4300 digits)
 
 _ERROR_STATUS = (                # most specific first
     (UnknownSession, HTTPStatus.NOT_FOUND),
@@ -90,9 +93,17 @@ class DashboardServer(ThreadingHTTPServer):
         self.event_clients = 0
         self._clients_lock = threading.Lock()
         self.stopping = threading.Event()
+        if ":" in address[0]:                      # an IPv6 address: the class binds IPv4 only
+            self.address_family = socket.AF_INET6
         super().__init__(address, DashboardHandler)
         if tls is not None:     # the handshake runs in each connection's own thread, so a slow one stalls no other
             self.socket = tls.wrap_socket(self.socket, server_side=True, do_handshake_on_connect=False)
+
+    def server_bind(self) -> None:
+        if self.address_family == socket.AF_INET6 and self.server_address[0] == "::":
+            # both stacks whatever net.ipv6.bindv6only says: as for 0.0.0.0, the address printed is 127.0.0.1
+            self.socket.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
+        super().server_bind()
 
     def handle_error(self, request, client_address) -> None:
         """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say) is a line, not a trace."""
@@ -105,7 +116,7 @@ class DashboardServer(ThreadingHTTPServer):
     @property
     def base_url(self) -> str:
         host, port = self.server_address[:2]
-        host = "127.0.0.1" if host in ("0.0.0.0", "") else f"[{host}]" if ":" in host else host
+        host = "127.0.0.1" if host in ("0.0.0.0", "", "::") else f"[{host}]" if ":" in host else host
         return f"{'https' if self.tls else 'http'}://{host}:{port}/"
 
     @property
@@ -162,7 +173,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self.close_connection = True
 
     def do_HEAD(self) -> None:
-        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET")
+        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET", {"Allow": "GET, POST"})
 
     def do_POST(self) -> None:
         path = urlsplit(self.path).path
@@ -249,7 +260,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _frame(self, key: str, query: dict[str, list[str]]) -> None:
         seq = query.get("seq", [None])[0]
-        if seq is not None and not seq.isdigit():
+        if seq is not None and not (seq.isascii() and seq.isdigit() and len(seq) <= MAX_SEQ_DIGITS):
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", "seq: expected a frame seq")
             return
         snap = self.server.dashboard.frame(key, None if seq is None else int(seq))
@@ -286,7 +297,10 @@ class DashboardHandler(BaseHTTPRequestHandler):
                                  + str(len(snap.jpeg)).encode() + b"\r\nX-Seq: " + str(snap.seq).encode()
                                  + b"\r\n\r\n" + snap.jpeg + b"\r\n")
                 self.wfile.flush()
-            time.sleep(1.0 / MJPEG_FPS)
+            # a viewer that left is seen here, not by a write, while no new frame comes; it never sends more
+            # (Connection: close), so anything readable is its end (b"") or bytes that nobody will read
+            if select.select([self.connection], [], [], 1.0 / MJPEG_FPS)[0] and not self.connection.recv(4096):
+                return
 
     def _events(self) -> None:
         """One SSE stream per browser: `state` once, then `update` events with what changed, at most
@@ -395,7 +409,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
         if status != HTTPStatus.NOT_MODIFIED:
             self.send_header("Content-Length", str(len(body)))
         self.end_headers()
-        if body:
+        if body and self.command != "HEAD":    # a body after a HEAD reply would be read as the next reply
             self.wfile.write(body)
 
 

@@ -296,6 +296,58 @@ def test_frames_kept_are_capped_in_bytes(monkeypatch):
         assert board.frame(key, seq=0).seq == 7, "the newest stays, whatever its size"
 
 
+def _request_threads() -> int:
+    """The HTTP server's handler threads (ThreadingMixIn names them after process_request_thread)."""
+    import threading
+
+    return sum("process_request_thread" in t.name for t in threading.enumerate())
+
+
+def test_an_mjpeg_viewer_that_leaves_while_no_frame_comes_is_let_go():
+    """The stream only wrote on a new frame, so a viewer that left a key without frames kept a thread and a
+    socket for good."""
+    key = "test/dashboard/nothing"
+    with DashboardApp(no_service_options(), port=0, image_keys=[key]) as app:
+        before = _request_threads()
+        for _ in range(3):
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as viewer:
+                viewer.sendall(f"GET /mjpeg/{key} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+                assert viewer.recv(65536).startswith(b"HTTP/1.1 200")
+        assert _wait(lambda: _request_threads() == before, timeout=3), _request_threads()
+
+
+def test_odd_requests_get_a_clear_answer():
+    with DashboardApp(no_service_options(), port=0, image_keys=[KEY]) as app:
+        base = app.url.rstrip("/")
+        for seq in ("%C2%B2", "9" * 5000, "-1"):     # '²'.isdigit() is True, and int() refuses 4300+ digits
+            status, _, body = _get(f"{base}/frame/{KEY}?seq={seq}")
+            assert status == 400 and json.loads(body)["error"] == "invalid_request", seq[:10]
+        with socket.create_connection(app.server.server_address[:2], timeout=10) as raw:   # two on one connection
+            raw.sendall(b"HEAD /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
+                        b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+            reply = b"".join(iter(lambda: raw.recv(65536), b""))
+        head, after = reply.split(b"\r\n\r\n", 1)
+        assert head.startswith(b"HTTP/1.1 405") and b"\r\nAllow: GET, POST\r\n" in head, head
+        assert after.startswith(b"HTTP/1.1 200"), "no body after a HEAD reply, to be read as the next reply"
+
+
+def test_an_ipv6_host_is_served():
+    try:
+        socket.create_server(("::1", 0), family=socket.AF_INET6).close()
+    except OSError:
+        pytest.skip("no IPv6 loopback here")
+    with DashboardApp(no_service_options(), host="::1", port=0) as app:
+        port = app.server.server_address[1]
+        assert app.url == f"http://[::1]:{port}/"
+        assert _get(app.url + "healthz")[0] == 200
+    with DashboardApp(no_service_options(), host="::", port=0) as app:
+        port = app.server.server_address[1]
+        token = app.server.access.token
+        assert app.url == f"http://127.0.0.1:{port}/?token={token}", "IPv4 is served on :: too"
+        for host in ("127.0.0.1", "[::1]"):
+            assert _get(f"http://{host}:{port}/healthz", {"Authorization": "Bearer " + token})[0] == 200, host
+
+
 def test_on_loopback_only_loopback_host_names_are_answered():
     """DNS rebinding: a page at evil.example whose name now resolves to 127.0.0.1 is same-origin with the
     dashboard in the browser's eyes; its requests carry Host: evil.example and are refused, POSTs included."""
