@@ -66,6 +66,14 @@ def _message_id(param: float) -> int | None:
     return int(param) if math.isfinite(param) else None
 
 
+def _precedes(box: TrackedBox, frame: tuple[int, int]) -> bool:
+    """Whether `box` was computed on a frame older than `frame` (seq, stamp_ns), i.e. before the session was
+    (re)started on it: lower in both seq and stamp, as the service judges stale frames. A camera that restarted
+    counts seq from 0 again but stamps its frames later."""
+    seq, stamp_ns = frame
+    return box.seq < seq and box.stamp_ns < stamp_ns
+
+
 class MavlinkCamera:
     """The camera component: `serve(stop)` runs it until `stop` is set; close() ends the session it holds.
 
@@ -101,7 +109,8 @@ class MavlinkCamera:
         self.tracking = False
         self._newest_frame: zenoh.Sample | None = None
         self._box: TrackedBox | None = None
-        self._first_seq = 0                          # the frame the session was last (re)started on
+        # (seq, stamp_ns) of the frame the session was last (re)started on, until a box of the new start arrives
+        self._started_on: tuple[int, int] | None = None
         self._started = time.monotonic()
 
     # --- the loop ----------------------------------------------------------------------------------------------
@@ -117,8 +126,10 @@ class MavlinkCamera:
                 next_check = now + SESSION_CHECK_S
             self._newest_frame = self._frames.try_recv() or self._newest_frame
             while (box := self._boxes.get(timeout=0)) is not None:
-                if box.seq >= self._first_seq:      # not a box from before the last (re)start
-                    self._box = box
+                if self._started_on is None or not _precedes(box, self._started_on):
+                    # boxes arrive in order: once one is from after the (re)start, later ones are too, even with
+                    # the seq of a camera that restarted from 0
+                    self._box, self._started_on = box, None
             if self.tracking and self.status_interval_s > 0 and now >= next_status:
                 self._send_status()
                 next_status = now + self.status_interval_s
@@ -178,7 +189,7 @@ class MavlinkCamera:
         except TacfError as exc:
             log.warning("TRACK_RECTANGLE: the service refused: %s", exc)
             return mav.MAV_RESULT_FAILED
-        self.tracking, self._box, self._first_seq = True, None, frame.seq
+        self.tracking, self._box, self._started_on = True, None, (frame.seq, frame.stamp_ns)
         log.info("tracking %s on %s from box %s (frame %d)", self.sid, self.image_key, box, frame.seq)
         return mav.MAV_RESULT_ACCEPTED
 

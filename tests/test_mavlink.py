@@ -214,6 +214,50 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     camera.hold.clear()
 
 
+def test_the_box_follows_the_target_after_the_camera_restarts():
+    """A restarted camera counts seq from 0 again: its boxes are the session's, not ones from before the drag."""
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+
+    key = "test/mavlink/restarting"
+    with service_and_camera(SCENE, key, "mavr") as (service, session, camera):
+        camera.publisher.next_seq = 100_000               # a camera that has been up a while
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        stop = threading.Event()
+        with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, options=service.options) as component:
+            loop = threading.Thread(target=component.serve, args=(stop,))
+            loop.start()
+            restarted = None
+            try:
+                assert _receive(gcs, "HEARTBEAT") is not None
+                deadline = time.monotonic() + 10
+                while time.monotonic() < deadline and (component._frame_header() is None or
+                                                       component._frame_header().seq < 100_000):
+                    time.sleep(0.1)
+                target = SCENE.box(0)                     # the held camera shows the first frame
+                assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+                    mav.MAV_RESULT_ACCEPTED
+                assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                                where=lambda m: m.target_data and box_iou(_status_box(m), target) > 0.5), \
+                    "the box is shown"
+                camera.close()
+                restarted = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
+                restarted.hold.clear()                    # from seq 0, the target moving
+                restarted.start()
+                moved = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=20,
+                                 where=lambda m: m.target_data and box_iou(_status_box(m), target) < 0.3)
+                assert moved is not None, "the box follows the target on the restarted camera's frames"
+                assert restarted.last_seq < 100_000
+            finally:
+                stop.set()
+                loop.join(timeout=10)
+                gcs.close()
+                if restarted is not None:
+                    restarted.close()
+
+
 def test_no_frame_yet_is_a_temporary_refusal():
     """Before any frame arrives on the key, the rectangle cannot be placed: TEMPORARILY_REJECTED, not a crash."""
     with LocalService(node=f"mav{free_port()}") as service:
