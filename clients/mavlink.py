@@ -33,7 +33,7 @@ import zenoh
 
 from tacf_clients.client import TrackingClient
 from tacf_clients.consumer import BoxConsumer, TrackedBox
-from tacf_clients.errors import TacfError, UnknownSession
+from tacf_clients.errors import DuplicateSession, TacfError, UnknownSession
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
 from tacf_schemas.codec import DecodeError, decode
@@ -185,13 +185,26 @@ class MavlinkCamera:
             if self.tracking:
                 self.client.reinit(self.sid, box, seq=frame.seq)
             else:
-                self.client.start(self.image_key, box, seq=frame.seq, profile=self.profile, sid=self.sid)
+                self._start_or_take_over(box, frame.seq)
         except TacfError as exc:
             log.warning("TRACK_RECTANGLE: the service refused: %s", exc)
             return mav.MAV_RESULT_FAILED
         self.tracking, self._box, self._started_on = True, None, (frame.seq, frame.stamp_ns)
         log.info("tracking %s on %s from box %s (frame %d)", self.sid, self.image_key, box, frame.seq)
         return mav.MAV_RESULT_ACCEPTED
+
+    def _start_or_take_over(self, box: tuple[float, float, float, float], seq: int) -> None:
+        """Start the session, or re-target it when it already runs: the sid is this component's, so a session
+        under it on this key is one an earlier run of the component left behind (killed before it could stop it)."""
+        try:
+            self.client.start(self.image_key, box, seq=seq, profile=self.profile, sid=self.sid)
+        except DuplicateSession:
+            running = self.client.status(self.sid)
+            if running.image_key != self.image_key:
+                raise TacfError(f"session {self.sid!r} runs on {running.image_key}, not on {self.image_key}") \
+                    from None
+            log.info("session %s already runs: taking it over", self.sid)
+            self.client.reinit(self.sid, box, seq=seq)
 
     def _stop_tracking(self) -> int:
         if self.tracking:

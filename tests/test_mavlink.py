@@ -214,6 +214,40 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     camera.hold.clear()
 
 
+def test_a_session_left_running_by_a_killed_component_is_taken_over(rig):
+    """A component killed before it could stop its session leaves it running under the same sid: the next
+    component's first drag re-targets it, and its stop stops it. A session under that sid on another key is not
+    the component's: the drag fails and leaves it alone."""
+    from tacf_schemas.images import encode_frame
+
+    gcs, camera, client, component = rig
+    camera.hold.set()
+    time.sleep(0.5)
+    held = camera.index_of(camera.last_seq)
+    left = client.start(KEY, SCENE.box(held), camera.last_seq, sid=SID)   # as the killed component left it
+    assert not component.tracking
+    time.sleep(0.3)                                     # the drag is on a newer frame than the one left behind
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(held))) == \
+        mav.MAV_RESULT_ACCEPTED
+    taken = client.status(SID)
+    assert taken.created_ns == left.created_ns and taken.init_seq > left.init_seq, "the same session, re-targeted"
+    status = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                      where=lambda m: m.target_data == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
+    assert status is not None and box_iou(_status_box(status), SCENE.box(held)) > 0.5
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+    assert SID not in {s.sid for s in client.list()}
+
+    elsewhere, theirs = "test/mavlink/elsewhere", (200.0, 150.0, 60.0, 50.0)
+    client.start(elsewhere, theirs, 0, sid=SID, frames=[encode_frame(SCENE.frame(0), 0)])
+    try:
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.05, 0.05, 0.2, 0.2) == mav.MAV_RESULT_FAILED
+        assert not component.tracking
+        assert box_iou(client.status(SID).box, theirs) > 0.9, "not re-targeted"
+    finally:
+        client.stop(SID)
+    camera.hold.clear()
+
+
 def test_the_box_follows_the_target_after_the_camera_restarts():
     """A restarted camera counts seq from 0 again: its boxes are the session's, not ones from before the drag."""
     from tacf_clients.demo import HoldingPublisher
