@@ -457,8 +457,8 @@ class Dashboard:
 
     # --- control ----------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: Sequence[float], seq: int | None = None, *, sid: str | None = None,
-              profile: str | None = None, node: str | None = None) -> SessionInfo:
-        info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, node=node,
+              profile: str | None = None, overrides: dict | None = None, node: str | None = None) -> SessionInfo:
+        info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, overrides=overrides, node=node,
                                  frames=self._drawn_on(image_key, seq))
         with self._changed:
             self._tombstones.pop(f"{info.node}/{info.sid}", None)

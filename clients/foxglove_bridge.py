@@ -16,9 +16,10 @@ Topics, for each watched image key K (the key of every listed session, plus the 
 With `record` (`--record FILE.mcap`) everything published, images included at the same rate, is also written
 to an MCAP file, which Foxglove opens to replay the flight.
 Services (JSON, e.g. from the Service Call panel): `/tacf/start` (the fields of a start request: image_key, box,
-and optionally seq, sid, profile, node), `/tacf/reinit` (sid, box, seq, node), `/tacf/stop` (sid, node) and
-`/tacf/list`; replies are SessionInfo JSON (a list for /tacf/list), failures the service's error message. Foxglove's
-protocol has no authentication, so the services are offered on a loopback address only, unless `control=True`.
+and optionally seq, sid, profile, overrides, node), `/tacf/reinit` (sid, box, seq, node), `/tacf/stop` (sid, node)
+and `/tacf/list`; replies are SessionInfo JSON (a list for /tacf/list), failures the service's error message.
+Foxglove's protocol has no authentication, so the services are offered on a loopback address only, unless
+`control=True`.
 
 The data side is the dashboard's (Dashboard: latest-only, never blocking a Zenoh thread); this module only turns
 its state into Foxglove messages, from one thread.
@@ -287,7 +288,7 @@ class FoxgloveBridge:
         node = fields.pop("node", None)
         request = StartRequest.model_validate(fields)
         info = self.board.start(request.image_key, request.box, request.seq, sid=request.sid,
-                                profile=request.profile, node=node)
+                                profile=request.profile, overrides=request.overrides, node=node)
         return info.model_dump_json().encode()
 
     def _reinit(self, fields: dict) -> bytes:

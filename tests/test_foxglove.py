@@ -318,10 +318,31 @@ def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path
     (json.dumps({"image_key": KEY, "box": [1, 2, -3, 4]}).encode(), "box"),
     (json.dumps({"image_key": KEY, "box": [1, 2, 3, 4], "colour": "red"}).encode(), "colour"),
     (json.dumps({"image_key": "bad key*", "box": [1, 2, 30, 40]}).encode(), "key"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "overrides": {"no_such_field": 1}}).encode(),
+     "no_such_field"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "overrides": {"cell_size": 0}}).encode(), "cell_size"),
 ])
 def test_a_bad_start_request_gets_a_clear_failure(client, request_bytes, expected):
     ok, message = client.call("/tacf/start", request_bytes)
     assert not ok and expected in message, message
+    ok, listed = client.call("/tacf/list", {})
+    assert ok and listed == [], "no session started"
+
+
+def test_the_overrides_of_a_start_request_reach_the_service(rig, client):
+    service, _, camera, _ = rig
+    camera.hold.set()
+    seq = camera.last_seq
+    ok, info = client.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
+                                           "seq": seq, "sid": "fox-overrides", "overrides": {"cell_size": 6}})
+    try:
+        assert ok, info
+        assert info["overrides"] == {"cell_size": 6}
+        ok, listed = client.call("/tacf/list", {"node": service.node})
+        assert ok and [s["overrides"] for s in listed if s["sid"] == "fox-overrides"] == [{"cell_size": 6}]
+    finally:
+        client.call("/tacf/stop", {"sid": "fox-overrides"})
+        camera.hold.clear()
 
 
 def test_unknown_sessions_and_encodings_are_refused_and_the_bridge_serves_on(client):
