@@ -253,10 +253,16 @@ def cmd_publish(args: argparse.Namespace) -> int:
         return 2
     with stop_on_signals() as stop, source, open_session(options_from_args(args)) as session:
         if args.wait_subscriber > 0:
+            print(f"waiting up to {args.wait_subscriber:g} s for a subscriber on {args.key}", file=sys.stderr,
+                  flush=True)
             with FramePublisher(session, args.key) as probe:
-                if not probe.wait_matched(args.wait_subscriber):
-                    print(f"no subscriber on {args.key} after {args.wait_subscriber:g} s: publishing anyway",
-                          file=sys.stderr)
+                matched = probe.wait_matched(args.wait_subscriber, stop)
+            if stop.is_set():
+                print(f"stopped while waiting for a subscriber on {args.key}: nothing published", file=sys.stderr)
+                return 0
+            if not matched:
+                print(f"no subscriber on {args.key} after {args.wait_subscriber:g} s: publishing anyway",
+                      file=sys.stderr)
         stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
                         max_frames=args.frames, stop=stop)
     reconnected = f", {source.reconnects} reconnections" if source.reconnects else ""

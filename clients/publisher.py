@@ -80,12 +80,14 @@ class FramePublisher:
         """True when at least one subscriber (e.g. a tracking session) listens on the key."""
         return bool(self._pub.matching_status.matching)
 
-    def wait_matched(self, timeout: float) -> bool:
+    def wait_matched(self, timeout: float, stop: threading.Event | None = None) -> bool:
+        """Wait up to `timeout` seconds for a subscriber; False on timeout, or at once when `stop` is set."""
+        stop = stop or threading.Event()
         deadline = time.monotonic() + timeout
         while not self.matched:
-            if time.monotonic() >= deadline:
+            if stop.is_set() or time.monotonic() >= deadline:
                 return False
-            time.sleep(0.02)
+            stop.wait(0.02)
         return True
 
     def close(self) -> None:

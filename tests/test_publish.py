@@ -4,6 +4,7 @@ FFmpeg: a stream that ends, stalls or goes away is reopened, and the publisher's
 from __future__ import annotations
 
 import http.server
+import signal
 import subprocess
 import sys
 import threading
@@ -266,6 +267,23 @@ def test_publish_command_line_on_an_image_folder(tmp_path, collector):
     frames = collector.wait(5)
     assert [f.seq for f in frames] == list(range(5)) and frames[0].encoding == "png"
     assert "published 5 frames" in done.stderr + done.stdout
+
+
+def test_ctrl_c_ends_the_wait_for_a_subscriber_without_publishing():
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", "scene", "--key", KEY, "--wait-subscriber", "30",
+           "--connect", f"tcp/127.0.0.1:{free_port()}"]      # nobody there: no subscriber ever comes
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert any("waiting up to 30 s" in line for line in proc.stderr)    # stops reading at that line
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        started = time.monotonic()
+        out, err = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+    assert time.monotonic() - started < 3
+    assert proc.returncode == 0, err
+    assert "nothing published" in err and "publishing anyway" not in err and "published" not in out
 
 
 # ----------------------------------------------------------------------------------------------- live streams
