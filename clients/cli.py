@@ -242,8 +242,8 @@ def stop_on_signals():
 
 def cmd_publish(args: argparse.Namespace) -> int:
     from tacf.zenoh_options import options_from_args
-    from tacf_clients.publisher import FramePublisher, publish
-    from tacf_clients.sources import open_source
+    from tacf_clients.publisher import publish
+    from tacf_clients.sources import SourceError, open_source
     from tacf_clients.zconfig import open_session
 
     try:
@@ -251,24 +251,34 @@ def cmd_publish(args: argparse.Namespace) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"tacf publish: {exc}", file=sys.stderr)
         return 2
-    with stop_on_signals() as stop, source, open_session(options_from_args(args)) as session:
-        if args.wait_subscriber > 0:
-            print(f"waiting up to {args.wait_subscriber:g} s for a subscriber on {args.key}", file=sys.stderr,
-                  flush=True)
-            with FramePublisher(session, args.key) as probe:
-                matched = probe.wait_matched(args.wait_subscriber, stop)
-            if stop.is_set():
-                print(f"stopped while waiting for a subscriber on {args.key}: nothing published", file=sys.stderr)
+    try:
+        with stop_on_signals() as stop, source, open_session(options_from_args(args)) as session:
+            if args.wait_subscriber > 0 and not _wait_subscriber(session, args, stop):
                 return 0
-            if not matched:
-                print(f"no subscriber on {args.key} after {args.wait_subscriber:g} s: publishing anyway",
-                      file=sys.stderr)
-        stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
-                        max_frames=args.frames, stop=stop)
+            stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
+                            max_frames=args.frames, stop=stop)
+    except SourceError as exc:
+        print(f"tacf publish: {exc}", file=sys.stderr)
+        return 2
     reconnected = f", {source.reconnects} reconnections" if source.reconnects else ""
     print(f"published {stats.frames} frames in {stats.seconds:.1f} s ({stats.fps:.1f} fps, "
           f"{stats.bytes / 1e6:.1f} MB{reconnected}) on {args.key}")
     return 0
+
+
+def _wait_subscriber(session, args: argparse.Namespace, stop: threading.Event) -> bool:
+    """Wait as --wait-subscriber says; False when stopped meanwhile (then nothing is to be published)."""
+    from tacf_clients.publisher import FramePublisher
+
+    print(f"waiting up to {args.wait_subscriber:g} s for a subscriber on {args.key}", file=sys.stderr, flush=True)
+    with FramePublisher(session, args.key) as probe:
+        matched = probe.wait_matched(args.wait_subscriber, stop)
+    if stop.is_set():
+        print(f"stopped while waiting for a subscriber on {args.key}: nothing published", file=sys.stderr)
+        return False
+    if not matched:
+        print(f"no subscriber on {args.key} after {args.wait_subscriber:g} s: publishing anyway", file=sys.stderr)
+    return True
 
 
 @contextmanager

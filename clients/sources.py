@@ -44,6 +44,10 @@ def sleep_unless(seconds: float, should_stop: Callable[[], bool], slice_s: float
     return should_stop()
 
 
+class SourceError(ValueError):
+    """A source that opened but cannot deliver a frame (an image folder none of whose images can be read)."""
+
+
 @dataclass(frozen=True)
 class SourceFrame:
     index: int            # 0-based position in the source (restarts at 0 when a looping source wraps)
@@ -96,13 +100,20 @@ class ImageFolderSource(FrameSource):
         return len(self.paths)
 
     def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
+        """The images in order (skipping unreadable ones); SourceError when a whole pass reads none."""
         while True:
+            read = 0
             for index, path in enumerate(self.paths):
+                if should_stop():          # a pass over unreadable images yields nothing to stop at
+                    return
                 image = cv2.imread(str(path), cv2.IMREAD_COLOR)
                 if image is None:
                     log.warning("cannot read %s, skipped", path)
                     continue
+                read += 1
                 yield SourceFrame(index, image, time.time_ns())
+            if not read:
+                raise SourceError(f"none of the {len(self.paths)} images in {self.folder} can be read")
             if not self.loop:
                 return
 

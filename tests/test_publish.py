@@ -21,8 +21,8 @@ from tacf_clients.local_service import free_port
 from tacf_clients.publisher import FramePublisher, publish
 from tacf_clients.scene import Scene, SceneSource
 import tacf_clients.sources as sources
-from tacf_clients.sources import (CaptureSource, ImageFolderSource, Pacer, SourceFrame, Thinner, never_stop,
-                                   open_source)
+from tacf_clients.sources import (CaptureSource, ImageFolderSource, Pacer, SourceError, SourceFrame, Thinner,
+                                   never_stop, open_source)
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
 from tacf_schemas.images import decode_frame
@@ -142,6 +142,17 @@ def test_image_folder_source_sorted_skips_non_images_and_loops(tmp_path):
     assert indices == [0, 1, 2, 3, 0, 1, 2, 3, 0, 1]
     with pytest.raises(ValueError):
         ImageFolderSource(tmp_path / "seq" / "img" / ".." / "..")   # no images anywhere
+
+
+def test_a_folder_of_unreadable_images_is_an_error_even_looping(tmp_path):
+    folder = tmp_path / "garbage"
+    folder.mkdir()
+    for name in ("a.jpg", "b.jpg"):
+        (folder / name).write_bytes(b"not a jpeg")
+    source = ImageFolderSource(folder, loop=True)
+    assert list(source.frames(should_stop=lambda: True)) == []      # the stop flag is seen between images
+    with pytest.raises(SourceError, match="none of the 2 images"):
+        next(source.frames())
 
 
 def test_video_file_source_reads_every_frame_and_loops(tmp_path):
@@ -267,6 +278,17 @@ def test_publish_command_line_on_an_image_folder(tmp_path, collector):
     frames = collector.wait(5)
     assert [f.seq for f in frames] == list(range(5)) and frames[0].encoding == "png"
     assert "published 5 frames" in done.stderr + done.stdout
+
+
+def test_publish_command_line_ends_on_a_looped_folder_it_cannot_read(tmp_path, collector):
+    for name in ("a.jpg", "b.jpg"):
+        (tmp_path / name).write_bytes(b"not a jpeg")
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", str(tmp_path), "--loop", "--key", KEY,
+           "--connect", f"tcp/127.0.0.1:{collector.port}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=30)
+    assert done.returncode == 2
+    assert done.stderr.splitlines()[-1] == f"tacf publish: none of the 2 images in {tmp_path} can be read"
+    assert done.stderr.count("cannot read") == 2 and "Traceback" not in done.stderr
 
 
 def test_ctrl_c_ends_the_wait_for_a_subscriber_without_publishing():
