@@ -245,6 +245,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
     from tacf_clients.publisher import publish
     from tacf_clients.sources import SourceError, open_source
     from tacf_clients.zconfig import open_session
+    from tacf_schemas.images import FrameError
 
     try:
         source = open_source(args.source, loop=args.loop, reconnect=args.reconnect)
@@ -257,7 +258,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
                 return 0
             stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
                             max_frames=args.frames, stop=stop)
-    except SourceError as exc:
+    except (SourceError, FrameError) as exc:       # FrameError: frames beyond the wire limits, which no service takes
         print(f"tacf publish: {exc}", file=sys.stderr)
         return 2
     reconnected = f", {source.reconnects} reconnections" if source.reconnects else ""

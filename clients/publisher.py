@@ -69,7 +69,8 @@ class FramePublisher:
                             stamp_ns=stamp_ns)
 
     def put(self, image: np.ndarray, stamp_ns: int | None = None) -> Frame:
-        """Encode and publish one image with the next seq; returns the Frame sent."""
+        """Encode and publish one image with the next seq; returns the Frame sent. FrameError (nothing sent) for
+        an image beyond the wire limits (tacf_schemas.limits), which every service would refuse."""
         frame = self.make_frame(image, self.next_seq, time.time_ns() if stamp_ns is None else stamp_ns)
         self._pub.put(encode(frame))
         self.next_seq += 1

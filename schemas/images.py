@@ -77,12 +77,14 @@ def decode_frame(frame: Frame) -> np.ndarray:
 
 def encode_frame(image: np.ndarray, seq: int, encoding: str = "jpeg", *, quality: int = 90,
                  stamp_ns: int | None = None) -> Frame:
-    """A Frame of an HxWx3 BGR or HxW gray uint8 image. bgr8 needs 3 channels, mono8 one."""
+    """A Frame of an HxWx3 BGR or HxW gray uint8 image. bgr8 needs 3 channels, mono8 one. FrameError (too_large)
+    for an image beyond the wire limits, which every service would refuse."""
     import cv2
 
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
         raise ValueError("image must be an HxW or HxWx3 uint8 numpy array")
     height, width = image.shape[:2]
+    check_dimensions(width, height)
     channels = 1 if image.ndim == 2 else image.shape[2]
     if encoding == "jpeg":
         ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
@@ -98,6 +100,8 @@ def encode_frame(image: np.ndarray, seq: int, encoding: str = "jpeg", *, quality
         raise ValueError(f"cannot encode a {channels}-channel image as {encoding!r}")
     if data is None:
         raise ValueError(f"OpenCV failed to encode the image as {encoding}")
+    if len(data) > MAX_FRAME_BYTES:
+        raise FrameError("too_large", f"{encoding} frame data of {len(data)} bytes exceeds {MAX_FRAME_BYTES}")
     return Frame(seq=seq, stamp_ns=time.time_ns() if stamp_ns is None else stamp_ns, encoding=encoding,
                  width=width, height=height, data=data)
 

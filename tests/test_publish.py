@@ -25,7 +25,7 @@ from tacf_clients.sources import (CaptureSource, ImageFolderSource, Pacer, Sourc
                                    never_stop, open_source)
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
-from tacf_schemas.images import decode_frame
+from tacf_schemas.images import FrameError, decode_frame, encode_frame
 from tacf_schemas.models import Frame
 
 KEY = "test/camera/front"
@@ -289,6 +289,19 @@ def test_publish_command_line_ends_on_a_looped_folder_it_cannot_read(tmp_path, c
     assert done.returncode == 2
     assert done.stderr.splitlines()[-1] == f"tacf publish: none of the 2 images in {tmp_path} can be read"
     assert done.stderr.count("cannot read") == 2 and "Traceback" not in done.stderr
+
+
+def test_publish_refuses_frames_beyond_the_wire_limits(tmp_path, collector):
+    with pytest.raises(FrameError, match="exceeds the limits"):                 # 16.8 Mpx at most
+        encode_frame(np.zeros((4097, 4097), np.uint8), 0, "mono8")
+    folder = _write_folder(tmp_path / "wide", [np.zeros((100, 9000, 3), np.uint8)])     # wider than 8192 px
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", str(folder), "--key", KEY,
+           "--connect", f"tcp/127.0.0.1:{collector.port}", "--wait-subscriber", "5"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.splitlines()[-1] == ("tacf publish: frame size 9000x100 exceeds the limits (8192x8192, "
+                                            "16777216 pixels)")
+    assert collector.wait(1, timeout=0.5) == []
 
 
 def test_ctrl_c_ends_the_wait_for_a_subscriber_without_publishing():
