@@ -63,7 +63,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_reinit)
 
-    p = subparsers.add_parser("list", help="list the sessions of every service on the network")
+    p = subparsers.add_parser("list", help="list the sessions of every service on the network",
+                              description="List the sessions of every service that answers (--json: one object "
+                                          "per service, with its sessions). A service without sessions is a "
+                                          "valid answer (exit 0); no service answering is an error: exit 1, "
+                                          "with --json after printing [].")
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_list)
 
@@ -75,7 +79,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("nodes", help="the services on the network: alive, sessions, load",
                               description="Show each service whose liveliness token is up, with its sessions and "
                                           "tracking load; --follow prints services appearing and disappearing "
-                                          "(a killed service within milliseconds) until Ctrl-C.")
+                                          "(a killed service within milliseconds) until Ctrl-C. No service on "
+                                          "the network is an error: exit 1, with --json after printing [].")
     p.add_argument("--follow", "-f", action="store_true", help="print up/down events instead of a table")
     p.add_argument("--duration", type=_positive_float, help="with --follow: exit after this many seconds")
     _common(p, add_zenoh_arguments, node_help=argparse.SUPPRESS)
@@ -253,7 +258,8 @@ def cmd_publish(args: argparse.Namespace) -> int:
         print(f"tacf publish: {exc}", file=sys.stderr)
         return 2
     try:
-        with stop_on_signals() as stop, source, open_session(options_from_args(args)) as session:
+        with stop_on_signals() as stop, source, _reported("publish"), \
+                open_session(options_from_args(args)) as session:
             if args.wait_subscriber > 0 and not _wait_subscriber(session, args, stop):
                 return 0
             stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
@@ -293,24 +299,27 @@ def _client(args: argparse.Namespace, one_shot: bool = True):
     """
     import dataclasses
 
-    import zenoh
-
     from tacf.zenoh_options import options_from_args
     from tacf_clients.client import LEAST_LOADED, TrackingClient
-    from tacf_clients.errors import TacfError
 
     options = options_from_args(args)
     if one_shot and options.mode is None and options.config_file is None:
         options = dataclasses.replace(options, mode="client")
     node = None if args.node == LEAST_LOADED else args.node     # 'auto' is a choice of start, made there
+    with _reported(args.command), TrackingClient(options, node=node, timeout=args.timeout) as client:
+        yield client
+
+
+@contextmanager
+def _reported(command: str):
+    """A client-side error (a bad id, no service answering, no Zenoh node reachable...) as one line on stderr
+    and exit code 1, instead of a traceback."""
+    from tacf_clients.errors import TacfError
+
     try:
-        with TrackingClient(options, node=node, timeout=args.timeout) as client:
-            yield client
+        yield
     except TacfError as exc:
-        print(f"tacf {args.command}: {type(exc).__name__}: {exc}", file=sys.stderr)
-        raise SystemExit(1) from None
-    except zenoh.ZError as exc:           # a client cannot open without a reachable node
-        print(f"tacf {args.command}: no Zenoh node reachable: {exc}", file=sys.stderr)
+        print(f"tacf {command}: {type(exc).__name__}: {exc}", file=sys.stderr)
         raise SystemExit(1) from None
 
 
@@ -368,15 +377,15 @@ def cmd_list(args: argparse.Namespace) -> int:
         listings = client.services()
     if args.json:
         print(json.dumps([json.loads(listing.model_dump_json()) for listing in listings]))
-        return 0
-    if not listings:
-        print("no tracking service answered")
+    elif listings:
+        sessions = [info for listing in listings for info in listing.sessions]
+        nodes = ", ".join(f"{lst.node} ({len(lst.sessions)}/{lst.max_sessions}, load {node_load(lst):.2f})"
+                          for lst in listings)
+        print(f"services: {nodes}")
+        print(session_table(sessions) if sessions else "no sessions")
+    if not listings:        # unlike a service without sessions, no service at all is an error, for scripts too
+        print(f"tacf {args.command}: no tracking service answered", file=sys.stderr)
         return 1
-    sessions = [info for listing in listings for info in listing.sessions]
-    nodes = ", ".join(f"{lst.node} ({len(lst.sessions)}/{lst.max_sessions}, load {node_load(lst):.2f})"
-                      for lst in listings)
-    print(f"services: {nodes}")
-    print(session_table(sessions) if sessions else "no sessions")
     return 0
 
 
@@ -402,9 +411,10 @@ def cmd_nodes(args: argparse.Namespace) -> int:
             (r["node"], "yes" if r["alive"] else "no",
              f"{r['sessions']}/{r['max_sessions']}" if r["answers"] else "no answer",
              f"{r['load']:.2f}" if r["answers"] else "-") for r in rows]))
-    else:
-        print("no tracking service on the network")
-    return 0 if rows else 1
+    if not rows:
+        print(f"tacf {args.command}: no tracking service on the network", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _follow_nodes(args: argparse.Namespace) -> int:
@@ -427,7 +437,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
     from tacf.zenoh_options import options_from_args
     from tacf_clients.watch import watch
 
-    with stop_on_signals() as stop:
+    with stop_on_signals() as stop, _reported("watch"):
         return watch(options_from_args(args), sid=args.sid, node=args.node, interval=args.interval,
                      duration=args.duration, stop=stop)
 
@@ -455,7 +465,7 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
         if not 1 <= value <= 255:
             print(f"tacf mavlink: {name} must be 1 to 255, got {value}", file=sys.stderr)
             return 2
-    with stop_on_signals() as stop:
+    with stop_on_signals() as stop, _reported("mavlink"):
         try:
             key = None
             if args.signing_passphrase_file:
@@ -491,7 +501,7 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:       # ssl.SSLError is an OSError
         print(f"tacf foxglove: {exc}", file=sys.stderr)
         return 2
-    with stop_on_signals() as stop:
+    with stop_on_signals() as stop, _reported("foxglove"):
         try:
             with Dashboard(viewer_options(options_from_args(args)), image_keys=args.keys, node=args.node,
                            max_frame_fps=args.image_hz) as board, \
@@ -535,7 +545,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:       # ssl.SSLError is an OSError
         print(f"tacf dashboard: {exc}", file=sys.stderr)
         return 2
-    with stop_on_signals() as stop:
+    with stop_on_signals() as stop, _reported("dashboard"):
         try:
             return serve(viewer_options(options_from_args(args)), host=args.host, port=args.port, image_keys=args.keys,
                          node=args.node, history_s=args.history * 60, access=access, tls=tls, stop=stop,

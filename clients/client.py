@@ -8,7 +8,8 @@
 
 Every call is one Zenoh query on tacf/<node>/control/<op> (a wildcard node when none is given) with a timeout;
 error replies raise the exception class of their code (tacf_clients.errors), a silent service raises
-RequestTimeout, no service at all raises NoService.
+RequestTimeout, no service at all raises NoService, a bad id InvalidId, and a session that cannot open (a Zenoh
+client with no node reachable) ZenohUnavailable.
 
 Several services (edge boxes) on one network: `start(..., node=LEAST_LOADED)` picks one (see `least_loaded`),
 and `watch_nodes()` reports services appearing and disappearing through their liveliness tokens.
@@ -18,6 +19,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import pydantic
@@ -63,7 +65,8 @@ class TrackingClient:
                  node: str | None = None, timeout: float = DEFAULT_TIMEOUT):
         if node == LEAST_LOADED:
             raise ValueError(f"node={LEAST_LOADED!r} is for start(); leave the client's node unset")
-        self.node = keys.validate_id(node, "node id") if node is not None else None
+        with _as_invalid_id():
+            self.node = keys.validate_id(node, "node id") if node is not None else None
         self.timeout = timeout
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
@@ -197,7 +200,8 @@ class TrackingClient:
         if sid != keys.WILDCARD:
             _sid(sid)
         node = node or self.node or (self._nodes_of_sid.get(sid) if sid != keys.WILDCARD else None)
-        key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
+        with _as_invalid_id():
+            key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
         return ResultStream(self.session, key_expr, _decode_result, latest_only=latest_only,
                             slot_of=lambda item: (item.node, item.sid, type(item).__name__),
                             callback=callback, name=f"tacf-subscribe-{sid}")
@@ -259,7 +263,8 @@ class TrackingClient:
         raise replies[0].error
 
     def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]) -> list[_Reply]:
-        key = keys.control_key(node, op)
+        with _as_invalid_id():
+            key = keys.control_key(node, op)
         log.debug("query %s %s", key, request)
         replies = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
                                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
@@ -381,6 +386,15 @@ def _build(model: type[WireModel], **fields) -> WireModel:
         where = str(first["loc"][0]) if first["loc"] else ""
         cls = {"box": InvalidBox, "image_key": InvalidKey, "sid": InvalidId}.get(where, InvalidRequest)
         raise cls(f"invalid {model.__name__}: {where or '<root>'}: {first['msg']}") from None
+
+
+@contextmanager
+def _as_invalid_id():
+    """tacf_schemas.keys refuses a bad node or session id with InvalidIdError: raise InvalidId, as a service would."""
+    try:
+        yield
+    except keys.InvalidIdError as exc:
+        raise InvalidId(str(exc)) from None
 
 
 def _box(box: BoxLike) -> tuple[float, float, float, float]:

@@ -99,6 +99,13 @@ class NoService(TacfError):
     code = "no_service"
 
 
+class ZenohUnavailable(TacfError):
+    """The Zenoh session could not open: as a Zenoh client, no node is reachable at the connect endpoints (or an
+    endpoint is malformed, or a listen endpoint is taken)."""
+
+    code = "zenoh_unavailable"
+
+
 class AmbiguousNode(TacfError):
     """Several services are on the network and the call does not say which one: pass node=..."""
 

@@ -14,7 +14,7 @@ from typing import TextIO
 
 from tacf_clients.client import TrackingClient
 from tacf_clients.errors import TacfError
-from tacf_clients.zconfig import ZenohOptions, open_session
+from tacf_clients.zconfig import ZenohOptions
 from tacf_schemas import keys
 from tacf_schemas.models import BoxResult, Health, SessionInfo
 
@@ -103,14 +103,15 @@ def columns(rows: list[tuple[str, ...]]) -> str:
 def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: str | None = None,
           interval: float = 0.5, duration: float | None = None, stop: threading.Event | None = None,
           out: TextIO | None = None) -> int:
-    """Show the live table until `stop` is set or `duration` seconds pass. Returns an exit code."""
+    """Show the live table until `stop` is set or `duration` seconds pass. Returns an exit code.
+
+    A bad `sid` or `node` raises InvalidId, a session that cannot open ZenohUnavailable."""
     out = out or sys.stdout
     stop = stop or threading.Event()
     redraw = out.isatty()
     rows: dict[tuple[str, str], SessionRow] = {}
     deadline = None if duration is None else time.monotonic() + duration
-    with open_session(options) as session:
-        client = TrackingClient(session=session, node=node, timeout=2.0)
+    with TrackingClient(options, node=node, timeout=2.0) as client:     # a bad node id is refused before opening
         try:
             for info in client.list():
                 if sid in (keys.WILDCARD, info.sid):

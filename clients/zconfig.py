@@ -14,10 +14,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tacf.zenoh_options import ZenohOptions, base_config
+from tacf_clients.errors import ZenohUnavailable
 
 if TYPE_CHECKING:
     import zenoh
@@ -26,6 +28,8 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
 # A late listener costs at most ~1 s with this backoff instead of up to 4 s (ZENOH.md §2.4).
 FAST_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
+# Zenoh's errors end with the Rust source line that raised them ("... at /root/.cargo/.../unicast.rs:338."): noise.
+_RUST_LOCATION = re.compile(r"\s*at \S+\.rs:\d+\.?")
 
 
 def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
@@ -80,9 +84,16 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh.Session":
-    """Open a Zenoh session; use it as a context manager so it is always closed (ZENOH.md §8)."""
+    """Open a Zenoh session; use it as a context manager so it is always closed (ZENOH.md §8).
+
+    ZenohUnavailable if it cannot open, as a client with no node reachable does at once (ZENOH.md §1)."""
     import zenoh
 
     conf = options if isinstance(options, zenoh.Config) else make_config(options)
-    return zenoh.open(conf)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        reason = _RUST_LOCATION.sub("", str(exc))
+        what = "no Zenoh node reachable" if reason.startswith("Unable to connect") else "cannot open a Zenoh session"
+        raise ZenohUnavailable(f"{what}: {reason}") from exc
 

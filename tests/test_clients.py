@@ -179,6 +179,49 @@ def test_no_service_and_timeout():
                 client.stop("abc")
 
 
+def _cli_error(main, argv: list[str], capsys) -> str:
+    """The one line a command prints on stderr when it fails with exit code 1 (SystemExit, not a traceback)."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err
+    assert exc.value.code == 1, err
+    assert len(err.splitlines()) == 1, err
+    return err.strip()
+
+
+def test_command_line_bad_ids_and_no_service_are_one_line_errors(capsys):
+    from tacf.cli import main
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))):     # a node, but no service
+        zenoh_args = ["--connect", f"tcp/127.0.0.1:{port}"]
+        for argv in (["list"], ["status", "abc"], ["stop", "abc"], ["nodes"], ["watch"],
+                     ["start", "--key", "cam/a", "--box", "1,2,3,4"]):
+            err = _cli_error(main, [*argv, "--node", "bad/id", *zenoh_args], capsys)
+            assert err == (f"tacf {argv[0]}: InvalidId: invalid node id 'bad/id': expected 1-64 characters of "
+                           "[A-Za-z0-9_-]")
+        err = _cli_error(main, ["watch", "a/b", "--duration", "1", *zenoh_args], capsys)
+        assert err.startswith("tacf watch: InvalidId: invalid session id 'a/b'")
+
+        # No service answering is an error (exit 1) with --json as without, which still prints an empty list.
+        for argv in (["list"], ["list", "--json"], ["nodes", "--timeout", "0.5"],
+                     ["nodes", "--json", "--timeout", "0.5"]):
+            assert main([*argv, *zenoh_args]) == 1
+            captured = capsys.readouterr()
+            assert captured.out.strip() == ("[]" if "--json" in argv else "")
+            assert captured.err.startswith(f"tacf {argv[0]}: no tracking service")
+
+
+def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
+    from tacf.cli import main
+
+    zenoh_args = ["--mode", "client", "--connect", f"tcp/127.0.0.1:{free_port()}"]      # nobody listens there
+    for argv in (["list"], ["publish", "scene", "--key", "cam/a"], ["watch"], ["dashboard", "--port", "0"]):
+        err = _cli_error(main, [*argv, *zenoh_args], capsys)
+        assert err.startswith(f"tacf {argv[0]}: ZenohUnavailable: no Zenoh node reachable: Unable to connect"), err
+        assert ".rs:" not in err                      # the Rust source line Zenoh appends is left out
+
+
 def test_list_across_two_services(service, client, camera):
     with LocalService(node=f"second{free_port()}") as second:
         options = ZenohOptions(connect=(service.endpoint, second.endpoint))
