@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "an image folder (or a sequence folder with img/), a camera index, a "
                                           "stream URL, or 'scene' (the generated demo scene).")
     p.add_argument("source", metavar="SOURCE")
-    p.add_argument("--key", "-k", required=True, help="Zenoh key to publish on, e.g. uav1/camera/front")
+    p.add_argument("--key", "-k", required=True, type=_image_key,
+                   help="Zenoh key to publish on, e.g. uav1/camera/front")
     p.add_argument("--fps", type=_positive_float, help="rate (default: the source's own, or 30)")
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg", help="frame encoding (default jpeg)")
     p.add_argument("--quality", type=_quality, default=90, help="JPEG quality 1-100 (default 90)")
@@ -39,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_publish)
 
     p = subparsers.add_parser("start", help="start a tracking session")
-    p.add_argument("--key", "-k", required=True, help="image key the frames are published on")
+    p.add_argument("--key", "-k", required=True, type=_image_key, help="image key the frames are published on")
     p.add_argument("--box", "-b", required=True, type=parse_box, help="initial box x,y,w,h in pixels")
     p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
     p.add_argument("--profile", help="tracker profile (service default if absent)")
@@ -117,7 +118,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "with MAV_CMD_CAMERA_TRACK_RECTANGLE, stops it with "
                                           "MAV_CMD_CAMERA_STOP_TRACKING and gets CAMERA_TRACKING_IMAGE_STATUS. "
                                           "Needs pymavlink: pip install 'tacf[mavlink]'.")
-    p.add_argument("--key", "-k", required=True, help="image key of the camera's frames")
+    p.add_argument("--key", "-k", required=True, type=_image_key, help="image key of the camera's frames")
     p.add_argument("--link", required=True,
                    help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT or a "
                         "serial device")
@@ -151,7 +152,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also write everything (images at --image-hz) to this MCAP file, for replay in Foxglove")
     p.add_argument("--certfile", metavar="PEM", help="serve wss:// only, with this certificate (chain)")
     p.add_argument("--keyfile", metavar="PEM", help="the certificate's private key (default: in --certfile)")
-    p.add_argument("--key", "-k", dest="keys", action="append", default=[], metavar="IMAGE_KEY",
+    p.add_argument("--key", "-k", dest="keys", action="append", default=[], type=_image_key, metavar="IMAGE_KEY",
                    help="image key to show from the start, repeatable (the keys of running sessions are added "
                         "by themselves)")
     p.add_argument("--node", help="only this service (default: every service on the network)")
@@ -175,7 +176,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--allow-host", dest="allow_hosts", action="append", default=[], metavar="NAME",
                    help="a host name the page may be served under besides loopback ones, repeatable (e.g. a "
                         "reverse proxy's); without a token other names are refused, against DNS rebinding")
-    p.add_argument("--key", "-k", dest="keys", action="append", default=[], metavar="IMAGE_KEY",
+    p.add_argument("--key", "-k", dest="keys", action="append", default=[], type=_image_key, metavar="IMAGE_KEY",
                    help="image key to show from the start, repeatable (the keys of running sessions are added "
                         "by themselves, and more can be added on the page)")
     p.add_argument("--node", help="only this service (default: every service on the network)")
@@ -205,6 +206,16 @@ def parse_box(text: str) -> tuple[float, float, float, float]:
     if len(values) != 4 or values[2] <= 0 or values[3] <= 0:
         raise argparse.ArgumentTypeError(f"box {text!r}: expected x,y,w,h with w and h > 0")
     return values  # type: ignore[return-value]
+
+
+def _image_key(text: str) -> str:
+    """An image key as the service will take it: a bad one is a usage error here, not a traceback later."""
+    from tacf_schemas.keys import InvalidKeyError, validate_image_key
+
+    try:
+        return validate_image_key(text)
+    except InvalidKeyError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def _positive_float(text: str) -> float:

@@ -212,6 +212,17 @@ def test_command_line_bad_ids_and_no_service_are_one_line_errors(capsys):
             assert captured.err.startswith(f"tacf {argv[0]}: no tracking service")
 
 
+def test_command_line_bad_image_keys_are_usage_errors(capsys):
+    from tacf.cli import main
+
+    for argv in (["publish", "scene"], ["start", "--box", "1,2,3,4"], ["mavlink", "--link", "udpin:0.0.0.0:1"],
+                 ["dashboard"], ["foxglove"]):
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, "--key", "cam/*"])
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and "argument --key/-k: invalid image key 'cam/*'" in err, (argv, err)
+
+
 def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
     from tacf.cli import main
 
