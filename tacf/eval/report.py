@@ -5,7 +5,7 @@ summary.json shape (read by other tools; docs DESIGN.md 6):
   {"trackers": {NAME: {"auc": f, "precision20": f, "fps": f, "frames": n,
                        "sequences": {SEQ: {"auc": f, "precision20": f, "fps": f, "frames": n}}}}}
 A tracker's auc and precision20 are the means over its sequences (as benchmark tables report them);
-fps = total frames / total tracker seconds; frames = total frames tracked.
+fps = frames / tracker seconds over the sequences that have timing; frames = total frames tracked.
 With `tacf eval --shifts` summary.json also has "robustness", with `--tre` "temporal_robustness" (see `robustness`),
 for the trackers that recorded their lost flag, "lost_flag" (see `lost_flag_summary`), and "attributes", the scores
 per sequence attribute (see `attribute_scores`).
@@ -59,6 +59,8 @@ class TrackerReport:
     # (ok, pme, IoU) of the frames after the first with a target, per sequence whose confidence was recorded
     flag_frames: list = field(default_factory=list)
     frames: int = 0
+    # fps counts only the sequences with timing: imported results may lack it for some
+    timed_frames: int = 0
     seconds: float = 0.0
 
     def entry(self) -> dict:
@@ -66,7 +68,7 @@ class TrackerReport:
         precs = [s["precision20"] for s in self.sequences.values() if np.isfinite(s["precision20"])]
         return {"auc": float(np.mean(aucs)) if aucs else float("nan"),
                 "precision20": float(np.mean(precs)) if precs else float("nan"),
-                "fps": self.frames / self.seconds if self.seconds > 0 else float("nan"),
+                "fps": self.timed_frames / self.seconds if self.seconds > 0 else float("nan"),
                 "frames": int(self.frames),
                 "sequences": self.sequences}
 
@@ -119,7 +121,9 @@ def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.nd
             judged[0] = False  # the init frame has no flag
             rep.flag_frames.append((ok[judged], pme[judged], metrics.iou(boxes, seq.gt)[judged]))
         rep.frames += len(boxes)
-        rep.seconds += seconds
+        if np.isfinite(seconds) and seconds > 0:
+            rep.timed_frames += len(boxes)
+            rep.seconds += seconds
     return rep
 
 
