@@ -610,6 +610,62 @@ def test_eval_results_refused_with_the_reason(tmp_path, caplog):
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["trackers"]["x"]["frames"] == 4
 
 
+def test_pysot_vot_layout_one_pass_results_start_with_1_and_reset_based_ones_are_refused(tmp_path, caplog):
+    n = 6
+    data = write_synthetic_dataset(tmp_path, n)
+    rows = [f"{31 + 2 * i},{41 + i},24,24\n" for i in range(n)]
+    long_term, baseline = tmp_path / "long_term", tmp_path / "baseline"
+    for folder, lines in ((long_term, ["1\n"] + rows[1:]), (baseline, ["1\n", rows[1], "2\n", "0\n", "1\n", rows[5]])):
+        (folder / "drift").mkdir(parents=True)
+        (folder / "drift" / "drift_001.txt").write_text("".join(lines))
+    out = tmp_path / "out"
+    assert main(["eval", str(data), "--results", f"lt={long_term}", "--out", str(out), "--no-progress"]) == 0
+    lt = json.loads((out / "summary.json").read_text())["trackers"]["lt"]
+    assert lt["auc"] == pytest.approx(20 / 21) and lt["precision20"] == 1.0   # line 1 is the first ground truth
+    assert main(["eval", str(data), "--results", f"vot={baseline}", "--out", str(out), "--no-progress"]) == 2
+    assert "drift_001.txt:3: '2' marks a VOT reset" in caplog.text and "not one-pass results" in caplog.text
+
+
+def write_otb_two_targets(root: Path, n: int = 4) -> Path:
+    """An OTB tree: Jogging with targets 1 and 2, Human4 with target 2 only (as OTB-100 ships them), Boy."""
+    jpg = cv2.imencode(".jpg", np.zeros((40, 40, 3), np.uint8))[1].tobytes()
+    for folder, targets in (("Jogging", (1, 2)), ("Human4", (2,)), ("Boy", (None,))):
+        (root / folder / "img").mkdir(parents=True)
+        for i in range(1, n + 1):
+            (root / folder / "img" / f"{i:04d}.jpg").write_bytes(jpg)
+        for t in targets:
+            name = "groundtruth_rect.txt" if t is None else f"groundtruth_rect.{t}.txt"
+            (root / folder / name).write_text(f"{5 + (t or 0)},5,10,10\n" * n)
+    return root
+
+
+def test_two_target_otb_results_are_found_under_got10k_s_and_pytracking_s_names(tmp_path, caplog):
+    n = 4
+    data = write_otb_two_targets(tmp_path / "otb", n)
+    box = {"Jogging-1": "6,5,10,10\n", "Jogging-2": "7,5,10,10\n", "Human4-2": "7,5,10,10\n", "Boy": "5,5,10,10\n"}
+    layouts = {"got10k": {"Jogging.1": "Jogging-1", "Jogging.2": "Jogging-2", "Human4": "Human4-2", "Boy": "Boy"},
+               "pytracking": {"Jogging_1": "Jogging-1", "Jogging_2": "Jogging-2", "Human4_2": "Human4-2", "Boy": "Boy"}}
+    for layout, files in layouts.items():
+        (tmp_path / layout).mkdir()
+        for file, seq in files.items():
+            (tmp_path / layout / f"{file}.txt").write_text(box[seq] * n)
+    out = tmp_path / "out"
+    rc = main(["eval", str(data), "--results", f"got10k={tmp_path / 'got10k'}", "--results",
+               f"pytracking={tmp_path / 'pytracking'}", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    scored = json.loads((out / "summary.json").read_text())["trackers"]
+    for layout in layouts:   # each file read for its own target: all of them on the ground truth
+        assert sorted(scored[layout]["sequences"]) == ["Boy", "Human4-2", "Jogging-1", "Jogging-2"]
+        assert scored[layout]["auc"] == pytest.approx(20 / 21), layout
+    # A bare Jogging.txt could be either target of Jogging: not taken for one
+    ambiguous = tmp_path / "ambiguous"
+    ambiguous.mkdir()
+    for file in ("Jogging", "Human4", "Boy"):
+        (ambiguous / f"{file}.txt").write_text("5,5,10,10\n" * n)
+    assert main(["eval", str(data), "--results", f"x={ambiguous}", "--out", str(out), "--no-progress"]) == 2
+    assert "has no result for 2 of the 4 sequences (Jogging-1, Jogging-2;" in caplog.text
+
+
 AUTHORS_OUTPUT = DATA / "reference" / "authors_tacf"
 
 

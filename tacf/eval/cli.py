@@ -108,8 +108,12 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
 
 def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: bool) -> dict[str, dict]:
     """{NAME: {sequence name: (boxes, times)}} from `--results NAME=DIR` specs; ValueError naming every problem."""
-    from .runner import read_imported_run
+    from collections import Counter
 
+    from .runner import otb_stem, read_imported_run
+
+    # A two-target OTB sequence's result may go by the bare name only when no other target of it is scored.
+    stems = Counter(otb_stem(s.name) for s in seqs)
     imported: dict[str, dict] = {}
     for spec in specs or []:
         name, equals, folder = (part.strip() for part in spec.partition("="))
@@ -122,7 +126,7 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
         runs, missing = {}, []
         for seq in seqs:
             try:
-                runs[seq.name] = read_imported_run(Path(folder), seq, allow_longer)
+                runs[seq.name] = read_imported_run(Path(folder), seq, allow_longer, stems[otb_stem(seq.name)] == 1)
             except FileNotFoundError:
                 missing.append(seq.name)
             except ValueError as exc:
@@ -131,7 +135,8 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
             listed = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
             raise ValueError(f"--results {name}: {folder} has no result for {len(missing)} of the {len(seqs)} "
                              f"sequences ({listed}; looked for <sequence>.txt, <last part>.txt and <last part>/"
-                             "<last part>_001.txt); --sequences selects the ones it has")
+                             "<last part>_001.txt, <name>.N, <name>_N and <name> for a target <name>-N); "
+                             "--sequences selects the ones it has")
         imported[name] = runs
     return imported
 

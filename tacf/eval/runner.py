@@ -15,14 +15,16 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import re
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from .datasets import Sequence, read_boxes, write_boxes
+from .datasets.base import parse_boxes
 from .trackers import BoxTracker, make_tracker
 
 log = logging.getLogger(__name__)
@@ -184,35 +186,79 @@ def read_run(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np
     return boxes, times
 
 
-def _imported_files(results_dir: Path, seq_name: str) -> tuple[Path, Path | None] | None:
-    """(box file, times file or None) of a sequence in another toolkit's result folder, or None.
+# tacf's name for target N of a two-target OTB sequence (groundtruth_rect.N.txt): Jogging-1, Human4-2
+_OTB_TARGET = re.compile(r"(.+)-(\d+)")
+
+
+def otb_stem(seq_name: str) -> str:
+    """The sequence name without the target number of a two-target OTB sequence (OTB100/Jogging-1: OTB100/Jogging)."""
+    m = _OTB_TARGET.fullmatch(seq_name)
+    return m.group(1) if m else seq_name
+
+
+def _result_names(name: str, bare: bool) -> list[str]:
+    """The names other toolkits may give the sequence tacf calls `name`: itself (ours, pysot's) and, for target N
+    of a two-target OTB sequence <stem>-<N>, got10k's <stem>.<N>, pytracking's <stem>_<N> and, with `bare`,
+    got10k's <stem> (Human4: it names a folder's only annotated target by the folder)."""
+    m = _OTB_TARGET.fullmatch(name)
+    if not m:
+        return [name]
+    stem, target = m.groups()
+    return [name, f"{stem}.{target}", f"{stem}_{target}"] + ([stem] if bare else [])
+
+
+def _imported_files(results_dir: Path, seq_name: str, bare: bool = True) -> tuple[Path, Path | None, bool] | None:
+    """(box file, times file or None, whether it is pysot's VOT layout) of a sequence in another toolkit's result
+    folder, or None.
 
     Box files: <dir>/<seq name>.txt (ours, got10k's: the name relative to the dataset root), <dir>/<last part>.txt
     (pysot's, pytracking's, the UAV123 MATLAB toolkit's) or <dir>/<last part>/<last part>_001.txt (pysot's VOT
-    layout). Times: <dir>/times/<that path>_time.txt (ours, got10k's) or <box file stem>_time.txt beside it
-    (pytracking's)."""
+    layout), the last part also under the other names of `_result_names`. Times: <dir>/times/<that path>_time.txt
+    (ours, got10k's) or <box file stem>_time.txt beside it (pytracking's)."""
     results_dir = Path(results_dir)
-    base = Path(seq_name).name
-    for relative in (seq_name, base, f"{base}/{base}_001"):
-        box_file = results_dir / f"{relative}.txt"
-        if box_file.is_file():
-            times = [results_dir / "times" / f"{relative}_time.txt", box_file.with_name(f"{box_file.stem}_time.txt")]
-            return box_file, next((t for t in times if t.is_file()), None)
+    parent = PurePosixPath(seq_name).parent
+    for name in _result_names(PurePosixPath(seq_name).name, bare):
+        for relative, vot in ((str(parent / name), False), (name, False), (f"{name}/{name}_001", True)):
+            box_file = results_dir / f"{relative}.txt"
+            if box_file.is_file():
+                times = [results_dir / "times" / f"{relative}_time.txt",
+                         box_file.with_name(f"{box_file.stem}_time.txt")]
+                return box_file, next((t for t in times if t.is_file()), None), vot
     return None
 
 
-def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _read_pysot_vot(box_file: Path, first_box: np.ndarray) -> np.ndarray:
+    """0-based boxes of pysot's <seq>/<seq>_001.txt. Its one-pass (long-term) results write `1` on line 1 for the
+    init frame instead of a box: that frame gets the first ground-truth box, the one it was given. VOT's reset-based
+    results also write `2` (a failure) and `0` (a frame skipped before the reset): not a one-pass track, refused."""
+    lines = box_file.read_text().splitlines()
+    for lineno, line in enumerate(lines, 1):
+        if line.strip() in ("0", "2"):
+            raise ValueError(f"{box_file}:{lineno}: '{line.strip()}' marks a VOT reset (2: a failure, 0: a frame "
+                             "skipped before the reset): these are VOT reset-based results, not one-pass results")
+    init = bool(lines) and lines[0].strip() == "1"
+    if init:
+        lines[0] = "nan,nan,nan,nan"  # keeps the line numbers of parse errors
+    boxes = parse_boxes(lines, box_file, one_based=True)
+    if init:
+        boxes[0] = first_box
+    return boxes
+
+
+def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = False,
+                      bare: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(0-based N x 4 boxes, seconds per frame or NaN) of `seq` from a result folder another toolkit wrote.
 
     Box files are in the pixel frame of the dataset's ground-truth files, as every toolkit compares them (1-based
     for the MATLAB-made benchmarks), so they are read the way the ground truth is. One row per frame, the first
     being the init box; more rows than frames only with `allow_longer` (the first frames of a sequence were
-    asked for). Raises FileNotFoundError or ValueError saying what is wrong."""
-    found = _imported_files(results_dir, seq.name)
+    asked for). `bare`: a two-target OTB sequence's result may go by the bare sequence name (no other target of
+    it is scored). Raises FileNotFoundError or ValueError saying what is wrong."""
+    found = _imported_files(results_dir, seq.name, bare)
     if found is None:
         raise FileNotFoundError(f"no result for {seq.name} in {results_dir}")
-    box_file, times_file = found
-    boxes = read_boxes(box_file, one_based=True)
+    box_file, times_file, vot = found
+    boxes = _read_pysot_vot(box_file, seq.gt[0]) if vot else read_boxes(box_file, one_based=True)
     if len(boxes) < len(seq) or (len(boxes) > len(seq) and not allow_longer):
         raise ValueError(f"{box_file}: {len(boxes)} boxes for the {len(seq)} frames of {seq.name}")
     times = np.full(len(seq), np.nan)

@@ -44,8 +44,13 @@ def read_boxes(path: Path, one_based: bool = True) -> np.ndarray:
 
     With `one_based` (the benchmarks' MATLAB convention) 1 is subtracted from x and y.
     """
+    return parse_boxes(Path(path).read_text().splitlines(), path, one_based)
+
+
+def parse_boxes(lines: list[str], path: Path, one_based: bool = True) -> np.ndarray:
+    """`read_boxes` on the lines of a file already read (`path` names it in errors)."""
     rows = []
-    for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
+    for lineno, line in enumerate(lines, 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
