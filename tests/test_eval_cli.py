@@ -121,7 +121,7 @@ def got10k_auc(result_file: Path, gt_file: Path) -> float:
 
 def test_eval_summary_shape_and_values(evaluated):
     summary = json.loads((evaluated / "summary.json").read_text())
-    assert set(summary) == {"trackers", "lost_flag", "attributes", "run"}
+    assert set(summary) == {"trackers", "protocol", "lost_flag", "attributes", "run"}
     assert sorted(summary["trackers"]) == sorted(EVAL_TRACKERS)
     run = summary["run"]      # where the numbers came from
     assert run["arguments"]["trackers"] == [",".join(EVAL_TRACKERS)]
@@ -624,6 +624,32 @@ def test_pysot_vot_layout_one_pass_results_start_with_1_and_reset_based_ones_are
     assert lt["auc"] == pytest.approx(20 / 21) and lt["precision20"] == 1.0   # line 1 is the first ground truth
     assert main(["eval", str(data), "--results", f"vot={baseline}", "--out", str(out), "--no-progress"]) == 2
     assert "drift_001.txt:3: '2' marks a VOT reset" in caplog.text and "not one-pass results" in caplog.text
+
+
+def test_eval_absent_option_is_recorded_and_scores_absent_frames_as_the_toolkits_do(tmp_path, capsys):
+    n, jpg = 10, cv2.imencode(".jpg", np.zeros((40, 60, 3), np.uint8))[1].tobytes()
+    seq = tmp_path / "data" / "s"
+    (seq / "img").mkdir(parents=True)
+    for i in range(1, n + 1):
+        (seq / "img" / f"{i:06d}.jpg").write_bytes(jpg)
+    rows = ["NaN,NaN,NaN,NaN\n" if i in (2, 3, 6, 9) else "21,21,10,10\n" for i in range(n)]
+    (seq / "groundtruth.txt").write_text("".join(rows))
+    (tmp_path / "perfect").mkdir()
+    (tmp_path / "perfect" / "s.txt").write_text("21,21,10,10\n" * n)
+    summaries = {}
+    for absent in ("skip", "toolkit"):
+        out = tmp_path / absent
+        assert main(["eval", str(tmp_path / "data"), "--results", f"perfect={tmp_path / 'perfect'}", "--absent",
+                     absent, "--out", str(out), "--no-progress"]) == 0
+        summaries[absent] = json.loads((out / "summary.json").read_text())
+        assert summaries[absent]["protocol"] == {"absent": absent, "absent_frames": 4, "frames": n}
+        said = "Frames without a target (NaN or empty ground truth): 4 of 10, " + (
+            "left out of the scores" if absent == "skip" else "counted as pysot and the OTB / UAV123 MATLAB toolkit")
+        assert said in (out / "summary.md").read_text() and said in capsys.readouterr().out
+    assert summaries["skip"]["trackers"]["perfect"]["auc"] == pytest.approx(20 / 21)
+    assert summaries["toolkit"]["trackers"]["perfect"]["auc"] == pytest.approx(0.6 * 20 / 21)
+    assert summaries["skip"]["trackers"]["perfect"]["precision20"] == 1.0
+    assert summaries["toolkit"]["trackers"]["perfect"]["precision20"] == 1.0
 
 
 def write_otb_two_targets(root: Path, n: int = 4) -> Path:

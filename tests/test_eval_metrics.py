@@ -91,6 +91,24 @@ def test_nan_and_empty_ground_truth_frames_are_skipped():
     assert np.isnan(metrics.score(pred[1:3], gt[1:3]).auc)
 
 
+def test_absent_frames_skipped_by_default_or_counted_as_the_matlab_toolkit_and_pysot_count_them():
+    gt = np.tile([20.0, 20.0, 10.0, 10.0], (10, 1))
+    gt[[2, 3, 6, 9]] = np.nan                                 # 4 of 10 frames without a target
+    perfect = np.where(np.isnan(gt), 0.0, gt)                 # whatever a tracker says there
+    far = perfect + [100, 0, 0, 0]
+    skip, toolkit = metrics.score(perfect, gt), metrics.score(perfect, gt, absent="toolkit")
+    curve = np.r_[np.ones(20), 0.0]                           # IoU 1 passes every threshold but 1
+    np.testing.assert_allclose(skip.success, curve)
+    np.testing.assert_allclose(toolkit.success, 0.6 * curve)  # absent: IoU -1, a failure at every threshold
+    assert skip.auc == pytest.approx(20 / 21) and toolkit.auc == pytest.approx(0.6 * 20 / 21)
+    assert skip.precision20 == toolkit.precision20 == 1.0     # absent: error -1, a hit at every distance
+    assert metrics.score(far, gt).precision20 == 0.0
+    assert metrics.score(far, gt, absent="toolkit").precision20 == pytest.approx(0.4)
+    np.testing.assert_allclose(metrics.precision_curve(far, gt, absent="toolkit"), 0.4)
+    with pytest.raises(ValueError, match="skip, toolkit"):
+        metrics.score(perfect, gt, absent="matlab")
+
+
 def test_shape_errors():
     with pytest.raises(ValueError):
         metrics.iou(np.zeros((3, 4)), np.zeros((2, 4)))

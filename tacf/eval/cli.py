@@ -59,6 +59,10 @@ def register(subparsers) -> None:
                    help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking, the "
                         "UAV123 MATLAB toolkit; one x,y,w,h row per frame, in the ground truth's pixel frame) as "
                         "tracker NAME, one pass; repeatable. With --results and no --trackers, nothing runs")
+    p.add_argument("--absent", choices=("skip", "toolkit"), default="skip",
+                   help="frames without a target (NaN ground truth): skip leaves them out of the scores, as got10k's "
+                        "UAV123 experiment does; toolkit counts them as pysot and the OTB/UAV123 MATLAB toolkit do, a "
+                        "failure for success and a hit for precision (default %(default)s)")
     p.add_argument("--attributes", type=Path, metavar="FILE",
                    help="sequence attributes for the per-attribute scores: 'name ATTR ATTR ...' lines (default: the "
                         "benchmark's own, UAV123's att files, else SV, ARC, LR and FM derived from the ground truth)")
@@ -186,9 +190,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     failed = [o for o in outcomes if o.error]
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
-    summary, reports = report.summarize(args.out, trackers, seqs, imported)
+    summary, reports = report.summarize(args.out, trackers, seqs, imported, args.absent)
     for protocol, its_starts in protocols.items():
-        per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs))[0]
+        per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs),
+                                                   absent=args.absent)[0]
                      for start in its_starts}
         summary[report.ROBUSTNESS_KEYS[protocol]] = report.robustness(per_start, trackers, protocol)
     lost_flag = report.lost_flag_summary(reports)

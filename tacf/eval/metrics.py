@@ -5,7 +5,11 @@ Conventions (docs ECOSYSTEM.md 3.4, as got10k and pysot compute them):
   - success at threshold t = fraction of frames with IoU > t, t in linspace(0, 1, 21); AUC = mean of the curve;
   - centre = xy + (wh - 1) / 2; precision at t px = fraction of frames with centre distance <= t, t = 0..50;
     the precision score is the value at 20 px;
-  - frames whose ground truth is NaN or empty (w or h <= 0) are skipped; a NaN prediction counts as a miss;
+  - a NaN prediction counts as a miss;
+  - frames whose ground truth is NaN or empty (w or h <= 0), the target absent, are skipped by default
+    (absent="skip"), as got10k's UAV123 experiment does. pysot (success_overlap / success_error) and the OTB /
+    UAV123 MATLAB toolkit (calcSeqErrRobust + perfPlot) divide by all frames instead, an absent frame being a
+    failure at every overlap threshold (IoU -1) and a hit at every distance (error -1): absent="toolkit";
   - a lost flag: the share of failures (IoU < 0.1) it flags and of tracked frames (IoU > 0.5) it flags wrongly.
 Shifting both boxes by the same offset (0- vs 1-based) changes none of these numbers.
 """
@@ -21,6 +25,7 @@ IOU_THRESHOLDS = np.linspace(0.0, 1.0, 21)
 FAILURE_IOU, TRACKED_IOU = 0.1, 0.5
 DIST_THRESHOLDS = np.arange(0, 51, dtype=np.float64)
 PRECISION_AT = 20
+ABSENT = ("skip", "toolkit")  # how frames without a target count: see the module docstring
 
 
 def _as_boxes(boxes) -> np.ndarray:
@@ -68,22 +73,34 @@ def center_error(pred, gt) -> np.ndarray:
     return np.where(np.isfinite(d), d, np.inf)
 
 
-def success_curve(pred, gt, thresholds=IOU_THRESHOLDS) -> np.ndarray:
-    """Fraction of valid-gt frames with IoU > t, for each threshold t (NaN curve when no frame is valid)."""
+def _rates(hits: np.ndarray, keep: np.ndarray, absent: str, absent_hit: bool) -> np.ndarray:
+    """Per-threshold hits over the valid-gt frames as a fraction: of those frames (absent="skip"), or of all
+    frames with each absent one a hit or a failure (absent="toolkit")."""
+    if absent == "skip":
+        return hits / keep.sum()
+    if absent == "toolkit":
+        return (hits + absent_hit * (~keep).sum()) / len(keep)
+    raise ValueError(f"absent must be one of {', '.join(ABSENT)}, got {absent!r}")
+
+
+def success_curve(pred, gt, thresholds=IOU_THRESHOLDS, absent: str = "skip") -> np.ndarray:
+    """Fraction of frames with IoU > t, for each threshold t; an absent target's frames skipped or failed (see
+    `absent` in the module docstring); NaN curve when no frame is valid."""
     keep = valid_mask(gt)
     if not keep.any():
         return np.full(len(thresholds), np.nan)
     ious = iou(_as_boxes(pred)[keep], _as_boxes(gt)[keep])
-    return (ious[:, None] > np.asarray(thresholds)[None, :]).mean(axis=0)
+    return _rates((ious[:, None] > np.asarray(thresholds)[None, :]).sum(axis=0), keep, absent, False)
 
 
-def precision_curve(pred, gt, thresholds=DIST_THRESHOLDS) -> np.ndarray:
-    """Fraction of valid-gt frames with centre distance <= t px, for each threshold t."""
+def precision_curve(pred, gt, thresholds=DIST_THRESHOLDS, absent: str = "skip") -> np.ndarray:
+    """Fraction of frames with centre distance <= t px, for each threshold t; an absent target's frames skipped
+    or hits (see `absent` in the module docstring); NaN curve when no frame is valid."""
     keep = valid_mask(gt)
     if not keep.any():
         return np.full(len(thresholds), np.nan)
     dist = center_error(_as_boxes(pred)[keep], _as_boxes(gt)[keep])
-    return (dist[:, None] <= np.asarray(thresholds)[None, :]).mean(axis=0)
+    return _rates((dist[:, None] <= np.asarray(thresholds)[None, :]).sum(axis=0), keep, absent, True)
 
 
 def auc(curve) -> float:
@@ -102,10 +119,10 @@ class Scores:
     frames_scored: int
 
 
-def score(pred, gt) -> Scores:
-    """All OPE scores of one predicted track against its ground truth."""
-    succ = success_curve(pred, gt)
-    prec = precision_curve(pred, gt)
+def score(pred, gt, absent: str = "skip") -> Scores:
+    """All OPE scores of one predicted track against its ground truth; `absent`: see the module docstring."""
+    succ = success_curve(pred, gt, absent=absent)
+    prec = precision_curve(pred, gt, absent=absent)
     return Scores(auc(succ), float(prec[PRECISION_AT]), succ, prec, int(valid_mask(gt).sum()))
 
 

@@ -8,7 +8,8 @@ A tracker's auc and precision20 are the means over its sequences (as benchmark t
 fps = frames / tracker seconds over the sequences that have timing; frames = total frames tracked.
 With `tacf eval --shifts` summary.json also has "robustness", with `--tre` "temporal_robustness" (see `robustness`),
 for the trackers that recorded their lost flag, "lost_flag" (see `lost_flag_summary`), and "attributes", the scores
-per sequence attribute (see `attribute_scores`).
+per sequence attribute (see `attribute_scores`). "protocol" says how the frames without a target counted (see
+`scoring_protocol`).
 """
 from __future__ import annotations
 
@@ -79,8 +80,9 @@ class TrackerReport:
                 np.nanmean([self.precision[i] for i in picked], axis=0))
 
 
-def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> TrackerReport:
-    """Score every recorded result of `tracker` in the result tree `out_dir` against the sequences' ground truth."""
+def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence], absent: str = "skip") -> TrackerReport:
+    """Score every recorded result of `tracker` in the result tree `out_dir` against the sequences' ground truth
+    (`absent`: see metrics)."""
     runs, confidences = {}, {}
     for seq in sequences:
         if not result_path(out_dir, tracker, seq.name).is_file():
@@ -95,19 +97,20 @@ def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence]) -> Tra
         confidence = read_confidence(out_dir, tracker, seq.name)
         if confidence is not None and len(confidence[0]) == len(seq):
             confidences[seq.name] = confidence
-    return score_runs(tracker, sequences, runs, confidences)
+    return score_runs(tracker, sequences, runs, confidences, absent)
 
 
 def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.ndarray, np.ndarray]],
-               confidences: dict[str, tuple[np.ndarray, np.ndarray]] | None = None) -> TrackerReport:
+               confidences: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+               absent: str = "skip") -> TrackerReport:
     """Score runs {sequence name: (0-based boxes, seconds per frame)}, one box per frame of the sequence, and
-    the lost flags of those with confidences {sequence name: (pme, ok)}."""
+    the lost flags of those with confidences {sequence name: (pme, ok)}; `absent`: see metrics."""
     rep = TrackerReport(name)
     for seq in sequences:
         if seq.name not in runs:
             continue
         boxes, times = runs[seq.name]
-        s = metrics.score(boxes, seq.gt)
+        s = metrics.score(boxes, seq.gt, absent)
         seconds = float(np.nansum(times))
         rep.sequences[seq.name] = {"auc": s.auc, "precision20": s.precision20,
                                    "fps": len(boxes) / seconds if seconds > 0 else float("nan"),
@@ -128,12 +131,32 @@ def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.nd
 
 
 def summarize(out_dir: Path, trackers: list[str], sequences: list[Sequence],
-              imported: dict[str, dict] | None = None) -> tuple[dict, list[TrackerReport]]:
+              imported: dict[str, dict] | None = None, absent: str = "skip") -> tuple[dict, list[TrackerReport]]:
     """(summary dict in the summary.json shape, the per-tracker reports): the trackers' results recorded in
-    `out_dir`, then the imported runs {name: {sequence name: (boxes, times)}} (`tacf eval --results`)."""
-    reports = [score_tracker(out_dir, t, sequences) for t in trackers]
-    reports += [score_runs(name, sequences, runs) for name, runs in (imported or {}).items()]
-    return {"trackers": {r.name: r.entry() for r in reports}}, reports
+    `out_dir`, then the imported runs {name: {sequence name: (boxes, times)}} (`tacf eval --results`), the frames
+    without a target counted as `absent` says (see metrics)."""
+    reports = [score_tracker(out_dir, t, sequences, absent) for t in trackers]
+    reports += [score_runs(name, sequences, runs, absent=absent) for name, runs in (imported or {}).items()]
+    return {"trackers": {r.name: r.entry() for r in reports}, "protocol": scoring_protocol(sequences, absent)}, reports
+
+
+def scoring_protocol(sequences: list[Sequence], absent: str) -> dict:
+    """summary.json's "protocol": how the frames without a target (NaN or empty ground truth) counted, and how many
+    of the sequences' frames they are."""
+    return {"absent": absent, "absent_frames": int(sum((~metrics.valid_mask(s.gt)).sum() for s in sequences)),
+            "frames": int(sum(len(s) for s in sequences))}
+
+
+ABSENT_TEXT = {"skip": "left out of the scores, as got10k's UAV123 experiment does (`--absent toolkit` counts them "
+                       "as pysot and the OTB / UAV123 MATLAB toolkit do)",
+               "toolkit": "counted as pysot and the OTB / UAV123 MATLAB toolkit count them (`--absent toolkit`): a "
+                          "failure at every overlap threshold, a hit at every distance"}
+
+
+def protocol_line(result: dict) -> str:
+    """summary.json's "protocol" as a sentence."""
+    return (f"Frames without a target (NaN or empty ground truth): {result['absent_frames']} of {result['frames']}, "
+            f"{ABSENT_TEXT[result['absent']]}.")
 
 
 def _pooled_flag_frames(r: TrackerReport) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -262,6 +285,8 @@ def markdown_table(summary: dict) -> str:
     for name, t in ranked:
         lines.append(f"| {name} | {_f(t['auc'])} | {_f(t['precision20'])} | {_f(t['fps'], 1)} | {t['frames']} "
                      f"| {len(t['sequences'])} |")
+    if "protocol" in summary:
+        lines += ["", protocol_line(summary["protocol"])]
     seq_names = sorted({s for _, t in ranked for s in t["sequences"]})
     if seq_names:
         lines += ["", "Success AUC per sequence:", "",
