@@ -513,9 +513,13 @@ def test_eval_tre_command(tmp_path, capsys):
     # identity keeps the start box: its AUC only falls with the time left to drift away in
     identity = temporal["trackers"]["identity"]["auc_per_start"]
     assert identity == sorted(identity) and identity[0] == summary["trackers"]["identity"]["auc"]
+    # OTB's TRE weighs each start by the frames it scored: 8, 6, 4 and 2 of the one sequence
+    assert temporal["trackers"]["identity"]["otb_pooled"]["auc"] == pytest.approx(np.dot(identity, [8, 6, 4, 2]) / 20)
+    assert "otb_pooled" not in summary["robustness"]["trackers"]["identity"]
     printed = capsys.readouterr().out
     for text in (printed, (out / "summary.md").read_text()):
         assert "Temporal robustness: runs started at (0/4), (1/4), (2/4), (3/4)" in text and "Robustness: first" in text
+        assert "OTB's TRE, pooled: AUC / precision@20" in text
     assert (out / "temporal_robustness_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "robustness_plot.png").is_file()
 

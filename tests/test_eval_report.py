@@ -21,3 +21,22 @@ def test_fps_counts_only_the_frames_of_the_sequences_that_were_timed():
     assert entry["fps"] == pytest.approx(10.0) and entry["frames"] == 67 + 129
     assert entry["sequences"]["timed"]["fps"] == pytest.approx(10.0) and np.isnan(entry["sequences"]["untimed"]["fps"])
     assert np.isnan(score_runs("none", [untimed], {"untimed": runs["untimed"]}).entry()["fps"])
+
+
+def test_otb_s_tre_pools_each_sequence_s_frames_over_its_starts():
+    from tacf.eval.report import robustness, robustness_table
+
+    def summary(s0, s1):  # (auc, precision20) of two sequences
+        return {"trackers": {"a": {"sequences": {name: {"auc": auc, "precision20": p20}
+                                                 for name, (auc, p20) in (("s0", s0), ("s1", s1))}}}}
+
+    per_start = {"0/2": summary((0.8, 1.0), (0.6, 0.5)), "1/2": summary((0.2, 0.4), (0.6, 0.5))}
+    frames = {"0/2": {"s0": 100, "s1": 10}, "1/2": {"s0": 50, "s1": 5}}   # the later start: half the frames
+    a = robustness(per_start, ["a"], "tre", frames_scored=frames)["trackers"]["a"]
+    assert a["mean"] == pytest.approx(0.55)                   # every start alike: (0.5 + 0.6) / 2, as before
+    # s0: (0.8 * 100 + 0.2 * 50) / 150 = 0.6, s1: 0.6; precision s0: (100 + 20) / 150 = 0.8, s1: 0.5
+    assert a["otb_pooled"] == pytest.approx({"auc": 0.6, "precision20": 0.65})
+    table = robustness_table(robustness(per_start, ["a"], "tre", frames_scored=frames))
+    assert "OTB's TRE, pooled: AUC / precision@20 |" in table
+    assert "| a | 0.700 | 0.550 | 0.400 - 0.700 | - | 0.600 / 0.650 |" in table
+    assert "otb_pooled" not in robustness(per_start, ["a"], "tre")["trackers"]["a"]

@@ -53,8 +53,9 @@ def register(subparsers) -> None:
                    help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
                         "each AUC moves and whether the trackers' differences stand out of that")
     p.add_argument("--tre", type=int, default=0, metavar="K",
-                   help="also start every pair at frames N/K, 2N/K, ... of each sequence (OTB's temporal robustness; "
-                        "K = 10 is 5.5 times the one-pass work) and report it as --shifts does")
+                   help="also start every pair at frames N/K, 2N/K, ... of each sequence (the starts of OTB's "
+                        "temporal robustness, TRE; K = 10 is 5.5 times the one-pass work), report the mean over these "
+                        "starts as --shifts does, and beside it OTB's TRE, which pools each sequence's frames")
     p.add_argument("--results", action="append", metavar="NAME=DIR",
                    help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking, the "
                         "UAV123 MATLAB toolkit; one x,y,w,h row per frame, in the ground truth's pixel frame) as "
@@ -146,7 +147,7 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from . import report
+    from . import metrics, report
     from .attributes import attributes_of, read_attribute_table
     from .provenance import provenance
     from .runner import Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
@@ -195,7 +196,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs),
                                                    absent=args.absent)[0]
                      for start in its_starts}
-        summary[report.ROBUSTNESS_KEYS[protocol]] = report.robustness(per_start, trackers, protocol)
+        # OTB pools the frames of a sequence's TRE starts (see report.robustness); its shifted starts weigh alike
+        frames_scored = None if protocol != "tre" else {
+            start.label: {part.name: metrics.frames_scored(part.gt, args.absent) for part in start.sequences(seqs)}
+            for start in its_starts}
+        summary[report.ROBUSTNESS_KEYS[protocol]] = report.robustness(per_start, trackers, protocol,
+                                                                      frames_scored=frames_scored)
     lost_flag = report.lost_flag_summary(reports)
     if lost_flag["trackers"]:
         summary["lost_flag"] = lost_flag

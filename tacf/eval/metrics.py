@@ -73,6 +73,13 @@ def center_error(pred, gt) -> np.ndarray:
     return np.where(np.isfinite(d), d, np.inf)
 
 
+def frames_scored(gt, absent: str = "skip") -> int:
+    """The frames the curves' fractions are of: those with a target (absent="skip") or all (absent="toolkit")."""
+    if absent not in ABSENT:
+        raise ValueError(f"absent must be one of {', '.join(ABSENT)}, got {absent!r}")
+    return int(valid_mask(gt).sum()) if absent == "skip" else len(_as_boxes(gt))
+
+
 def _rates(hits: np.ndarray, keep: np.ndarray, absent: str, absent_hit: bool) -> np.ndarray:
     """Per-threshold hits over the valid-gt frames as a fraction: of those frames (absent="skip"), or of all
     frames with each absent one a hit or a failure (absent="toolkit")."""
@@ -123,7 +130,7 @@ def score(pred, gt, absent: str = "skip") -> Scores:
     """All OPE scores of one predicted track against its ground truth; `absent`: see the module docstring."""
     succ = success_curve(pred, gt, absent=absent)
     prec = precision_curve(pred, gt, absent=absent)
-    return Scores(auc(succ), float(prec[PRECISION_AT]), succ, prec, int(valid_mask(gt).sum()))
+    return Scores(auc(succ), float(prec[PRECISION_AT]), succ, prec, frames_scored(gt, absent))
 
 
 def lost_flag_rates(lost, overlaps) -> dict:

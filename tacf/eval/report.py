@@ -338,7 +338,7 @@ def ablation_table(summary: dict) -> str:
 
 
 def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = "shifts",
-               resamples: int = 10000) -> dict:
+               resamples: int = 10000, frames_scored: dict[str, dict[str, int]] | None = None) -> dict:
     """How far each tracker's mean AUC moves over several starts of the same runs (the first box moved by a few
     pixels, protocol "shifts"; later first frames, protocol "tre"), and whether the other trackers' differences to
     the first tracker stand out of that.
@@ -348,12 +348,20 @@ def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = 
     AUC minus the first tracker's, per sequence averaged over the starts, then over the sequences, with a 95 %
     bootstrap interval over the sequences (fixed seed): an interval that holds 0 means the sequences cannot tell
     the two apart.
+
+    With frames_scored {start label: {sequence name: frames scored}} (metrics.frames_scored), each tracker also
+    gets "otb_pooled", the AUC and precision@20 as OTB's toolkit computes TRE (genPerfMat): per sequence, the hits
+    of all its starts over all the frames they scored, so that a short late start weighs less than the mean over
+    the starts weighs it; then the mean over the sequences.
     """
     starts = list(per_start)
     sequence_sets = [set(summary["trackers"][t]["sequences"]) for summary in per_start.values() for t in trackers]
     names = sorted(set.intersection(*sequence_sets)) if sequence_sets else []
-    aucs = {t: np.array([[per_start[start]["trackers"][t]["sequences"][n]["auc"] for n in names]
-                         for start in starts]) for t in trackers}  # (starts, sequences)
+
+    def per_sequence(t: str, key: str) -> np.ndarray:  # (starts, sequences)
+        return np.array([[per_start[start]["trackers"][t]["sequences"][n][key] for n in names] for start in starts])
+
+    aucs = {t: per_sequence(t, "auc") for t in trackers}
     result = {"protocol": protocol, "starts": starts, "sequences": len(names), "trackers": {}}
     if not names:
         return result
@@ -367,8 +375,18 @@ def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = 
             difference = (aucs[t] - aucs[first]).mean(axis=0)
             low, high = np.percentile(difference[resampled].mean(axis=1), [2.5, 97.5])
             entry["difference"] = {"to": first, "mean": float(difference.mean()), "ci95": [float(low), float(high)]}
+        if frames_scored is not None:
+            weights = np.array([[frames_scored[start][n] for n in names] for start in starts], float)
+            entry["otb_pooled"] = {key: _pooled(per_sequence(t, key), weights) for key in ("auc", "precision20")}
         result["trackers"][t] = entry
     return result
+
+
+def _pooled(values: np.ndarray, weights: np.ndarray) -> float:
+    """Mean over the sequences of each sequence's per-start fractions (starts x sequences) pooled over the frames
+    they are of: the hits over all its starts divided by all its frames scored."""
+    hits = np.where(weights > 0, values * weights, 0.0)  # a start without a frame scored has a NaN score
+    return float(np.mean(hits.sum(axis=0) / weights.sum(axis=0)))
 
 
 def robustness_table(result: dict) -> str:
@@ -382,15 +400,21 @@ def robustness_table(result: dict) -> str:
         title = f"Temporal robustness: runs started at {starts} of each sequence"
     else:
         title = f"Robustness: first box moved by (dx,dy) = {starts} pixels"
+    pooled = all("otb_pooled" in t for t in trackers.values())
     lines = [f"{title}; {result['sequences']} sequences:", "",
              f"| tracker | AUC, one pass | mean over the starts | min - max | difference to {first} "
-             "(95 % interval over sequences) |", "|---|---|---|---|---|"]
+             "(95 % interval over sequences) |" + (" OTB's TRE, pooled: AUC / precision@20 |" if pooled else ""),
+             "|---|---|---|---|---|" + ("---|" if pooled else "")]
     for name, t in trackers.items():
         difference = t.get("difference")
         cell = "-" if difference is None else (f"{difference['mean']:+.3f} ({difference['ci95'][0]:+.3f} to "
                                                 f"{difference['ci95'][1]:+.3f})")
         lines.append(f"| {name} | {_f(t['auc_per_start'][0])} | {_f(t['mean'])} | {_f(t['min'])} - {_f(t['max'])} "
-                     f"| {cell} |")
+                     f"| {cell} |" + (f" {_f(t['otb_pooled']['auc'])} / {_f(t['otb_pooled']['precision20'])} |"
+                                      if pooled else ""))
+    if pooled:
+        lines += ["", "The mean over the starts weighs every start alike; OTB's TRE (genPerfMat) pools each "
+                      "sequence's frames over its starts, so that a short late start weighs less."]
     return "\n".join(lines) + "\n"
 
 

@@ -91,8 +91,8 @@ def track_sequence(tracker: BoxTracker, seq: Sequence, shift: tuple[int, int] = 
 class Start:
     """Where the runs of one pass start. One-pass evaluation starts on frame 1 from its ground-truth box; `shift`
     moves that box by (dx, dy) pixels (OTB's spatial robustness); `segment` of `segments` starts at frame
-    segment * N // segments of each sequence, from the first ground-truth box there or later (OTB's temporal
-    robustness, TRE), and scores the frames from there on."""
+    segment * N // segments of each sequence, from the first ground-truth box there or later (the starts of OTB's
+    temporal robustness, TRE), and scores the frames from there on."""
 
     shift: tuple[int, int] = (0, 0)
     segment: int = 0
