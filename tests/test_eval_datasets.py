@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tacf.eval.datasets import detect_layout, load_sequences, read_boxes, write_boxes
+from tacf.eval.datasets import uav123
 from tacf.eval.datasets.uav123 import read_ranges
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -80,7 +81,7 @@ UAV_FOLDERS = {"bird1": ["bird1_1", "bird1_2", "bird1_3"], "car1": ["car1_1", "c
 def make_uav123(root: Path, with_table: bool = True) -> dict:
     ranges = read_ranges(ANNOTATIONS / "UAV123_10fps_ranges.txt")
     for folder, names in UAV_FOLDERS.items():
-        write_frames(root / "data_seq" / "UAV123_10fps" / folder, max(ranges[n].last for n in names) + 3)
+        write_frames(root / "data_seq" / "UAV123_10fps" / folder, max(ranges[None, n].last for n in names) + 3)
         for n in names:
             (root / "anno" / "UAV123_10fps").mkdir(parents=True, exist_ok=True)
             shutil.copy(ANNOTATIONS / "UAV123_10fps" / f"{n}.txt", root / "anno" / "UAV123_10fps" / f"{n}.txt")
@@ -96,7 +97,7 @@ def test_uav123_layout_honours_frame_ranges(tmp_path):
     seqs = {s.name: s for s in load_sequences(tmp_path)}
     assert sorted(seqs) == sorted(f"UAV123_10fps/{n}" for names in UAV_FOLDERS.values() for n in names)
     for name, seq in seqs.items():
-        r = ranges[name.split("/")[1]]
+        r = ranges[None, name.split("/")[1]]
         gt = read_boxes(ANNOTATIONS / "UAV123_10fps" / f"{r.name}.txt")
         assert len(seq) == r.last - r.first + 1 == len(gt)
         assert seq.frames[0] == tmp_path / "data_seq" / "UAV123_10fps" / r.folder / f"{r.first:06d}.jpg"
@@ -122,12 +123,62 @@ def test_uav123_range_table_from_configseqs_and_none(tmp_path):
     assert len(explicit) == 7
 
 
+@needs_data
+def test_all_123_uav123_10fps_sequences_load_as_the_ranges_table_says(tmp_path, monkeypatch):
+    ranges = read_ranges(ANNOTATIONS / "UAV123_10fps_ranges.txt")
+    frames = {folder: max(r.last for r in ranges.values() if r.folder == folder) + 2
+              for folder in {r.folder for r in ranges.values()}}
+    data_seq = tmp_path / "data_seq" / "UAV123_10fps"
+    data_seq.mkdir(parents=True)
+    # 38,000 frame files would take seconds to write: their listing stands in for them
+    monkeypatch.setattr(uav123, "list_frames", lambda folder: [folder / f"{i:06d}.jpg" for i in range(
+        1, frames[folder.name] + 1)] if folder.parent == data_seq and folder.name in frames else [])
+    shutil.copytree(ANNOTATIONS / "UAV123_10fps", tmp_path / "anno" / "UAV123_10fps")
+    shutil.copy(ANNOTATIONS / "UAV123_10fps_ranges.txt", tmp_path)
+    seqs = load_sequences(tmp_path)
+    assert [s.name for s in seqs] == sorted(f"UAV123_10fps/{name}" for _, name in ranges)
+    for seq in seqs:
+        r = ranges[None, seq.name.split("/")[1]]
+        assert [p.name for p in (seq.frames[0], seq.frames[-1])] == [f"{r.first:06d}.jpg", f"{r.last:06d}.jpg"]
+        assert seq.frames[0].parent.name == r.folder and len(seq) == r.last - r.first + 1
+        np.testing.assert_array_equal(seq.gt, read_boxes(ANNOTATIONS / "UAV123_10fps" / f"{r.name}.txt"))
+
+
+def test_uav20l_loads_from_the_uav123_folders_of_the_official_release(tmp_path, caplog):
+    # The release keeps UAV20L's frames in data_seq/UAV123/ and its configSeqs.m points there; bike1 is in both sets.
+    write_frames(tmp_path / "data_seq" / "UAV123" / "bike1", 9)
+    write_frames(tmp_path / "data_seq" / "UAV123" / "group1", 7)
+    for set_name, name, rows in (("UAV123", "bike1", 5), ("UAV20L", "bike1", 9), ("UAV20L", "group1", 7)):
+        (tmp_path / "anno" / set_name).mkdir(parents=True, exist_ok=True)
+        (tmp_path / "anno" / set_name / f"{name}.txt").write_text("11,21,5,6\n" * rows)
+    assert sorted(s.name for s in load_sequences(tmp_path)) == ["UAV123/bike1", "UAV20L/bike1", "UAV20L/group1"]
+
+    def entry(name, first, last):
+        return (f"struct('name','{name}','path','D:\\data_seq\\UAV123\\{name}\\','startFrame',{first},"
+                f"'endFrame',{last},'nz',6,'ext','jpg','init_rect',[0,0,0,0])")
+    (tmp_path / "configSeqs.m").write_text(
+        f"function seqs=configSeqs\nseqUAV123={{{entry('bike1', 3, 7)},...\n}};\n"
+        f"seqUAV20L={{{entry('bike1', 1, 9)},...\n{entry('group1', 1, 7)}}};\nseqs=seqUAV123;\n")
+    caplog.clear()
+    seqs = {s.name: s for s in load_sequences(tmp_path)}
+    assert sorted(seqs) == ["UAV123/bike1", "UAV20L/bike1", "UAV20L/group1"] and "skipped" not in caplog.text
+    assert [p.name for p in seqs["UAV123/bike1"].frames] == [f"{i:06d}.jpg" for i in range(3, 8)]  # its own range
+    assert len(seqs["UAV20L/bike1"]) == 9 and len(seqs["UAV20L/group1"]) == 7
+    assert seqs["UAV20L/group1"].frames[0] == tmp_path / "data_seq" / "UAV123" / "group1" / "000001.jpg"
+    # Without the table, frames in two releases' folders: which of them is UAV20L's is not guessed
+    (tmp_path / "configSeqs.m").unlink()
+    write_frames(tmp_path / "data_seq" / "UAV123_10fps" / "group1", 3)
+    assert "UAV20L/group1" not in [s.name for s in load_sequences(tmp_path)]
+    assert "frames in data_seq/UAV123/group1 and data_seq/UAV123_10fps/group1; a range table's path" in caplog.text
+
+
 def test_uav123_real_table_parses():
     if not ANNOTATIONS.is_dir():
         pytest.skip("../shared/data is absent")
     ranges = read_ranges(ANNOTATIONS / "UAV123_10fps_ranges.txt")
     assert len(ranges) == 123
-    assert ranges["group1_2"].folder == "group1" and (ranges["group1_2"].first, ranges["group1_2"].last) == (445, 839)
+    group1_2 = ranges[None, "group1_2"]
+    assert (group1_2.set_folder, group1_2.folder, group1_2.first, group1_2.last) == ("UAV123_10fps", "group1", 445, 839)
 
 
 # --- OTB (generated) -----------------------------------------------------------------------------------------

@@ -10,6 +10,10 @@ The ranges come from the benchmark's own table: the `configSeqs.m` the release s
 `name folder first_frame last_frame` line per sequence (*ranges*.txt in ROOT, or passed explicitly).
 Without a table, a sequence whose annotation file is named like its folder uses the folder's first frames;
 the split sequences (name_1, name_2 ...) are skipped with a warning.
+
+Names repeat across sets (UAV123's and UAV20L's bike1), so a configSeqs.m entry belongs to the set of the
+`seq<set> = {...}` list that holds it. The frames are in the data_seq folder the table's path names, else in the
+set's own, else in the one data_seq/* folder that holds them: the release keeps UAV20L's in data_seq/UAV123/.
 """
 from __future__ import annotations
 
@@ -25,30 +29,35 @@ log = logging.getLogger(__name__)
 
 _CONFIG_ENTRY = re.compile(
     r"'name'\s*,\s*'([^']+)'\s*,\s*'path'\s*,\s*'([^']*)'\s*,\s*'startFrame'\s*,\s*(\d+)\s*,\s*'endFrame'\s*,\s*(\d+)")
+_CONFIG_LIST = re.compile(r"\bseq(\w+)\s*=\s*\{")  # seqUAV20L = {struct(...), ...}: the set of the entries after it
 
 
 @dataclass(frozen=True)
 class FrameRange:
     name: str
-    folder: str      # last component of the table's path, e.g. 'group1'
-    first: int       # 1-based, inclusive
-    last: int        # 1-based, inclusive
+    folder: str             # last component of the table's path, e.g. 'group1'
+    first: int              # 1-based, inclusive
+    last: int               # 1-based, inclusive
+    set_folder: str | None = None   # the component before it, e.g. 'UAV123' for UAV20L's (None for a bare folder)
 
 
-def _folder_name(path: str) -> str:
+def _parse_range(name: str, path: str, first: str, last: str) -> FrameRange:
     parts = [p for p in re.split(r"[\\/]+", path.strip()) if p]
     if not parts:
         raise ValueError(f"empty folder in range table: {path!r}")
-    return parts[-1]
+    return FrameRange(name, parts[-1], int(first), int(last), parts[-2] if len(parts) > 1 else None)
 
 
-def read_ranges(path: Path) -> dict[str, FrameRange]:
-    """Parse a range table: configSeqs.m (MATLAB structs) or `name folder first last` text lines."""
+def read_ranges(path: Path) -> dict[tuple[str | None, str], FrameRange]:
+    """Parse a range table: configSeqs.m (MATLAB structs) or `name folder first last` text lines. Keyed by (set,
+    name), the set being that of the configSeqs.m list holding the entry (None in a text table or outside one)."""
     text = Path(path).read_text(errors="replace")
     ranges = {}
     if Path(path).suffix == ".m":
-        for name, folder, first, last in _CONFIG_ENTRY.findall(text):
-            ranges[name] = FrameRange(name, _folder_name(folder), int(first), int(last))
+        lists = [(m.start(), m.group(1)) for m in _CONFIG_LIST.finditer(text)]
+        for m in _CONFIG_ENTRY.finditer(text):
+            set_name = next((name for start, name in reversed(lists) if start < m.start()), None)
+            ranges[set_name, m.group(1)] = _parse_range(*m.groups())
     else:
         for lineno, line in enumerate(text.splitlines(), 1):
             parts = line.split()
@@ -56,13 +65,22 @@ def read_ranges(path: Path) -> dict[str, FrameRange]:
                 continue
             if len(parts) != 4:
                 raise ValueError(f"{path}:{lineno}: expected 'name folder first_frame last_frame', got {line!r}")
-            ranges[parts[0]] = FrameRange(parts[0], _folder_name(parts[1]), int(parts[2]), int(parts[3]))
+            ranges[None, parts[0]] = _parse_range(*parts)
     if not ranges:
         raise ValueError(f"{path}: no sequence ranges found")
     return ranges
 
 
-def _frame_range(frames: list[Path], first: int, last: int) -> list[Path]:
+def _range_of(ranges: dict[tuple[str | None, str], FrameRange], set_name: str, name: str) -> FrameRange | None:
+    """The table's range of set_name/name: the set's own entry, else the one of a table naming no set, else the
+    only entry of that name (a list named otherwise)."""
+    if (set_name, name) in ranges or (None, name) in ranges:
+        return ranges.get((set_name, name)) or ranges[None, name]
+    others = [r for (_, n), r in ranges.items() if n == name]
+    return others[0] if len(others) == 1 else None
+
+
+def _frames_in_range(frames: list[Path], first: int, last: int) -> list[Path]:
     """Frames numbered first..last (by the number in the file name, e.g. 000445.jpg; by position otherwise)."""
     numbered = {}
     for p in frames:
@@ -88,7 +106,21 @@ def is_uav123(root: Path) -> bool:
     return (root / "anno").is_dir() and (root / "data_seq").is_dir()
 
 
-def load(root: Path, ranges: dict[str, FrameRange] | Path | None = None) -> list[Sequence]:
+def _frames_of(root: Path, set_name: str, rng: FrameRange) -> tuple[list[Path], list[str]]:
+    """(the frames of a range's folder, the data_seq/* folders that hold it): in data_seq/<the table's set folder>,
+    else data_seq/<set_name>, else in the one other data_seq/* folder that has them (none when two do, say a 30 fps
+    and a 10 fps release side by side)."""
+    data_seq = root / "data_seq"
+    for set_folder in dict.fromkeys(s for s in (rng.set_folder, set_name) if s):
+        frames = list_frames(data_seq / set_folder / rng.folder)
+        if frames:
+            return frames, [set_folder]
+    holding = {p.name: list_frames(p / rng.folder) for p in sorted(data_seq.iterdir()) if p.is_dir()}
+    holding = {folder: frames for folder, frames in holding.items() if frames}
+    return next(iter(holding.values())) if len(holding) == 1 else [], list(holding)
+
+
+def load(root: Path, ranges: dict[tuple[str | None, str], FrameRange] | Path | None = None) -> list[Sequence]:
     """All sequences of every set under <ROOT>/anno, named '<set>/<seq>'."""
     root = Path(root)
     if ranges is None:
@@ -101,21 +133,24 @@ def load(root: Path, ranges: dict[str, FrameRange] | Path | None = None) -> list
     for set_dir in sorted(p for p in (root / "anno").iterdir() if p.is_dir()):
         for anno in sorted(set_dir.glob("*.txt")):
             name = anno.stem
-            rng = ranges.get(name)
-            if rng is None:
-                if not (root / "data_seq" / set_dir.name / name).is_dir():
-                    log.warning("%s/%s: no frame range for this split sequence (no configSeqs.m or range "
-                                "table in %s); skipped", set_dir.name, name, root)
-                    continue
-                rng = FrameRange(name, name, 1, 0)
-            frames = list_frames(root / "data_seq" / set_dir.name / rng.folder)
+            rng = _range_of(ranges, set_dir.name, name)
+            untabled = rng is None
+            rng = rng or FrameRange(name, name, 1, 0)  # a whole folder named like the sequence
+            frames, holders = _frames_of(root, set_dir.name, rng)
             if not frames:
-                log.warning("%s/%s: no frames in data_seq/%s/%s; skipped", set_dir.name, name, set_dir.name, rng.folder)
+                if holders:
+                    folders = " and ".join(f"data_seq/{h}/{rng.folder}" for h in holders)
+                    why = f"frames in {folders}; a range table's path must choose"
+                elif untabled:
+                    why = f"no frame range for this split sequence (no configSeqs.m or range table in {root})"
+                else:
+                    why = f"no frames in data_seq/*/{rng.folder}"
+                log.warning("%s/%s: %s; skipped", set_dir.name, name, why)
                 continue
             gt = read_boxes(anno)
             last = rng.last if rng.last else rng.first + len(gt) - 1
             flags = set_dir / "att" / anno.name
             attributes = read_uav123_flags(flags) if flags.is_file() else None
-            seqs.append(make_sequence(f"{set_dir.name}/{name}", _frame_range(frames, rng.first, last), gt,
+            seqs.append(make_sequence(f"{set_dir.name}/{name}", _frames_in_range(frames, rng.first, last), gt,
                                       attributes))
     return seqs
