@@ -528,7 +528,8 @@ ROBUSTNESS_KEYS = {"shifts": "robustness", "tre": "temporal_robustness"}  # prot
 def analysis_tables(summary: dict) -> str:
     """The robustness, lost-flag and attribute tables a summary holds, each after a blank line; empty when it holds
     none."""
-    tables = [robustness_table(summary[key]) for key in ROBUSTNESS_KEYS.values() if summary.get(key, {}).get("trackers")]
+    tables = [robustness_table(summary[key]) for key in ROBUSTNESS_KEYS.values()
+              if summary.get(key, {}).get("trackers")]
     tables += [lost_flag_table(summary.get("lost_flag", {})), attribute_table(summary)]
     return "".join("\n" + table for table in tables if table)
 
