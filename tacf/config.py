@@ -17,6 +17,11 @@ DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; s
 # Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 16, 32).
 LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_step": 2.0,
           "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256}
+# Combinations the tracker can run (defaults: 2,500 cells, scales up to 1.6 times the target, 32 bins, sigma 0.5).
+MIN_CELLS, MAX_CELLS = 16, 250.0**2         # 1000^2 pixels in cells of 4
+MAX_SCALE_RANGE = 4.0
+MAX_HIST_BINS = 64
+MIN_KERNEL_SIGMA = 0.01                     # 1e-6 turned the HOG model NaN
 
 
 def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> None:
@@ -140,6 +145,30 @@ class TrackerConfig:
                                      "num_scales", "scale_sigma_factor", "scale_lambda", "scale_model_max_area"),
                      rates=("learning_rate", "context_penalty_rate", "dim_learning_rate", "spatial_learning_rate",
                             "hist_learning_rate", "scale_learning_rate", "motion_search_threshold"))
+        self._check_combinations()
+
+    def _check_combinations(self) -> None:
+        """What each field's own bounds let through and the tracker cannot use: a model turned NaN, an area or
+        a scale range that takes gigabytes and minutes (overrides arrive from the network)."""
+        problems = []
+        for field in ("context_lambda2", "context_penalty_total", "cn_poly_a"):
+            if getattr(self, field) < 0:    # sqrt(lambda2); a negative base to a fractional power
+                problems.append(f"{field} must be >= 0, got {getattr(self, field)}")
+        if self.hog_kernel_sigma < MIN_KERNEL_SIGMA:
+            problems.append(f"hog_kernel_sigma must be >= {MIN_KERNEL_SIGMA}, got {self.hog_kernel_sigma}")
+        if self.hist_bins > MAX_HIST_BINS or 256 % self.hist_bins:
+            problems.append(f"hist_bins must be a power of two up to {MAX_HIST_BINS} (its cube is the colour "
+                            f"histogram's size), got {self.hist_bins}")
+        cells = self.fixed_area / self.cell_size**2
+        if not MIN_CELLS <= cells <= MAX_CELLS:
+            problems.append(f"fixed_area / cell_size**2 (the filter's cells) must be in [{MIN_CELLS}, {MAX_CELLS}], "
+                            f"got {cells:g}")
+        widest = self.scale_step ** ((self.num_scales - 1) / 2)
+        if widest > MAX_SCALE_RANGE:
+            problems.append(f"scale_step ** ((num_scales - 1) / 2), the largest scale patch over the target, must "
+                            f"be <= {MAX_SCALE_RANGE}, got {widest:g}")
+        if problems:
+            raise ValueError("TrackerConfig: " + "; ".join(problems))
 
     @classmethod
     def profile_names(cls) -> tuple[str, ...]:

@@ -180,6 +180,10 @@ class ScaleFilter:
         self._recent = None
         sample_hat = self._sample_hat(image, pos, scale_factor)
         response = scale_response(self._num, self._den, sample_hat, self._lambda, self._num_scales)
+        if not np.all(np.isfinite(response)) or response.max() <= response.min():
+            # A sample without a gradient (a blank frame, a uniform occluder) answers 0 at every scale, and the
+            # first maximum would be the largest scale: 1.6 times the box on each such frame, for good.
+            return scale_factor
         best = int(np.argmax(response))  # first maximum, like MATLAB's find(... == max)
         new_factor = scale_factor * self._factors[best]
         return float(np.clip(new_factor, self._min_scale, self._max_scale))

@@ -55,6 +55,9 @@ class TrackResult:
     scale: float  # current size relative to the initial box
 
 
+MIN_FRAME_SIDE = 3  # with 2 the background area rounds to 0 pixels
+
+
 def check_frame(frame, expected_shape=None) -> np.ndarray:
     if not isinstance(frame, np.ndarray):
         raise ValueError(f"frame must be a numpy array, got {type(frame).__name__}")
@@ -62,8 +65,8 @@ def check_frame(frame, expected_shape=None) -> np.ndarray:
         frame = frame[:, :, 0]
     if not (frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] == 3)):
         raise ValueError(f"frame must be HxW (gray) or HxWx3 (BGR), got shape {frame.shape}")
-    if frame.shape[0] < 2 or frame.shape[1] < 2:
-        raise ValueError(f"frame is empty or too small: shape {frame.shape}")
+    if frame.shape[0] < MIN_FRAME_SIDE or frame.shape[1] < MIN_FRAME_SIDE:
+        raise ValueError(f"frame is empty or too small (under {MIN_FRAME_SIDE} pixels a side): shape {frame.shape}")
     if frame.dtype != np.uint8:
         raise ValueError(f"frame must be uint8, got {frame.dtype}")
     if expected_shape is not None and frame.shape != expected_shape:
@@ -139,7 +142,8 @@ class Tracker:
 
         Call learn() next. A service can send the box between the two, so that its latency excludes the model
         update (about half of a frame's time, and all of the context frames' extra work); the boxes are those of
-        update(). A locate() not preceded by learn() learns from the previous frame first.
+        update(). A locate() not preceded by learn() learns from the previous frame first. The frame is read again
+        by learn(), so its buffer must not be overwritten in between (a reader filling one array in place).
         """
         if self._frame_shape is None:
             raise RuntimeError("call init(frame, box) before update(frame)")

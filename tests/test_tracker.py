@@ -117,6 +117,7 @@ def test_target_larger_than_most_of_the_frame():
     (np.zeros((0, 0, 3), np.uint8), "empty"),
     (np.zeros((50, 50, 4), np.uint8), "HxWx3"),
     (np.zeros((50, 50, 3), np.float32), "uint8"),
+    (np.zeros((2, 64, 3), np.uint8), "under 3 pixels a side"),   # its background area rounded to 0 pixels
 ])
 def test_bad_frames_raise_clear_errors(frame, message):
     with pytest.raises(ValueError, match=message):
@@ -131,6 +132,7 @@ def test_bad_frames_raise_clear_errors(frame, message):
     ("abcd", "four"),
     ((500, 10, 20, 20), "outside"),
     ((-40, 10, 20, 20), "outside"),
+    ((0, 0, 5000, 5000), "larger than the 100x100 image"),       # took 16 s to initialise, 1e5 ran out of memory
 ])
 def test_bad_boxes_raise_clear_errors(box, message):
     with pytest.raises(ValueError, match=message):
@@ -194,6 +196,33 @@ def test_config_refuses_wrong_types_and_memory_bombs():
         with pytest.raises(ValueError, match=message):
             TrackerConfig.profile("authors", **bad)
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (dict(context_lambda2=-1.0), "context_lambda2 must be >= 0"),         # turned the model NaN, for good
+    (dict(cn_poly_a=-1.0, cn_poly_b=0.5), "cn_poly_a must be >= 0"),      # likewise
+    (dict(hog_kernel_sigma=1e-6), "hog_kernel_sigma must be >= 0.01"),    # likewise
+    (dict(hist_bins=3), "power of two up to 64"),                         # failed in init
+    (dict(hist_bins=256), "power of two up to 64"),                       # 16.7 M bins: 9 s and 1 GB for 3 frames
+    (dict(fixed_area=16.0), "the filter's cells"),                        # one cell: failed in init
+    (dict(cell_size=1, fixed_area=1e6), "the filter's cells"),            # 1e6 cells: 113 s and 3.3 GB
+    (dict(num_scales=129, scale_step=1.1), "largest scale patch"),        # 446 times the target: 31 s, 1.2 GB
+])
+def test_config_refuses_combinations_the_tracker_cannot_run(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        TrackerConfig.profile("paper", **overrides)
+
+
+def test_blank_frames_leave_the_scale_alone():
+    """A frame without gradients (blank, or a uniform occluder over the target) answers 0 at every scale; the
+    first maximum of that was the largest scale, so each such frame grew the box 1.6 times, for good."""
+    images, truth = moving_target_sequence(frames=30, velocity=(0.0, 1.0))
+    blank = np.zeros_like(images[0])
+    tracker = Tracker()
+    tracker.init(images[0], truth[0])
+    results = [tracker.update(image) for image in images[1:10] + [blank] * 3 + images[13:]]
+    assert [r.scale for r in results[8:12]] == [results[8].scale] * 4
+    assert box_iou(results[-1].box, truth[-1]) > 0.6
 
 
 def test_a_still_target_stays_put_with_whole_cell_peaks():
