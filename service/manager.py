@@ -363,8 +363,11 @@ class SessionManager:
         if handle is None:
             handle = self._new_worker()
         with self._lock:
-            gone = self._is_gone(session)
-            if gone and idle:
+            # shutdown() stops the workers and spares it found: one attached or put back after that would outlive it
+            closing = self._closing.is_set()
+            gone = closing or self._is_gone(session)
+            returned = gone and idle and not closing
+            if returned:
                 self._spares.append(handle)     # still a warm, unassigned spare
             elif not gone:
                 session.worker = handle
@@ -373,9 +376,10 @@ class SessionManager:
                 if session.state == "failed" and not session.gave_up:
                     session.state = "starting"
         if gone:
-            if not idle:
+            if not returned:
                 handle.process.terminate()
                 _quiet_close(handle.conn)
+            self._check_open()
             raise _stopped_meanwhile(session, self.node)
         with handle.recv_lock:
             handle.owner = session
