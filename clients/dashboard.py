@@ -17,12 +17,13 @@ through TrackingClient.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import zenoh
 
@@ -48,6 +49,8 @@ SHOWN_KEEP = 64              # frames shown to a browser, kept by seq: an operat
 SHOWN_KEEP_BYTES = 64 * 2**20  # and the start carries the frame it was drawn on (the service may not hold it)
 CARRY_BYTES = 32 * 2**20     # at most this much of frames carried by one start (the service takes 48 MiB)
 
+_generations = itertools.count(1)
+
 
 @dataclass
 class ChartPoint:
@@ -66,7 +69,9 @@ class ChartPoint:
 @dataclass
 class SessionView:
     """What the dashboard knows of one session. `version` grows on every change; `points_total` counts every
-    chart point ever added (the ring keeps the last ones), so a reader can ask for the points it has not seen."""
+    chart point ever added (the ring keeps the last ones), so a reader can ask for the points it has not seen;
+    `generation` is new for each view, so that a reader sees a session stopped and started again with the same
+    id as another session (its points and boxes are not the old one's)."""
     node: str
     sid: str
     image_key: str | None = None
@@ -76,10 +81,15 @@ class SessionView:
     box: BoxResult | None = None
     box_received_ns: int | None = None
     health: Health | None = None
+    health_received_ns: int | None = None
     points: deque[ChartPoint] = field(default_factory=deque)
     points_total: int = 0
     version: int = 0
     seen: float = field(default_factory=time.monotonic)   # last list entry, box or health
+    generation: int = field(default_factory=lambda: next(_generations))
+    # (seq, box) of a start or reinit sent from here, until a box on a later frame: the box to draw meanwhile
+    # (on a still camera no box comes, and the box from before a reinit is no longer what the tracker follows)
+    init: tuple[int, tuple[float, ...]] | None = None
 
     @property
     def id(self) -> str:
@@ -91,7 +101,8 @@ class SessionView:
         h = self.health
         return {
             "id": self.id, "node": self.node, "sid": self.sid, "image_key": self.image_key,
-            "profile": self.profile, "state": self.state, "version": self.version,
+            "profile": self.profile, "state": self.state, "version": self.version, "generation": self.generation,
+            "init": None if self.init is None else {"seq": self.init[0], "box": list(self.init[1])},
             "box": None if box is None else {
                 "seq": box.seq, "stamp_ns": box.stamp_ns, "box": list(box.box), "ok": box.ok, "pme": box.pme,
                 "score": box.score, "scale": box.scale, "processing_ms": box.processing_ms,
@@ -106,6 +117,8 @@ class SessionView:
                 "frames_rejected": h.frames_rejected, "frames_lost": h.frames_lost, "pme": h.pme,
                 "last_seq": h.last_seq,
                 "restarts": h.restarts, "message": h.message, "age_ms": _ms(now_ns - h.stamp_ns),
+                # by the dashboard's clock: a service's clock may be off by more than a staleness threshold
+                "received_age_ms": _ms(now_ns - self.health_received_ns) if self.health_received_ns else None,
             },
         }
 
@@ -368,9 +381,13 @@ class Dashboard:
             if isinstance(item, BoxResult):
                 if view.box is not None and item.published_ns < view.box.published_ns:
                     return                                     # reordered: keep the newest
+                if view.init is not None:
+                    if item.seq <= view.init[0]:
+                        return                                 # computed before the start or reinit
+                    view.init = None
                 view.box, view.box_received_ns = item, time.time_ns()
             else:
-                view.health, view.state = item, item.state
+                view.health, view.state, view.health_received_ns = item, item.state, time.time_ns()
                 pme = item.pme if item.pme is not None else (view.box.pme if view.box is not None else None)
                 view.points.append(ChartPoint(item.stamp_ns // 1_000_000, item.fps, pme, item.processing_ms_mean,
                                               item.frame_age_ms))
@@ -442,7 +459,7 @@ class Dashboard:
         """Merge a SessionInfo (list, start, reinit reply) into the views; call with the lock held."""
         sid_id = f"{info.node}/{info.sid}"
         view = self._sessions.get(sid_id)
-        if view is None:
+        if view is None or view.created_ns not in (None, info.created_ns):   # stopped and started again elsewhere
             view = self._sessions[sid_id] = SessionView(info.node, info.sid)
         changed = (view.image_key, view.profile, view.state) != (info.image_key, info.profile, info.state)
         view.image_key, view.profile, view.created_ns = info.image_key, info.profile, info.created_ns
@@ -462,7 +479,7 @@ class Dashboard:
                                  frames=self._drawn_on(image_key, seq))
         with self._changed:
             self._tombstones.pop(f"{info.node}/{info.sid}", None)
-            self._update_from_info(info)
+            self._set_init(self._update_from_info(info), info)
             self._changed.notify_all()
         try:
             self._watch(info.image_key, asked=False)
@@ -486,9 +503,16 @@ class Dashboard:
                         if v.sid == sid and (node is None or v.node == node)), None)
         info = self.client.reinit(sid, box, seq=seq, node=node, frames=self._drawn_on(key, seq))
         with self._changed:
-            self._update_from_info(info)
+            self._set_init(self._update_from_info(info), info)
             self._changed.notify_all()
         return info
+
+    @staticmethod
+    def _set_init(view: SessionView, info: SessionInfo) -> None:
+        """The box of a start or reinit reply replaces the view's last box (call with the lock held)."""
+        view.box = view.box_received_ns = None
+        view.init = None if info.init_seq is None else (info.init_seq, tuple(info.box))
+        view.version += 1
 
     # --- readers ----------------------------------------------------------------------------------------------
     def wait_changed(self, timeout: float) -> None:
@@ -497,10 +521,11 @@ class Dashboard:
             if not self.closed.is_set():
                 self._changed.wait(timeout)
 
-    def versions(self) -> dict[str, tuple[int, int]]:
-        """sid id -> (version, points_total): cheap, for a reader to see what changed since it last looked."""
+    def versions(self) -> dict[str, tuple[int, int, int]]:
+        """sid id -> (version, points_total, generation): cheap, for a reader to see what changed since it last
+        looked (another generation: the session was replaced by a new one with the same id)."""
         with self._lock:
-            return {k: (v.version, v.points_total) for k, v in self._sessions.items()}
+            return {k: (v.version, v.points_total, v.generation) for k, v in self._sessions.items()}
 
     def sessions_json(self, ids: Iterable[str] | None = None, points_after: dict[str, int] | None = None
                       ) -> tuple[list[dict], dict[str, list[dict]]]:
@@ -535,9 +560,7 @@ class Dashboard:
     def session_views(self) -> list[SessionView]:
         """Copies of the session views (for /metrics)."""
         with self._lock:
-            return [SessionView(v.node, v.sid, v.image_key, v.profile, v.state, v.created_ns, v.box,
-                                v.box_received_ns, v.health, deque(), v.points_total, v.version, v.seen)
-                    for _, v in sorted(self._sessions.items())]
+            return [replace(v, points=deque()) for _, v in sorted(self._sessions.items())]
 
     def healthy(self) -> tuple[bool, str]:
         """(ok, reason): the Zenoh side is open and the session poller ran within the last few periods."""

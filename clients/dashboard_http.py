@@ -318,7 +318,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
             period = 1.0 / self.server.events_hz
             sent = dashboard.versions()        # before the snapshot: a change in between is sent twice, never lost
             snapshot = dashboard.snapshot()
-            sent_keys = snapshot["keys"]
+            sent_keys, sent_nodes = snapshot["keys"], snapshot["nodes"]
             self._sse("state", snapshot, retry_ms=2000)
             last_write = time.monotonic()
             next_tick = time.monotonic() + period
@@ -330,15 +330,16 @@ class DashboardHandler(BaseHTTPRequestHandler):
                 next_tick = time.monotonic() + period
                 versions = dashboard.versions()
                 changed = [k for k, v in versions.items() if sent.get(k) != v]
-                removed = [k for k in sent if k not in versions]
-                keys = dashboard.image_keys()
-                if changed or removed or keys != sent_keys:
+                # a session replaced by another with the same id (a new generation): removed, then added whole
+                replaced = [k for k in changed if k in sent and sent[k][2] != versions[k][2]]
+                removed = [k for k in sent if k not in versions] + replaced
+                keys, nodes = dashboard.image_keys(), dashboard.nodes()
+                if changed or removed or keys != sent_keys or nodes != sent_nodes:
                     sessions, points = dashboard.sessions_json(
-                        changed, {k: sent[k][1] for k in changed if k in sent})
+                        changed, {k: sent[k][1] for k in changed if k in sent and k not in replaced})
                     self._sse("update", {"t": time.time_ns() // 1_000_000, "sessions": sessions,
-                                         "points": points, "removed": removed, "keys": keys,
-                                         "nodes": dashboard.nodes()})
-                    sent, sent_keys, last_write = versions, keys, time.monotonic()
+                                         "points": points, "removed": removed, "keys": keys, "nodes": nodes})
+                    sent, sent_keys, sent_nodes, last_write = versions, keys, nodes, time.monotonic()
                 elif time.monotonic() - last_write > KEEPALIVE_S:
                     self.wfile.write(b": keep-alive\n\n")
                     self.wfile.flush()

@@ -66,11 +66,13 @@ REQUEST_FIELDS = {
     "list": {"node": _NODE},
 }
 # The session topic's JSON (Dashboard's SessionView.to_json), in the same subset: the viewers' Plot and Raw
-# Messages panels take field names and types from it (`.health.fps`); box and health are null until they arrive.
+# Messages panels take field names and types from it (`.health.fps`); box and health are null until they arrive,
+# box again after a start or reinit from the dashboard until the tracker's next box (init holds the box given).
 _NUMBER = {"type": "number"}
 SESSION_SCHEMA = {"type": "object", "properties": {
     "id": _TEXT, "node": _TEXT, "sid": _TEXT, "image_key": _TEXT, "profile": _TEXT, "state": _TEXT,
-    "version": _WHOLE,
+    "version": _WHOLE, "generation": _WHOLE,
+    "init": {"type": "object", "properties": {"seq": _WHOLE, "box": _BOX}},
     "box": {"type": "object", "properties": {
         "seq": _WHOLE, "stamp_ns": _WHOLE, "box": _BOX, "ok": {"type": "boolean"}, "pme": _NUMBER,
         "score": _NUMBER, "scale": _NUMBER, "processing_ms": _NUMBER, "latency_ms": _NUMBER, "age_ms": _NUMBER}},
@@ -78,7 +80,7 @@ SESSION_SCHEMA = {"type": "object", "properties": {
         "fps": _NUMBER, "processing_ms_mean": _NUMBER, "processing_ms_p95": _NUMBER, "frame_age_ms": _NUMBER,
         "frames_received": _WHOLE, "frames_processed": _WHOLE, "frames_dropped": _WHOLE, "frames_rejected": _WHOLE,
         "frames_lost": _WHOLE, "pme": _NUMBER, "last_seq": _WHOLE, "restarts": _WHOLE, "message": _TEXT,
-        "age_ms": _NUMBER}},
+        "age_ms": _NUMBER, "received_age_ms": _NUMBER}},
 }}
 
 

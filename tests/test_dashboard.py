@@ -656,7 +656,7 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, guard
     canvas = browser.find_element(By.ID, "new-canvas")
     browser.execute_script("arguments[0].scrollIntoView({block: 'center'})", canvas)
     seq = _wait(lambda: (s := browser.execute_script(
-        "const f = window.tacf.feeds.get(arguments[0]); return f && f.bitmap ? f.seq : null;", KEY)) is not None
+        "const f = window.tacf.newFeed; return f.key === arguments[0] && f.bitmap ? f.seq : null;", KEY)) is not None
         and camera.index_of(s) is not None and s >= camera.last_seq - 2 and s, timeout=10)
     assert seq is not None, "the new-session view shows the live frame"
     target = SCENE.box(camera.index_of(seq))
@@ -702,6 +702,7 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, guard
     browser.find_element(By.CSS_SELECTOR, 'tr[data-sid="drawn"] button.stop').click()
     assert _wait(lambda: not browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="drawn"]'), timeout=20)
     assert "drawn" not in {s.sid for s in client.list()}
+    assert browser.find_element(By.ID, "new-status").text == "", "'session drawn started' is no longer news"
     assert browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="pre"]'), "the other session stays"
     errors = [e for e in browser.get_log("browser") if e["level"] == "SEVERE"] if hasattr(browser, "get_log") else []
     assert not errors, errors
@@ -716,3 +717,215 @@ def test_browser_that_lost_its_token_is_told_what_to_do(browser):
         conn = _wait(lambda: "signed out" in (t := browser.execute_script("return document.querySelector('#conn')"
                                                                           ".textContent")) and t, timeout=20)
         assert conn == "signed out: open the address tacf dashboard printed", conn
+
+
+def _open_page(driver, app) -> None:
+    driver.get(app.url)
+    assert _wait(lambda: driver.execute_script("return window.tacf && window.tacf.connected"), timeout=20), \
+        "the event stream connects"
+
+
+def _select_key(driver, key: str) -> None:
+    """Choose `key` in the New session panel as an operator would (the select's change event)."""
+    assert _wait(lambda: driver.execute_script("return window.tacf.keys.includes(arguments[0])", key)), key
+    driver.execute_script("const s = document.querySelector('#key-select'); s.value = arguments[0];"
+                          "s.dispatchEvent(new Event('change'));", key)
+
+
+_NEW_CANVAS_WIDTH = "return document.querySelector('#new-canvas').width"     # a frame's width once one is shown
+_COUNT_FRAME_FETCHES = """
+    window.frameFetches = {};
+    const fetched = window.fetch;
+    window.fetch = (url, options) => {
+        const path = String(url).split('?')[0];
+        if (path.startsWith('/frame/')) window.frameFetches[path] = (window.frameFetches[path] || 0) + 1;
+        return fetched(url, options);
+    };"""
+
+
+def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
+    """Every key ever selected went on being polled 10 times a second for good, a key without frames (404)
+    too: on a thin link each poll of a live key is a JPEG."""
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, _ = stack
+    base = app.url.rstrip("/")
+    live, empty = "test/dashboard/polled", "test/dashboard/never-frames"
+    with FramePublisher(client.session, live, MovingTargetScene(400, 300, target=48), fps=10):
+        for key in (live, empty):
+            assert _post(base + "/api/watch", {"key": key})[0] == 200
+        _open_page(browser, app)
+        _select_key(browser, live)
+        assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400, timeout=20), "its frames are shown"
+        _select_key(browser, empty)
+        browser.execute_script(_COUNT_FRAME_FETCHES)
+        time.sleep(3.0)
+        fetches = browser.execute_script("return window.frameFetches")
+    assert fetches.get(f"/frame/{live}", 0) == 0, f"a key no longer selected is still polled: {fetches}"
+    assert 1 <= fetches.get(f"/frame/{empty}", 0) <= 8, f"a key without frames is polled without backing off: " \
+        f"{fetches}"
+
+
+def test_a_reinit_on_a_still_camera_shows_its_box_on_that_frame(stack, browser):
+    """The card drew the box from before the re-init (green, tracking) on the very frame the new box was drawn
+    on, for as long as the camera stayed still: no newer box came to replace it."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, service = stack
+    base = app.url.rstrip("/")
+    key, sid_id = "test/dashboard/still", f"{service.node}/still"
+    camera = FramePublisher(client.session, key, MovingTargetScene(320, 240, target=48, speed=3.0), fps=10).start()
+    try:
+        client.start(key, (8, 8, 40, 40), sid="still")                # off the target
+        _open_page(browser, app)
+        assert _wait(lambda: (c := _canvas_state(browser, sid_id)) and c["boxSeq"] >= 0, timeout=30)
+        camera.stop()                                                  # the camera holds still (it stops)
+        last = camera.seq
+        tracked = _wait(lambda: (c := _canvas_state(browser, sid_id)) and c["frameSeq"] == c["boxSeq"] == last
+                        and c, timeout=20)
+        assert tracked, "the card draws the last frame with its box"
+        badge = _wait(lambda: (t := browser.find_element(By.CSS_SELECTOR, 'tr[data-sid="still"] .badge').text)
+                      == "no frames" and t, timeout=15)
+        assert badge, "a stopped camera is not shown as tracking"
+        truth = [round(v) for v in camera.truth[last]]
+        status, body = _post(base + "/api/reinit", {"sid": "still", "box": truth, "seq": last})
+        assert status == 200 and body["init_seq"] == last, body
+        drawn = _wait(lambda: (c := _canvas_state(browser, sid_id)) and c["box"] == truth and c, timeout=10)
+        assert drawn, f"the new box is drawn on the frame it was drawn on: {_canvas_state(browser, sid_id)}"
+        assert drawn["frameSeq"] == last and drawn["colour"] == "#ffca28", drawn
+        [view] = [s for s in json.loads(_get(base + "/api/state")[2])["sessions"] if s["id"] == sid_id]
+        assert view["box"] is None and view["init"] == {"seq": last, "box": truth}, view
+    finally:
+        camera.stop()
+        client.stop("still")
+
+
+def test_the_page_follows_services_coming_and_going(browser):
+    """The page took the list of services only from session updates, so a service started after it loaded was
+    never shown; and it ignored the age of health reports, so a dead service's sessions stayed "tracking"."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    from tacf_clients.local_service import LocalService
+
+    options = no_service_options()
+    key = "test/dashboard/comes-and-goes"
+    services = "return document.querySelector('#services').textContent"
+    with DashboardApp(options, port=0) as app:
+        _open_page(browser, app)
+        assert _wait(lambda: browser.execute_script(services) == "no service answered")
+        with LocalService(node=f"comes{free_port()}", extra_args=("--connect", options.listen[0])) as service, \
+                FramePublisher(app.dashboard.session, key, MovingTargetScene(320, 240, target=48), fps=10):
+            shown = _wait(lambda: re.fullmatch(rf"services: {service.node} \(0/\d+\)",
+                                               browser.execute_script(services)), timeout=60)
+            assert shown, f"a service started after the page: {browser.execute_script(services)}"
+            status, body = _post(app.url + "api/start", {"image_key": key, "box": [20, 20, 40, 40], "sid": "goes"})
+            assert status == 200, body
+            row = 'tr[data-sid="goes"] .badge'
+            assert _wait(lambda: browser.find_element(By.CSS_SELECTOR, row).text in ("tracking", "lost"), timeout=30)
+            service.process.kill()
+            stale = _wait(lambda: re.fullmatch(r"no news for \d+ s", browser.find_element(By.CSS_SELECTOR, row).text),
+                          timeout=15)
+            assert stale, browser.find_element(By.CSS_SELECTOR, row).text
+            assert _wait(lambda: browser.execute_script(services) == "no service answered", timeout=10)
+
+
+def test_a_box_starts_on_the_key_it_was_drawn_on_when_the_key_list_changes_meanwhile(stack, browser):
+    """The key was read when the mouse was released: a key that left the list during the drag (its last session
+    stopped) switched the select, and the box drawn on one camera started a session on another."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, _ = stack
+    key = "test/dashboard/leaving"
+    mouse = """const c = document.querySelector('#new-canvas'), r = c.getBoundingClientRect();
+        c.dispatchEvent(new MouseEvent(arguments[0], {bubbles: true, button: 0, clientX: r.left + arguments[1],
+                                                      clientY: r.top + arguments[2]}));"""
+    with FramePublisher(client.session, key, MovingTargetScene(400, 300, target=48), fps=10):
+        try:
+            client.start(key, (100, 100, 48, 48), sid="leaving")      # the dashboard watches the key for it
+            _open_page(browser, app)
+            _select_key(browser, key)
+            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400), "its frames are shown"
+            browser.find_element(By.ID, "sid-input").send_keys("drawn-here")
+            browser.execute_script(mouse, "mousedown", 60, 50)
+            browser.execute_script(mouse, "mousemove", 120, 100)
+            client.stop("leaving")
+            assert _wait(lambda: browser.execute_script(
+                "return !window.tacf.keys.includes(arguments[0]) && "
+                "document.querySelector('#key-select').value !== arguments[0]", key)), "the select moved on"
+            browser.execute_script(mouse, "mouseup", 120, 100)
+            said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
+                         and t, timeout=30)
+            assert said and "started" in said, browser.find_element(By.ID, "new-status").text
+            assert client.status("drawn-here").image_key == key
+        finally:
+            for info in client.list():
+                if info.sid in ("leaving", "drawn-here"):
+                    client.stop(info.sid)
+
+
+def test_a_session_started_again_with_its_id_starts_a_new_history(stack, browser):
+    """Stopped and started again within one event-stream tick, a session kept the old one's chart points (the
+    update could not tell that the session was another)."""
+    _, client, camera, service = stack
+    sid_id = f"{service.node}/again"
+    with DashboardApp(service.options, port=0, image_keys=[KEY], events_hz=0.25) as app:     # a tick: 4 s
+        base = app.url.rstrip("/")
+        try:
+            assert _post(base + "/api/start", {"image_key": KEY, "box": [20, 20, 40, 40], "sid": "again"})[0] == 200
+            _open_page(browser, app)
+            points = "return (window.tacf.points.get(arguments[0]) || []).map((p) => p.t)"
+            assert _wait(lambda: len(browser.execute_script(points, sid_id)) >= 2, timeout=30)
+            events = browser.execute_script("return window.tacf.events")
+            assert _wait(lambda: browser.execute_script("return window.tacf.events") > events, timeout=10)
+            restarted_ms = time.time() * 1000                          # the next update is a tick away
+            assert _post(base + "/api/stop", {"sid": "again"})[0] == 200
+            assert _post(base + "/api/start", {"image_key": KEY, "box": [20, 20, 40, 40], "sid": "again"})[0] == 200
+            assert browser.execute_script("return window.tacf.events") == events + 1, "within one tick"
+            assert _wait(lambda: browser.execute_script("return window.tacf.events") > events + 1, timeout=10)
+            kept = browser.execute_script(points, sid_id)
+            assert all(t >= restarted_ms for t in kept), f"points of the stopped session: {kept}, {restarted_ms}"
+            assert browser.execute_script("return window.tacf.sessions.has(arguments[0])", sid_id)
+        finally:
+            if "again" in {info.sid for info in client.list()}:
+                client.stop("again")
+
+
+def test_a_narrow_window_keeps_the_session_buttons_in_sight(stack, browser):
+    """At 700 px the session table ran out of its panel and hid the stop and re-init buttons; at 500 px the
+    charts' "-10s" label ran into "now"."""
+    from selenium.webdriver.common.by import By
+
+    app, _, _, service = stack
+    _open_page(browser, app)
+    assert _wait(lambda: browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="pre"] button.stop'))
+    try:
+        browser.set_window_size(700, 900)
+        time.sleep(0.5)
+        placed = browser.execute_script("""
+            const panel = document.querySelector('#list-panel').getBoundingClientRect();
+            const page = document.documentElement;
+            return {page: page.scrollWidth, view: page.clientWidth, panel: panel.right,
+                    buttons: [...document.querySelectorAll('tr[data-sid="pre"] button')].map(
+                        (b) => [b.getBoundingClientRect().left, b.getBoundingClientRect().right])};""")
+        assert placed["page"] <= placed["view"], placed
+        assert all(0 <= left and right <= placed["panel"] for left, right in placed["buttons"]), placed
+        browser.set_window_size(500, 900)
+        pre = f"{service.node}/pre"
+        redraws = browser.execute_script("return window.tacf.charts[arguments[0]].redraws", pre)
+        chart = _wait(lambda: (c := browser.execute_script("return window.tacf.charts[arguments[0]]", pre))
+                      and c["redraws"] > redraws + 1 and c)
+        labels = chart["labels"]                                       # from now back: right to left
+        assert labels[0]["text"] == "now" and len(labels) >= 2, labels
+        assert all(b["x"] + b["w"] <= a["x"] for a, b in zip(labels, labels[1:])), labels
+    finally:
+        browser.set_window_size(1280, 1000)

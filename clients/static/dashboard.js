@@ -1,12 +1,15 @@
 // TACF ground station page. Plain JavaScript, no library, no network access beyond this dashboard's own server:
 // - one EventSource on /events brings every session's newest box, health and chart points (latest-only, capped);
-// - one frame feed per image key polls /frame/<key> with at most one request in flight and at most FRAME_HZ,
-//   so a slow browser simply shows fewer frames;
+// - one frame feed per session card, and one for the "New session" panel, poll /frame/<key> with at most one
+//   request in flight and at most FRAME_HZ, so a slow browser simply shows fewer frames;
 // - charts are drawn on <canvas> by hand (drawChart).
 // window.tacf exposes the page's state for end-to-end tests.
 "use strict";
 
 const FRAME_HZ = 10;
+const FRAME_BACKOFF_MAX_MS = 5000;   // the slowest poll of a feed that keeps failing (no frames, dashboard down)
+const STALE_MS = 4000;               // health comes about once a second: silent this long, a session is shown stale
+const STATUS_MS = 10000;             // how long "session X started" stays
 const BOX_HISTORY = 64;    // boxes kept per session: a frame poll lags the boxes by a few of them at most
 const CHART_REDRAW_MS = 1000;
 const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f7", fps: "#ffb74d",
@@ -19,7 +22,8 @@ const state = {
   keys: [],                // watched image keys
   nodes: {},               // node -> max_sessions
   historyMs: 300000,
-  feeds: new Map(),        // image key -> FrameFeed
+  feeds: new Map(),        // "<image key>#<session id>" -> the FrameFeed of that session's card
+  newFeed: null,           // the FrameFeed of the "New session" panel: it follows the selected key
   cards: new Map(),        // id -> card elements
   drawn: {},               // id -> what the last frame draw showed (tests read it)
   charts: {},              // id -> {points, redraws}
@@ -53,44 +57,56 @@ async function post(path, body) {
 
 // ------------------------------------------------------------------------------------------------ frames
 class FrameFeed {
-  // The newest frame of one image key: polls /frame/<key> (ETag: 304 when nothing new), one request at a time.
+  // The newest frame of one image key (none: idle until setKey): polls /frame/<key> (ETag: 304 when nothing new),
+  // one request at a time, until stop(). A poll that fails (a key without frames, the dashboard restarting) makes
+  // the next one wait twice as long, up to FRAME_BACKOFF_MAX_MS: on a thin link every poll counts.
   // seqOf(): a frame seq to show instead of the newest (the frame a session's box was computed on), or null.
   constructor(key, seqOf = () => null) {
-    this.key = key; this.seqOf = seqOf; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0;
-    this.etag = null; this.frames = 0; this.stopped = false;
+    this.seqOf = seqOf; this.frames = 0; this.failures = 0; this.stopped = false; this.wake = null;
+    this.setKey(key);
     this.loop();
+  }
+  setKey(key) {
+    if (key === this.key) return;
+    this.key = key; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0; this.etag = null;
+    this.failures = 0;
+    if (this.wake) this.wake();
+  }
+  stop() {
+    this.stopped = true;
+    if (this.wake) this.wake();
   }
   async loop() {
     while (!this.stopped) {
-      const started = performance.now();
-      try {
-        const headers = this.etag ? { "If-None-Match": this.etag } : {};
-        const seq = this.seqOf();
-        const url = "/frame/" + encodeURI(this.key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
-        const response = await fetch(url, { headers, cache: "no-store" });
-        if (response.status === 200) {
-          const blob = await response.blob();
-          const bitmap = await createImageBitmap(blob);
-          // no bitmap.close(): a drawing in progress may still hold the previous frame
-          this.bitmap = bitmap;
-          this.etag = response.headers.get("ETag");
-          this.seq = Number(response.headers.get("X-Seq"));
-          this.width = bitmap.width; this.height = bitmap.height;
-          this.frames += 1;
-          scheduleDraw();
-        }
-      } catch (err) { /* server restarting or frame not decodable: try again */ }
-      const wait = Math.max(1000 / FRAME_HZ - (performance.now() - started), document.hidden ? 1000 : 0);
-      await new Promise((resolve) => setTimeout(resolve, wait));
+      const started = performance.now(), key = this.key;
+      let ok = false;
+      if (key) {
+        try {
+          const headers = this.etag ? { "If-None-Match": this.etag } : {};
+          const seq = this.seqOf();
+          const url = "/frame/" + encodeURI(key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
+          const response = await fetch(url, { headers, cache: "no-store" });
+          ok = response.status === 200 || response.status === 304;
+          if (response.status === 200) {
+            const bitmap = await createImageBitmap(await response.blob());
+            if (key === this.key) {                 // else the key changed meanwhile: not this feed's frame
+              // no bitmap.close(): a drawing in progress may still hold the previous frame
+              this.bitmap = bitmap;
+              this.etag = response.headers.get("ETag");
+              this.seq = Number(response.headers.get("X-Seq"));
+              this.width = bitmap.width; this.height = bitmap.height;
+              this.frames += 1;
+              scheduleDraw();
+            }
+          }
+        } catch (err) { ok = false; /* server restarting or frame not decodable: try again */ }
+        if (key === this.key) this.failures = ok ? 0 : this.failures + 1;
+      }
+      const backoff = this.failures ? Math.min(FRAME_BACKOFF_MAX_MS, (1000 / FRAME_HZ) * 2 ** this.failures) : 0;
+      const wait = Math.max(1000 / FRAME_HZ - (performance.now() - started), backoff, document.hidden ? 1000 : 0);
+      await new Promise((resolve) => { this.wake = resolve; if (key) setTimeout(resolve, wait); });
     }
   }
-}
-
-function feedFor(key) {
-  if (!key) return null;
-  let feed = state.feeds.get(key);
-  if (!feed) { feed = new FrameFeed(key); state.feeds.set(key, feed); }
-  return feed;
 }
 
 // A session's card shows the frame its newest box was computed on (so box and picture match), or the newest
@@ -101,7 +117,7 @@ function sessionFeed(id) {
   const name = `${session.image_key}#${id}`;
   let feed = state.feeds.get(name);
   if (!feed || feed.key !== session.image_key) {
-    if (feed) feed.stopped = true;
+    if (feed) feed.stop();
     feed = new FrameFeed(session.image_key, () => {
       const s = state.sessions.get(id);
       return s && s.box && Date.now() - (s.boxAt || 0) < 1500 ? s.box.seq : null;
@@ -117,7 +133,7 @@ function paintFrame(canvas, feed) {
   if (!feed || !feed.bitmap) {
     ctx.fillStyle = "#000"; ctx.fillRect(0, 0, canvas.width, canvas.height);
     ctx.fillStyle = COLOURS.text; ctx.font = "16px sans-serif";
-    ctx.fillText(feed ? `waiting for frames on ${feed.key}` : "no image key", 16, 28);
+    ctx.fillText(feed && feed.key ? `waiting for frames on ${feed.key}` : "no image key", 16, 28);
     return false;
   }
   if (canvas.width !== feed.width || canvas.height !== feed.height) {
@@ -147,7 +163,7 @@ function strokeBox(ctx, box, colour, label, dashed = false) {
 }
 
 // ------------------------------------------------------------------------------------------------ drawing a box
-const drafts = new WeakMap();   // canvas -> {x0, y0, x1, y1, feed snapshot}
+const drafts = new WeakMap();   // canvas -> {x0, y0, x1, y1, the feed's bitmap, seq and key at mouse-down}
 
 function canvasPoint(canvas, event) {
   const rect = canvas.getBoundingClientRect();
@@ -160,8 +176,9 @@ function enableDrawing(canvas, feedOf, onBox) {
     const feed = feedOf();
     if (!feed || !feed.bitmap || event.button !== 0 || !canvas.classList.contains("drawable")) return;
     const [x, y] = canvasPoint(canvas, event);
-    // Hold the frame the operator draws on: the box is sent with its seq.
-    drafts.set(canvas, { x0: x, y0: y, x1: x, y1: y, bitmap: feed.bitmap, seq: feed.seq });
+    // Hold the frame the operator draws on: the box is sent with its seq and key (the key list may change
+    // during the drag, and the selected key with it).
+    drafts.set(canvas, { x0: x, y0: y, x1: x, y1: y, bitmap: feed.bitmap, seq: feed.seq, key: feed.key });
     event.preventDefault();
   });
   canvas.addEventListener("mousemove", (event) => {
@@ -180,7 +197,7 @@ function enableDrawing(canvas, feedOf, onBox) {
     const y0 = clamp(Math.min(draft.y0, draft.y1), canvas.height), y1 = clamp(Math.max(draft.y0, draft.y1), canvas.height);
     scheduleDraw();
     if (x1 - x0 < 4 || y1 - y0 < 4) return;          // a click, not a box
-    onBox([Math.round(x0), Math.round(y0), Math.round(x1 - x0), Math.round(y1 - y0)], draft.seq);
+    onBox([Math.round(x0), Math.round(y0), Math.round(x1 - x0), Math.round(y1 - y0)], draft.seq, draft.key);
   };
   canvas.addEventListener("mouseup", finish);
   canvas.addEventListener("mouseleave", () => { if (drafts.get(canvas)) finish(null); });
@@ -221,11 +238,15 @@ function drawChart(canvas, points, field, colour, now) {
     ctx.fillText(fmt((max * i) / 2, max >= 10 ? 0 : 1), 2, y + 3);
   }
   const tickMs = windowMs <= 60000 ? 10000 : 60000;                // ticks back from now: 10 s or 1 min
+  const labels = [];
   for (let k = 0; k * tickMs <= windowMs; k++) {
     const x = left + w * (1 - (k * tickMs) / windowMs);
     ctx.beginPath(); ctx.moveTo(x, top + h); ctx.lineTo(x, top + h + 3); ctx.stroke();
-    const label = k === 0 ? "now" : tickMs < 60000 ? `-${k * 10}s` : `-${k}m`;
-    ctx.fillText(label, Math.min(x - 8, left + w - 18), cssH - 3);
+    const text = k === 0 ? "now" : tickMs < 60000 ? `-${k * 10}s` : `-${k}m`;
+    const lx = Math.min(x - 8, left + w - 18), lw = ctx.measureText(text).width;
+    if (labels.length && lx + lw + 3 > labels[labels.length - 1].x) continue;   // a narrow chart: it would touch
+    ctx.fillText(text, lx, cssH - 3);
+    labels.push({ text, x: lx, w: lw });
   }
   if (values.length) {
     ctx.strokeStyle = colour; ctx.lineWidth = 1.5; ctx.beginPath();
@@ -238,6 +259,7 @@ function drawChart(canvas, points, field, colour, now) {
     ctx.fillStyle = colour; ctx.font = "bold 12px sans-serif";
     ctx.fillText(fmt(last[field]), left + w - 40, top + 12);
   }
+  return labels;
 }
 
 // ------------------------------------------------------------------------------------------------ session cards
@@ -247,7 +269,8 @@ function cardFor(session) {
   const root = $("#card-template").content.firstElementChild.cloneNode(true);
   root.dataset.id = session.id;
   root.id = "card-" + session.id.replace(/[^A-Za-z0-9_-]/g, "_");
-  card = { root, frame: $("canvas.frame", root), pme: $("canvas.pme", root), fps: $("canvas.fps", root) };
+  card = { root, frame: $("canvas.frame", root), pme: $("canvas.pme", root), fps: $("canvas.fps", root),
+           badge: $(".state", root) };
   $(".sid", root).textContent = session.sid;
   $(".node", root).textContent = "on " + session.node;
   enableDrawing(card.frame, () => sessionFeed(session.id), async (box, seq) => {
@@ -278,28 +301,28 @@ function paintCard(id) {
   if (!session || !card) return;
   if (paintDraft(card.frame)) return;
   const feed = sessionFeed(id);
-  const painted = paintFrame(card.frame, feed);
-  const badge = $(".state", card.root);
-  badge.textContent = session.state; badge.className = `state badge state-${session.state}`;
-  if (painted && session.box) {
-    // Boxes arrive faster than frames are polled: draw the box computed on the frame shown, if it is known.
-    const box = state.boxes.get(id)?.get(feed.seq) || session.box;
-    const ok = box.ok;
-    strokeBox(card.frame.getContext("2d"), box.box, ok ? COLOURS.ok : COLOURS.lost,
-              `${session.sid}  PME ${fmt(box.pme)}${ok ? "" : "  LOST"}`);
-    const drawn = state.drawn[id] || { count: 0 };
-    state.drawn[id] = { count: drawn.count + 1, box: box.box, boxSeq: box.seq, frameSeq: feed.seq,
-                        colour: ok ? COLOURS.ok : COLOURS.lost };
-  }
+  if (!paintFrame(card.frame, feed)) return;
+  // Boxes arrive faster than frames are polled: draw the box computed on the frame shown, if it is known.
+  // After a start or re-init from a dashboard, the box it gave until the tracker's first box on a later frame.
+  const box = state.boxes.get(id)?.get(feed.seq) || session.box;
+  const init = !box && session.init && feed.seq >= session.init.seq ? session.init : null;
+  if (!box && !init) return;
+  const colour = init ? COLOURS.draft : box.ok ? COLOURS.ok : COLOURS.lost;
+  strokeBox(card.frame.getContext("2d"), init ? init.box : box.box, colour,
+            init ? `${session.sid}  initial box` : `${session.sid}  PME ${fmt(box.pme)}${box.ok ? "" : "  LOST"}`);
+  const drawn = state.drawn[id] || { count: 0 };
+  state.drawn[id] = { count: drawn.count + 1, box: init ? init.box : box.box, boxSeq: init ? init.seq : box.seq,
+                      frameSeq: feed.seq, colour };
 }
 
 function paintCharts(now) {
   for (const [id, card] of state.cards) {
     const points = state.points.get(id) || [];
-    drawChart(card.pme, points, "pme", COLOURS.pme, now);
+    const labels = drawChart(card.pme, points, "pme", COLOURS.pme, now);
     drawChart(card.fps, points, "fps", COLOURS.fps, now);
     const chart = state.charts[id] || { redraws: 0 };
-    state.charts[id] = { points: points.length, redraws: chart.redraws + 1, last: points.length ? points[points.length - 1] : null };
+    state.charts[id] = { points: points.length, redraws: chart.redraws + 1, labels,
+                         last: points.length ? points[points.length - 1] : null };
   }
 }
 
@@ -326,7 +349,7 @@ function makeRow(s) {
   stop.textContent = "stop"; stop.className = "stop danger";
   stop.onclick = async () => {
     stop.disabled = true;
-    try { await post("/api/stop", { sid: s.sid, node: s.node }); removeSession(s.id); }
+    try { await post("/api/stop", { sid: s.sid, node: s.node }); removeSession(s.id); clearNewStatus(s.sid); }
     catch (err) { toast(`stop ${s.sid}: ${err.message}`); stop.disabled = false; }
   };
   actions.append(reinit, " ", stop);
@@ -350,13 +373,31 @@ function renderTable() {
                    h.frames_lost == null ? "–" : String(h.frames_lost),
                    h.frames_dropped == null ? "–" : String(h.frames_dropped)];
     texts.forEach((text, i) => { if (text !== null && tr.cells[i].textContent !== text) tr.cells[i].textContent = text; });
-    const badge = tr.cells[3].firstChild;
-    badge.className = `badge state-${s.state}`; badge.textContent = s.state; badge.title = h.message || "";
+    setBadge(tr.cells[3].firstChild, s);
+    const card = state.cards.get(s.id);
+    if (card) setBadge(card.badge, s);
   });
   const nodes = Object.entries(state.nodes);
   $("#services").textContent = nodes.length
     ? "services: " + nodes.map(([node, max]) => `${node} (${rows.filter((s) => s.node === node).length}/${max})`).join(", ")
     : "no service answered";
+}
+
+// The service's state for the session, unless the session's health stopped coming (its service gone, the link
+// lost: the dashboard keeps such a session for a while) or says the camera stopped (a still frame looks tracked).
+function setBadge(el, s) {
+  const h = s.health || {};
+  const silentS = s.healthAt === null ? 0 : Math.round((Date.now() - s.healthAt) / 1000);
+  let shown = s.state, text = s.state;
+  if (silentS * 1000 > STALE_MS) {
+    shown = "stale"; text = `no news for ${silentS} s`;
+  } else if ((s.state === "tracking" || s.state === "lost") && (h.message || "").startsWith("waiting for frames")) {
+    shown = "noframes"; text = "no frames";
+  }
+  const className = `badge state-${shown}`, title = h.message || "";
+  if (el.className !== className) el.className = className;
+  if (el.textContent !== text) el.textContent = text;
+  if (el.title !== title) el.title = title;
 }
 
 function renderKeys() {
@@ -366,6 +407,11 @@ function renderKeys() {
   if (keys.join("\n") === [...select.options].map((o) => o.value).join("\n")) return;
   select.replaceChildren(...keys.map((k) => { const o = document.createElement("option"); o.value = o.textContent = k; return o; }));
   if (keys.includes(current)) select.value = current;
+  followSelectedKey();
+}
+
+function followSelectedKey() {
+  state.newFeed.setKey($("#key-select").value || null);
   scheduleDraw();
 }
 
@@ -375,6 +421,9 @@ function mergeSessions(sessions) {
     const old = state.sessions.get(s.id);
     s.boxAt = s.box && old && old.box && old.box.seq === s.box.seq ? old.boxAt
             : s.box ? Date.now() - (s.box.age_ms || 0) : 0;
+    s.healthAt = s.health && s.health.received_age_ms != null ? Date.now() - s.health.received_age_ms : null;
+    // a new start or re-init: the boxes remembered are the tracker's from before it
+    if (s.init && JSON.stringify(s.init) !== JSON.stringify(old && old.init)) state.boxes.delete(s.id);
     state.sessions.set(s.id, s);
     if (s.box) rememberBox(s.id, s.box);
     cardFor(s);
@@ -402,7 +451,7 @@ function mergePoints(points) {
 function removeSession(id) {
   const session = state.sessions.get(id);
   if (session && state.feeds.has(`${session.image_key}#${id}`)) {
-    state.feeds.get(`${session.image_key}#${id}`).stopped = true;
+    state.feeds.get(`${session.image_key}#${id}`).stop();
     state.feeds.delete(`${session.image_key}#${id}`);
   }
   state.sessions.delete(id); state.points.delete(id); state.boxes.delete(id); delete state.drawn[id];
@@ -421,9 +470,9 @@ function applyState(data) {
 }
 
 function applyUpdate(data) {
+  (data.removed || []).forEach(removeSession);     // first: a session replaced by one with the same id is in both
   mergeSessions(data.sessions);
   mergePoints(data.points);
-  (data.removed || []).forEach(removeSession);
   state.keys = data.keys; state.nodes = data.nodes || state.nodes;
   refresh(Object.keys(data.points || {}).length > 0);
 }
@@ -442,10 +491,10 @@ function scheduleDraw() {
     drawQueued = false;
     for (const id of state.cards.keys()) paintCard(id);
     const canvas = $("#new-canvas");
-    if (!paintDraft(canvas)) paintFrame(canvas, feedFor($("#key-select").value));
+    if (!paintDraft(canvas)) paintFrame(canvas, state.newFeed);
   });
 }
-setInterval(() => paintCharts(serverNow()), CHART_REDRAW_MS);   // the time axis scrolls even without news
+setInterval(() => { paintCharts(serverNow()); renderTable(); }, CHART_REDRAW_MS);   // time passes without news too
 
 function connect() {
   const source = new EventSource("/events");
@@ -477,19 +526,31 @@ $("#watch-form").addEventListener("submit", async (event) => {
   try {
     const reply = await post("/api/watch", { key });
     state.keys = reply.keys; renderKeys(); $("#key-select").value = key; $("#key-input").value = "";
-    scheduleDraw();
+    followSelectedKey();
   } catch (err) { toast(`watch ${key}: ${err.message}`); }
 });
-$("#key-select").addEventListener("change", scheduleDraw);
-enableDrawing($("#new-canvas"), () => feedFor($("#key-select").value), async (box, seq) => {
-  const key = $("#key-select").value, sid = $("#sid-input").value.trim();
+$("#key-select").addEventListener("change", followSelectedKey);
+state.newFeed = new FrameFeed(null);
+
+function setNewStatus(text, sid = null) {
   const status = $("#new-status");
-  status.textContent = `starting a session on ${key} at (${box.join(", ")}) of frame ${seq}…`;
+  status.textContent = text; status.dataset.sid = sid || "";
+  clearTimeout(setNewStatus.timer);
+  if (sid) setNewStatus.timer = setTimeout(() => clearNewStatus(sid), STATUS_MS);
+}
+
+function clearNewStatus(sid) {      // "session X started" is news for a while, and wrong once X is stopped
+  if ($("#new-status").dataset.sid === sid) setNewStatus("");
+}
+
+enableDrawing($("#new-canvas"), () => state.newFeed, async (box, seq, key) => {
+  const sid = $("#sid-input").value.trim();
+  setNewStatus(`starting a session on ${key} at (${box.join(", ")}) of frame ${seq}…`);
   try {
     const info = await post("/api/start", { image_key: key, box, seq, sid: sid || undefined });
-    status.textContent = `session ${info.sid} started on ${info.node} (${info.state})`;
+    setNewStatus(`session ${info.sid} started on ${info.node} (${info.state})`, info.sid);
     $("#sid-input").value = "";
-  } catch (err) { status.textContent = `start failed: ${err.message}`; toast(`start: ${err.message}`); }
+  } catch (err) { setNewStatus(`start failed: ${err.message}`); toast(`start: ${err.message}`); }
 });
 
 connect();
