@@ -807,8 +807,6 @@ def test_a_reinit_on_a_still_camera_shows_its_box_on_that_frame(stack, browser):
 def test_the_page_follows_services_coming_and_going(browser):
     """The page took the list of services only from session updates, so a service started after it loaded was
     never shown; and it ignored the age of health reports, so a dead service's sessions stayed "tracking"."""
-    from selenium.webdriver.common.by import By
-
     from tacf_service.loopback import FramePublisher
     from tacf_service.scene import MovingTargetScene
 
@@ -827,12 +825,13 @@ def test_the_page_follows_services_coming_and_going(browser):
             assert shown, f"a service started after the page: {browser.execute_script(services)}"
             status, body = _post(app.url + "api/start", {"image_key": key, "box": [20, 20, 40, 40], "sid": "goes"})
             assert status == 200, body
-            row = 'tr[data-sid="goes"] .badge'
-            assert _wait(lambda: browser.find_element(By.CSS_SELECTOR, row).text in ("tracking", "lost"), timeout=30)
+            def badge() -> str:         # the row appears with the next update: not found is "" meanwhile
+                return browser.execute_script("const b = document.querySelector('tr[data-sid=\"goes\"] .badge');"
+                                              "return b ? b.textContent.trim() : '';")
+            assert _wait(lambda: badge() in ("tracking", "lost"), timeout=30), badge()
             service.process.kill()
-            stale = _wait(lambda: re.fullmatch(r"no news for \d+ s", browser.find_element(By.CSS_SELECTOR, row).text),
-                          timeout=15)
-            assert stale, browser.find_element(By.CSS_SELECTOR, row).text
+            stale = _wait(lambda: re.fullmatch(r"no news for \d+ s", badge()), timeout=15)
+            assert stale, badge()
             assert _wait(lambda: browser.execute_script(services) == "no service answered", timeout=10)
 
 
