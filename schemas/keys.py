@@ -20,9 +20,11 @@ PREFIX = "tacf"
 LIVELINESS_PREFIX = "@tacf"
 WILDCARD = "*"
 
+# Matched with fullmatch: Python's `$` also matches before a final newline ('cam\n' passed, a session then
+# waited for frames on a key no camera publishes), where pydantic's pattern does not.
 _ID_RE = re.compile(ID_PATTERN)
 # One chunk of a user image key: a conservative whitelist (no wildcards, no $, #, ?, @, whitespace).
-_IMAGE_CHUNK_RE = re.compile(r"^[A-Za-z0-9_.~+=,:-]+$")
+_IMAGE_CHUNK_RE = re.compile(r"[A-Za-z0-9_.~+=,:-]+")
 
 
 class InvalidIdError(ValueError):
@@ -35,13 +37,13 @@ class InvalidKeyError(ValueError):
 
 def validate_id(value: object, what: str = "id") -> str:
     """Return `value` if it is a valid node or session id, else raise InvalidIdError."""
-    if not isinstance(value, str) or not _ID_RE.match(value):
+    if not isinstance(value, str) or not _ID_RE.fullmatch(value):
         raise InvalidIdError(f"invalid {what} {value!r}: expected 1-64 characters of [A-Za-z0-9_-]")
     return value
 
 
 def is_valid_id(value: object) -> bool:
-    return isinstance(value, str) and bool(_ID_RE.match(value))
+    return isinstance(value, str) and bool(_ID_RE.fullmatch(value))
 
 
 def sanitise_id(text: str, fallback: str = "edge") -> str:
@@ -67,7 +69,7 @@ def validate_image_key(key: object) -> str:
     for chunk in chunks:
         if not chunk:
             raise InvalidKeyError(f"invalid image key {key!r}: empty chunk (leading, trailing or double '/')")
-        if not _IMAGE_CHUNK_RE.match(chunk):
+        if not _IMAGE_CHUNK_RE.fullmatch(chunk):
             raise InvalidKeyError(f"invalid image key {key!r}: chunk {chunk!r} has a character outside "
                                   f"[A-Za-z0-9_.~+=,:-] (wildcards are not allowed)")
     if chunks[0] in (PREFIX, LIVELINESS_PREFIX):

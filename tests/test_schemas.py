@@ -131,7 +131,7 @@ def test_keys():
         box_key("a/b", "s")
 
 
-@pytest.mark.parametrize("bad", ["", "a" * 65, "a/b", "a*", "*", "é", "a b", "a.b", None, 5])
+@pytest.mark.parametrize("bad", ["", "a" * 65, "a/b", "a*", "*", "é", "a b", "a.b", None, 5, "edge\n"])
 def test_invalid_ids(bad):
     with pytest.raises(InvalidIdError):
         validate_id(bad)
@@ -149,7 +149,8 @@ def test_valid_image_keys(good):
 
 
 @pytest.mark.parametrize("bad", ["", "/cam", "cam/", "a//b", "cam/*", "cam/**", "ca$*m", "cam#1", "cam?x",
-                                 "cam 1", "@admin/x", "tacf/edge/x", "é", "a" * 300, "/".join("a" * 20), None])
+                                 "cam 1", "@admin/x", "tacf/edge/x", "é", "a" * 300, "/".join("a" * 20), None,
+                                 "uav1/cam\n", "uav1\n/cam"])   # a key read from a file without strip()
 def test_invalid_image_keys(bad):
     with pytest.raises(InvalidKeyError):
         validate_image_key(bad)
