@@ -26,7 +26,7 @@ class ResultStream(Generic[T]):
 
     Iterate (`for item in stream`, ends when closed) or `get(timeout)`; or pass `callback` to have every item
     handed to it on a worker thread. Close it (or use `with`): that undeclares the subscriber and joins the
-    thread.
+    thread. Closing the Zenoh session ends the stream too (the items already received are still read).
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, decode: Callable[[zenoh.Sample], T | None], *,
@@ -40,7 +40,10 @@ class ResultStream(Generic[T]):
         self._cond = threading.Condition()
         self._closed = False
         self._thread: threading.Thread | None = None
-        self._sub = session.declare_subscriber(key_expr, self._on_sample)
+        # The drop hook runs when the subscriber goes, also when its session closes first (TrackingClient.close(),
+        # the end of its `with`): the stream then ends, instead of iterators and the callback thread (which keeps
+        # the interpreter from exiting) waiting for items that will never come.
+        self._sub = session.declare_subscriber(key_expr, zenoh.handlers.Callback(self._on_sample, self._on_drop))
         if callback is not None:
             self._thread = threading.Thread(target=self._run_callback, args=(callback,), name=name)
             self._thread.start()
@@ -67,6 +70,11 @@ class ResultStream(Generic[T]):
                 if len(self._fifo) == self._fifo.maxlen:
                     self.dropped += 1
                 self._fifo.append(item)
+            self._cond.notify_all()
+
+    def _on_drop(self) -> None:
+        with self._cond:
+            self._closed = True
             self._cond.notify_all()
 
     # --- consumer side ---------------------------------------------------------------------------------------

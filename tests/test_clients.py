@@ -3,6 +3,7 @@ timeouts, and the wildcard list across two services."""
 from __future__ import annotations
 
 import functools
+import threading
 import time
 
 import pytest
@@ -210,6 +211,26 @@ def test_command_line_bad_ids_and_no_service_are_one_line_errors(capsys):
             captured = capsys.readouterr()
             assert captured.out.strip() == ("[]" if "--json" in argv else "")
             assert captured.err.startswith(f"tacf {argv[0]}: no tracking service")
+
+
+def test_closing_the_client_ends_its_streams():
+    """Streams ended only when closed themselves: after the client's session closed, iterators waited for ever,
+    and a subscribe() callback thread kept the interpreter from exiting at the end of a `with` block."""
+    client = TrackingClient(ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)))
+    ended = threading.Event()
+
+    def iterate() -> None:
+        for _ in client.iter_boxes("abc", node="edge"):
+            pass
+        ended.set()
+    reader = threading.Thread(target=iterate)
+    reader.start()
+    stream = client.subscribe(on_box=lambda box: None)
+    time.sleep(0.3)
+    client.close()
+    reader.join(5)
+    assert ended.is_set() and stream.closed
+    assert wait_until(lambda: not stream._thread.is_alive(), 5)
 
 
 def test_command_line_bad_image_keys_are_usage_errors(capsys):
