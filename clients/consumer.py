@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import zenoh
 
+from tacf_clients.errors import InvalidId
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -92,10 +93,13 @@ class BoxConsumer:
     def __init__(self, session: zenoh.Session | None = None, sid: str = keys.WILDCARD, node: str = keys.WILDCARD,
                  *, latest_only: bool = False, on_box: Callable[[TrackedBox], None] | None = None,
                  options: ZenohOptions | None = None, queue_size: int = 64):
+        try:
+            key_expr = keys.box_key(node, sid)
+        except keys.InvalidIdError as exc:      # a TacfError, as TrackingClient raises it
+            raise InvalidId(str(exc)) from None
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         try:
-            key_expr = keys.box_key(node, sid)
             self._stream: ResultStream[TrackedBox] = ResultStream(
                 self.session, key_expr, self._decode, latest_only=latest_only,
                 slot_of=lambda b: (b.node, b.sid), queue_size=queue_size, callback=on_box,

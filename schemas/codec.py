@@ -10,7 +10,8 @@ from typing import TypeVar
 import msgpack
 import pydantic
 
-from .limits import MAX_FRAME_BYTES, MAX_PAYLOAD_BYTES
+from .keys import is_valid_id
+from .limits import MAX_FRAME_BYTES, MAX_MESSAGE_LENGTH, MAX_PAYLOAD_BYTES
 from .models import Error, WireModel
 
 M = TypeVar("M", bound=WireModel)
@@ -38,13 +39,7 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
     if len(payload) > MAX_PAYLOAD_BYTES:
         raise DecodeError("too_large", f"{model.__name__}: payload of {len(payload)} bytes exceeds "
                                        f"{MAX_PAYLOAD_BYTES}")
-    try:
-        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True,
-                              max_bin_len=MAX_FRAME_BYTES, max_str_len=1 << 20,
-                              max_array_len=1 << 16, max_map_len=1 << 10, max_ext_len=0)
-    except Exception as exc:  # msgpack raises several unrelated types (ValueError, ExtraData, TypeError...)
-        raise DecodeError("malformed", f"{model.__name__}: not msgpack ({type(exc).__name__}: "
-                                       f"{str(exc)[:200]})") from None
+    obj = _unpack(payload, model.__name__)
     if not isinstance(obj, dict):
         raise DecodeError("invalid", f"{model.__name__}: expected a map, got {type(obj).__name__}")
     try:
@@ -55,13 +50,32 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
         raise DecodeError("invalid", f"{model.__name__}: {type(exc).__name__}: {str(exc)[:200]}") from None
 
 
+def _unpack(payload: bytes | bytearray | memoryview, name: str) -> object:
+    try:
+        return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True,
+                               max_bin_len=MAX_FRAME_BYTES, max_str_len=1 << 20,
+                               max_array_len=1 << 16, max_map_len=1 << 10, max_ext_len=0)
+    except Exception as exc:  # msgpack raises several unrelated types (ValueError, ExtraData, TypeError...)
+        raise DecodeError("malformed", f"{name}: not msgpack ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
 def decode_error_reply(payload: bytes | bytearray | memoryview) -> Error | str:
     """A control op's error reply: the service's Error, or, when it is not one, the text of a reply Zenoh made
-    itself. At a get's deadline Zenoh replies "timeout" (is_deadline_reply)."""
+    itself. At a get's deadline Zenoh replies "timeout" (is_deadline_reply). An Error of a newer service (a code
+    this side does not know, a field it added) keeps its code and message, so the caller sees a service error."""
     try:
         return decode(payload, Error)
     except DecodeError:
-        return bytes(payload).decode("utf-8", "replace")
+        pass
+    try:
+        obj = _unpack(payload, "Error") if len(payload) <= MAX_PAYLOAD_BYTES else None
+    except DecodeError:
+        obj = None
+    if isinstance(obj, dict) and isinstance(obj.get("code"), str) and isinstance(obj.get("message"), str):
+        node = obj.get("node")
+        return Error.model_construct(code=obj["code"][:64], message=obj["message"][:MAX_MESSAGE_LENGTH],
+                                     node=node if is_valid_id(node) else None)
+    return bytes(payload).decode("utf-8", "replace")
 
 
 def is_deadline_reply(error: Error | str) -> bool:

@@ -132,6 +132,16 @@ def test_consumer_opens_its_own_session(net):
         assert boxes.get(timeout=5).seq == 7
 
 
+def test_a_bad_id_is_refused_as_the_client_refuses_it():
+    """BoxConsumer let keys.InvalidIdError through, which is not a TacfError, where TrackingClient raises InvalidId;
+    it is refused before any Zenoh session is opened."""
+    from tacf_clients.errors import InvalidId
+
+    for bad in (dict(sid="bad id"), dict(node="no/slash")):
+        with pytest.raises(InvalidId):
+            BoxConsumer(options=ZenohOptions(connect=("tcp/127.0.0.1:1",), mode="client"), **bad)
+
+
 def test_render_table():
     row = SessionRow("edge1", "cam1")
     row.apply(_box("cam1", 42, ok=False))

@@ -260,6 +260,20 @@ def test_error_replies_are_the_services_or_zenohs_own():
     assert not is_deadline_reply(decode_error_reply(encode(Error(code="internal", message="timeout"))))
 
 
+def test_a_newer_service_s_error_keeps_its_code():
+    """errors.py promises a plain ServiceError for a code this client does not know; the strict decode failed
+    first, and the client raised ProtocolError (also for a known code next to a field a newer service added)."""
+    from tacf_clients.errors import ServiceError, UnknownSession, error_from_wire
+
+    for fields, expected in [({"code": "rate_limited", "message": "slow down"}, ServiceError),
+                             ({"code": "unknown_session", "message": "no such", "retry_after": 1}, UnknownSession)]:
+        error = decode_error_reply(msgpack.packb({"v": 2, **fields, "node": "edge"}))
+        assert isinstance(error, Error) and (error.code, error.node) == (fields["code"], "edge")
+        assert type(error_from_wire(error.code, error.message, error.node)) is expected
+    assert isinstance(decode_error_reply(msgpack.packb({"code": 5, "message": "x"})), str)
+    assert decode_error_reply(msgpack.packb({"code": "x", "message": "y", "node": "a/b"})).node is None
+
+
 def test_catch_up_subset_keeps_the_first_and_ends_on_the_newest():
     from tacf_schemas import catch_up_subset
     assert catch_up_subset(list(range(20)), 6) == [0, 3, 6, 10, 13, 16, 19]
