@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import pydantic
@@ -27,7 +26,7 @@ import zenoh
 
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest,
                                  NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions, UnknownSession,
-                                 error_from_wire)
+                                 as_invalid_id, error_from_wire)
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -65,7 +64,7 @@ class TrackingClient:
                  node: str | None = None, timeout: float = DEFAULT_TIMEOUT):
         if node == LEAST_LOADED:
             raise ValueError(f"node={LEAST_LOADED!r} is for start(); leave the client's node unset")
-        with _as_invalid_id():
+        with as_invalid_id():
             self.node = keys.validate_id(node, "node id") if node is not None else None
         self.timeout = timeout
         self._own_session = session is None
@@ -200,7 +199,7 @@ class TrackingClient:
         if sid != keys.WILDCARD:
             _sid(sid)
         node = node or self.node or (self._nodes_of_sid.get(sid) if sid != keys.WILDCARD else None)
-        with _as_invalid_id():
+        with as_invalid_id():
             key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
         return ResultStream(self.session, key_expr, _decode_result, latest_only=latest_only,
                             slot_of=lambda item: (item.node, item.sid, type(item).__name__),
@@ -263,7 +262,7 @@ class TrackingClient:
         raise replies[0].error
 
     def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]) -> list[_Reply]:
-        with _as_invalid_id():
+        with as_invalid_id():
             key = keys.control_key(node, op)
         log.debug("query %s %s", key, request)
         replies = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
@@ -386,15 +385,6 @@ def _build(model: type[WireModel], **fields) -> WireModel:
         where = str(first["loc"][0]) if first["loc"] else ""
         cls = {"box": InvalidBox, "image_key": InvalidKey, "sid": InvalidId}.get(where, InvalidRequest)
         raise cls(f"invalid {model.__name__}: {where or '<root>'}: {first['msg']}") from None
-
-
-@contextmanager
-def _as_invalid_id():
-    """tacf_schemas.keys refuses a bad node or session id with InvalidIdError: raise InvalidId, as a service would."""
-    try:
-        yield
-    except keys.InvalidIdError as exc:
-        raise InvalidId(str(exc)) from None
 
 
 def _box(box: BoxLike) -> tuple[float, float, float, float]:

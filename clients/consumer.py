@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from tacf_clients.errors import InvalidId
+from tacf_clients.errors import as_invalid_id
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -93,10 +93,8 @@ class BoxConsumer:
     def __init__(self, session: zenoh.Session | None = None, sid: str = keys.WILDCARD, node: str = keys.WILDCARD,
                  *, latest_only: bool = False, on_box: Callable[[TrackedBox], None] | None = None,
                  options: ZenohOptions | None = None, queue_size: int = 64):
-        try:
+        with as_invalid_id():                   # a TacfError, as TrackingClient raises it
             key_expr = keys.box_key(node, sid)
-        except keys.InvalidIdError as exc:      # a TacfError, as TrackingClient raises it
-            raise InvalidId(str(exc)) from None
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         try:

@@ -5,6 +5,8 @@ tacf_schemas' ErrorCode.
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 
 class TacfError(Exception):
     """Base of every client-side error. `code` is the wire error code (or a client-side one)."""
@@ -122,3 +124,14 @@ class ProtocolError(TacfError):
     """A reply that is not a valid message of the expected model."""
 
     code = "protocol"
+
+
+@contextmanager
+def as_invalid_id():
+    """tacf_schemas.keys refuses a bad node or session id with InvalidIdError: raise InvalidId, as a service would."""
+    from tacf_schemas.keys import InvalidIdError
+
+    try:
+        yield
+    except InvalidIdError as exc:
+        raise InvalidId(str(exc)) from None
