@@ -270,10 +270,9 @@ class SessionManager:
         if frames:
             _check_box_in_frame(tuple(request.box), frames[0])
         with self._lock:
-            session.box = tuple(request.box)
             session.gave_up, session.crashes = False, deque()
             session.state, session.message = "starting", None
-            self._queue_init(session, session.box, request.drawn_on, released=True, frames=frames)
+            self._queue_init(session, request.box, request.drawn_on, released=True, frames=frames)  # sets box
             needs_worker = session.process is None or session.process.exitcode is not None
             reply = session.info(self.node)
         if needs_worker:
