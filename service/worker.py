@@ -168,7 +168,7 @@ class Worker:
         self._assigned = _Flag()
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
         self._extra_received = 0        # catch-up frames handed over by the service
-        self._skipped = 0               # frames not used: duplicates, or no box to track yet
+        self._skipped = 0               # frames not used: duplicates, no box to track yet, or a reinit came
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
     def on_sigterm(self, *_) -> None:
@@ -319,6 +319,11 @@ class Worker:
             if budget_ends is None and self._image_shape is not None:
                 budget_ends = time.monotonic() + CATCH_UP_BUDGET_S
 
+    def _init_arrived(self) -> bool:
+        """Whether a reinit came in while this frame was being tracked (it is applied before the next one)."""
+        with self._pending_lock:
+            return self._pending_init is not None
+
     def _process(self, payload: bytes) -> None:
         from tacf_schemas import DecodeError, Frame, decode
         from tacf_schemas.images import FrameError, decode_frame
@@ -355,6 +360,9 @@ class Worker:
         except Exception as exc:                        # a tracker bug must not kill the session
             log.exception("tracker update failed on seq %d", frame.seq)
             self._reject(f"tracker update failed: {exc}")
+            return
+        if self._init_arrived():
+            self._skipped += 1              # the box is of the target the reinit replaces: never show it
             return
         self._state = "tracking" if result.ok else "lost"
         self._publish_box(frame, result, (time.perf_counter() - started) * 1e3)

@@ -273,6 +273,35 @@ def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="re"))
 
 
+def test_no_box_of_the_replaced_target_after_a_reinit(endpoint, client, feed):
+    """A reinit that arrives while the worker is inside a frame makes that frame's box one of the old target:
+    it is dropped, so that no consumer (a gimbal following the box, a ground station) sees the old target again
+    after the reinit was answered. A tracker taking 0.3 s a frame is nearly always inside one."""
+    port = free_port()
+    slow = TrackingService(ServiceOptions(node="slow", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
+                                                                          connect=(endpoint,)),
+                                          tracker_factory="slow_tracker:slow_tracker", spare_workers=1)).open()
+    results = Collector(client, "slow", "swap")
+    old_box, new_box = (20.0, 20.0, 60.0, 60.0), (300.0, 200.0, 40.0, 30.0)
+    try:
+        assert wait_until(lambda: "slow" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
+        assert wait_until(lambda: slow.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+        call(client, "slow", "start", StartRequest(sid="swap", image_key=feed.key, box=old_box), timeout=10)
+        for _ in range(3):
+            count = len(results.results())
+            assert wait_until(lambda: len(results.results()) > count, 10)
+            call(client, "slow", "reinit", ReinitRequest(sid="swap", box=new_box))
+            answered_ns = time.time_ns()
+            assert wait_until(lambda: any(r.box == new_box for r in results.results()[count:]), 10)
+            time.sleep(0.4)                                 # the frame in progress at the reinit has ended
+            late_old = [r.seq for r in results.results()[count:] if r.box == old_box and r.published_ns > answered_ns]
+            assert late_old == []
+            old_box, new_box = new_box, old_box
+    finally:
+        results.close()
+        slow.close()
+
+
 # ---------------------------------------------------------------------------------------------- latest-only
 
 def test_latest_only_under_a_fast_publisher(service, client):

@@ -1,0 +1,37 @@
+"""A tracker factory for the service's tests (`tracker_factory="slow_tracker:slow_tracker"`): the box it was
+initialised with, every frame, after a fixed delay. It shows which init a box comes from, and keeps the worker
+busy inside a frame long enough for a control request to arrive meanwhile."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+LOCATE_S = 0.3
+
+
+@dataclass(frozen=True)
+class Result:
+    box: tuple
+    ok: bool = True
+    pme: float = 50.0
+    score: float = 1.0
+    scale: float = 1.0
+
+
+class SlowTracker:
+    def init(self, frame, box) -> None:
+        self.box = tuple(float(c) for c in box)
+
+    def locate(self, frame) -> Result:
+        time.sleep(LOCATE_S)
+        return Result(self.box)
+
+    def learn(self) -> None:
+        pass
+
+    def update(self, frame) -> Result:
+        return self.locate(frame)
+
+
+def slow_tracker(profile: str, overrides: dict) -> SlowTracker:
+    return SlowTracker()
