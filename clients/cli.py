@@ -14,6 +14,10 @@ import threading
 from contextlib import contextmanager
 
 ENCODING_CHOICES = ("jpeg", "png", "bgr8", "mono8")
+# The Zenoh mode a command opens without --mode or a config file, as its help states it (see _client and
+# zconfig.viewer_options).
+ONE_SHOT_MODE = "client: the node it connects to answers for the whole network at once"
+VIEWER_MODE = "peer; client when every --connect endpoint is on another machine and no --listen is given"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -69,7 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "per service, with its sessions). A service without sessions is a "
                                           "valid answer (exit 0); no service answering is an error: exit 1, "
                                           "with --json after printing [].")
-    _common(p, add_zenoh_arguments)
+    _common(p, add_zenoh_arguments, node_help="only this service (node id); default: every service on the network")
     p.set_defaults(func=cmd_list)
 
     p = subparsers.add_parser("status", help="show one session")
@@ -84,7 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "the network is an error: exit 1, with --json after printing [].")
     p.add_argument("--follow", "-f", action="store_true", help="print up/down events instead of a table")
     p.add_argument("--duration", type=_positive_float, help="with --follow: exit after this many seconds")
-    _common(p, add_zenoh_arguments, node_help=argparse.SUPPRESS)
+    _common(p, add_zenoh_arguments, node_help=argparse.SUPPRESS, mode_default="client; peer with --follow")
     p.set_defaults(func=cmd_nodes)
 
     p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal")
@@ -156,7 +160,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="image key to show from the start, repeatable (the keys of running sessions are added "
                         "by themselves)")
     p.add_argument("--node", help="only this service (default: every service on the network)")
-    add_zenoh_arguments(p)
+    add_zenoh_arguments(p, VIEWER_MODE)
     p.set_defaults(func=cmd_foxglove)
 
     p = subparsers.add_parser("dashboard", help="ground-station web page: live frames, boxes, charts, start/stop",
@@ -182,16 +186,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--node", help="only this service (default: every service on the network)")
     p.add_argument("--history", type=_positive_float, default=5.0, metavar="MINUTES",
                    help="minutes of chart history per session (default 5)")
-    add_zenoh_arguments(p)
+    add_zenoh_arguments(p, VIEWER_MODE)
     p.set_defaults(func=cmd_dashboard)
 
 
 def _common(p: argparse.ArgumentParser, add_zenoh_arguments,
-            node_help: str = "service (node id) to address; default: whichever holds the session") -> None:
+            node_help: str = "service (node id) to address; default: whichever holds the session",
+            mode_default: str = ONE_SHOT_MODE) -> None:
     p.add_argument("--node", help=node_help)
     p.add_argument("--timeout", type=_positive_float, default=5.0, help="reply timeout in seconds (default 5)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
-    add_zenoh_arguments(p)
+    add_zenoh_arguments(p, mode_default)
 
 
 # ------------------------------------------------------------------------------------------------ argument types

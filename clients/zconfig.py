@@ -70,8 +70,9 @@ def _is_loopback(endpoint: str) -> bool:
     return "/127.0.0.1:" in endpoint or "/[::1]:" in endpoint or endpoint.startswith("unixsock-stream/")
 
 
-def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add --connect, --listen and --zenoh-config (the same names as `tacf serve`)."""
+def add_zenoh_arguments(parser: argparse.ArgumentParser, mode_default: str = "peer") -> None:
+    """Add --connect, --listen, --zenoh-config (the same names as `tacf serve`) and --mode; `mode_default` says
+    in the help which mode the command opens without --mode or a config file."""
     group = parser.add_argument_group("zenoh")
     group.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
                        help=f"endpoint to connect to, repeatable (default {DEFAULT_CONNECT})")
@@ -80,7 +81,7 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
                             "loopback)")
     group.add_argument("--zenoh-config", type=Path, metavar="FILE",
                        help="Zenoh JSON5 config file (router, TLS, access control); flags override it")
-    group.add_argument("--mode", choices=("peer", "client"), help="Zenoh session mode (default peer)")
+    group.add_argument("--mode", choices=("peer", "client"), help=f"Zenoh session mode (default {mode_default})")
 
 
 def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh.Session":

@@ -254,6 +254,31 @@ def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
         assert ".rs:" not in err                      # the Rust source line Zenoh appends is left out
 
 
+def _help(main, command: str, capsys) -> str:
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    return " ".join(capsys.readouterr().out.split())
+
+
+def test_command_line_mode_help_says_the_mode_each_command_opens(capsys):
+    """Every client command's help said `--mode ... (default peer)`, but the one-shot ones open as Zenoh clients
+    unless told otherwise: with no node reachable they fail at once, as only a client does."""
+    from tacf.cli import main
+
+    zenoh_args = ["--connect", f"tcp/127.0.0.1:{free_port()}"]      # nobody listens there
+    for argv in (["list"], ["status", "abc"], ["stop", "abc"], ["reinit", "abc", "--box", "1,2,3,4"], ["nodes"],
+                 ["start", "--key", "cam/a", "--box", "1,2,3,4"]):
+        assert "ZenohUnavailable: no Zenoh node reachable" in _cli_error(main, [*argv, *zenoh_args], capsys)
+        assert "Zenoh session mode (default client" in _help(main, argv[0], capsys), argv
+    for command in ("publish", "watch", "mavlink"):
+        assert "Zenoh session mode (default peer)" in _help(main, command, capsys), command
+    for command in ("dashboard", "foxglove"):
+        assert "(default peer; client when every --connect endpoint is on another machine" in \
+            _help(main, command, capsys), command
+    assert "--node NODE only this service (node id); default: every service on the network" in \
+        _help(main, "list", capsys)
+
+
 def test_list_across_two_services(service, client, camera):
     with LocalService(node=f"second{free_port()}") as second:
         options = ZenohOptions(connect=(service.endpoint, second.endpoint))
