@@ -17,7 +17,8 @@ def register(subparsers) -> None:
                         help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
     parser.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, access control...); "
                                                               "--listen/--connect override its endpoints")
-    parser.add_argument("--mode", choices=("peer", "client", "router"), default="peer", help="Zenoh mode")
+    parser.add_argument("--mode", choices=("peer", "client", "router"),
+                        help="Zenoh mode (default peer, or the --zenoh-config file's)")
     parser.add_argument("--node", metavar="ID", help="service id, [A-Za-z0-9_-]{1,64} (default: the hostname "
                                                     "sanitised, or 'edge')")
     parser.add_argument("--max-sessions", type=int, default=8, metavar="N", help="session limit (default 8)")

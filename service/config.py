@@ -31,9 +31,8 @@ def _listen_endpoints(options: ZenohOptions) -> tuple[str, ...]:
 def service_config(options: ZenohOptions):
     """The service session's config: the file (if any), then the command-line overrides."""
     conf = base_config(options.config_file)
-    mode = options.mode or "peer"
-    if options.config_file is None or mode != "peer":    # with a file, peer (the --mode default) keeps the file's
-        conf.insert_json5("mode", json.dumps(mode))
+    if options.mode is not None or options.config_file is None:     # without --mode, a file keeps its own
+        conf.insert_json5("mode", json.dumps(options.mode or "peer"))
     listen = _listen_endpoints(options)
     if listen or options.config_file is None:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))

@@ -235,6 +235,25 @@ def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     assert json.loads(service_config(cli).get_json("listen/endpoints")) == ["tcp/127.0.0.1:1234"]
 
 
+def test_serve_mode_overrides_the_config_files(tmp_path):
+    """`tacf serve --zenoh-config FILE --mode peer` ran in the file's mode: peer, the flag's default, was taken
+    for no flag at all."""
+    from tacf.cli import build_parser
+    from tacf.zenoh_options import options_from_args
+
+    path = tmp_path / "zenoh.json5"
+    path.write_text(json.dumps({"mode": "router", "listen": {"endpoints": [f"tcp/127.0.0.1:{free_port()}"]}}))
+
+    def mode(*argv: str) -> str:
+        args = build_parser().parse_args(["serve", "--zenoh-config", str(path), *argv])
+        return json.loads(service_config(options_from_args(args)).get_json("mode"))
+    assert mode() == "router"
+    assert mode("--mode", "peer") == "peer"
+    assert mode("--mode", "client") == "client"
+    assert json.loads(service_config(options_from_args(build_parser().parse_args(["serve"]))).get_json("mode")) \
+        == "peer"
+
+
 def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
     import socket
     with socket.socket() as busy:
