@@ -1,0 +1,37 @@
+"""What the README shows against what the code has: its command lines parse with the real `tacf` parser, and
+every optional dependency the package declares is one the README gives a reason for."""
+from __future__ import annotations
+
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+from tacf.cli import build_parser
+
+ROOT = Path(__file__).resolve().parent.parent
+README = (ROOT / "README.md").read_text()
+
+
+def _readme_command_lines() -> list[str]:
+    """The `tacf ...` lines of the README's bash blocks, continuation lines joined, comments and `&` cut."""
+    lines = []
+    for block in re.findall(r"```bash\n(.*?)```", README, re.S):
+        for line in re.sub(r"\\\n\s*", " ", block).splitlines():
+            line = line.split(" #")[0].strip().rstrip("&").strip()
+            if line.startswith("tacf "):
+                lines.append(line)
+    return lines
+
+
+@pytest.mark.parametrize("line", _readme_command_lines())
+def test_readme_command_lines_parse(line):
+    build_parser().parse_args(shlex.split(line)[1:])      # a misspelt subcommand or flag exits with status 2
+
+
+def test_every_extra_is_named_in_the_readme():
+    """A `pyinstrument` extra (`profile`) outlived the README text that used it, and nothing imported it."""
+    table = (ROOT / "pyproject.toml").read_text().split("[project.optional-dependencies]")[1].split("\n[")[0]
+    extras = re.findall(r"^([A-Za-z0-9_-]+)\s*=", table, re.M)      # tomllib is Python 3.11+
+    assert extras and [extra for extra in extras if f"[{extra}]" not in README] == []
