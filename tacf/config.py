@@ -14,7 +14,7 @@ PROFILES = ("paper", "authors", "kcc")
 DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; see README "Accuracy"
 
 
-# Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 16, 32).
+# Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 4 (`paper`: 2), 32).
 LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_step": 2.0,
           "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256}
 # Combinations the tracker can run (defaults: 2,500 cells, scales up to 1.6 times the target, 32 bins, sigma 0.5).
