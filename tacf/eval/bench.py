@@ -15,14 +15,13 @@ import time
 import numpy as np
 
 from .datasets import Sequence
-from .runner import read_frame, track_frames
+from .runner import read_frame, track_frames, warm_up
 from .trackers import make_tracker
 
 log = logging.getLogger(__name__)
 
 UAV_PREFIXES = ("UAV123", "UAVDT", "DTB70")
 PEER = "opencv-csrt"
-WARM_UP_FRAMES = 3
 
 
 def is_uav(name: str) -> bool:
@@ -48,9 +47,8 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     times: dict[str, dict[str, np.ndarray]] = {n: {} for n in names}
     cpu_and_wall = {n: np.zeros(2) for n in names}
     if sequences:
-        warm_up = [read_frame(p) for p in sequences[0].frames[:WARM_UP_FRAMES]]
         for name in names:
-            track_frames(make_tracker(name), warm_up, sequences[0].gt[0])
+            warm_up(name, sequences[0])
     for seq in tqdm(sequences, desc="bench", unit="seq"):
         n = len(seq) if max_frames is None else min(len(seq), max_frames)
         frames = [read_frame(p) for p in seq.frames[:n]]
