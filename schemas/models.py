@@ -31,7 +31,7 @@ ErrorCode = Literal[
     "invalid_id",          # a node or session id outside [A-Za-z0-9_-]{1,64}
     "invalid_key",         # an image key that is not a plain key expression
     "invalid_box",         # non-finite, non-positive size, or outside the image
-    "invalid_config",      # unknown tracker profile or override
+    "invalid_config",      # unknown tracker profile or override, or a value TrackerConfig refuses
     "unknown_op",          # control op not in CONTROL_OPS
     "unknown_session",
     "duplicate_session",
