@@ -227,3 +227,19 @@ def test_unknown_layout_is_a_clear_error(tmp_path):
         detect_layout(tmp_path)
     with pytest.raises(FileNotFoundError):
         detect_layout(tmp_path / "missing")
+
+
+def test_a_frame_missing_on_disk_skips_its_sequence_instead_of_shifting_the_ground_truth(tmp_path, caplog):
+    for name in ("gap", "whole", "extra"):
+        write_frames(tmp_path / name / "img", 6)
+        (tmp_path / name / "groundtruth.txt").write_text("".join(f"{i},1,5,5\n" for i in range(1, 6)))
+    (tmp_path / "gap" / "img" / "000003.jpg").unlink()    # frame 4 would meet the box of frame 3
+    (tmp_path / "extra" / "img" / "000006.jpg").unlink()  # past the ground truth's 5 rows: no harm
+    seqs = load_sequences(tmp_path)
+    assert [s.name for s in seqs] == ["extra", "whole"]
+    assert "gap: frame 3 missing from" in caplog.text
+    write_frames(tmp_path / "stamps" / "img", 0)
+    for stamp in (1000, 1033, 1067):                      # time-stamped names: no numbering to check
+        (tmp_path / "stamps" / "img" / f"{stamp}.jpg").write_bytes(JPG)
+    (tmp_path / "stamps" / "groundtruth.txt").write_text("1,1,5,5\n" * 3)
+    assert "stamps" in [s.name for s in load_sequences(tmp_path)]

@@ -84,6 +84,21 @@ def natural_key(path: Path) -> list:
     return [int(t) if t.isdigit() else t.lower() for t in _DIGITS.split(Path(path).name)]
 
 
+def frame_number(path: Path) -> int | None:
+    """The number a frame file's name carries (its last run of digits: img000445.jpg -> 445), or None."""
+    digits = _DIGITS.findall(Path(path).stem)
+    return int(digits[-1]) if digits else None
+
+
+def missing_frame_numbers(frames: list[Path]) -> list[int]:
+    """The numbers absent between consecutively numbered frames (000004 between 000003 and 000005); none when
+    some frame carries no number or no two are consecutive (names such as time stamps)."""
+    numbers = [frame_number(p) for p in frames]
+    if len(numbers) < 2 or None in numbers or min(b - a for a, b in zip(numbers, numbers[1:])) != 1:
+        return []
+    return [n for a, b in zip(numbers, numbers[1:]) for n in range(a + 1, b)]
+
+
 def list_frames(folder: Path, prefix: str = "") -> list[Path]:
     """The image files of a folder in natural order (optionally only those whose name starts with `prefix`)."""
     folder = Path(folder)
@@ -95,8 +110,16 @@ def list_frames(folder: Path, prefix: str = "") -> list[Path]:
 
 
 def make_sequence(name: str, frames: list[Path], gt: np.ndarray,
-                  attributes: frozenset[str] | None = None) -> Sequence:
-    """A Sequence, cutting frames or ground truth to the shorter of the two (with a warning)."""
+                  attributes: frozenset[str] | None = None) -> Sequence | None:
+    """A Sequence, cutting frames or ground truth to the shorter of the two (with a warning); None (with a warning)
+    when numbered frames are missing on disk between those the ground truth covers: every row after the gap would
+    be scored against the frame after its own."""
+    missing = missing_frame_numbers(frames[:len(gt)])
+    if missing:
+        listed = ", ".join(map(str, missing[:5])) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+        log.warning("%s: frame%s %s missing from %s: the ground truth after it would meet the wrong frames; skipped",
+                    name, "s" * (len(missing) > 1), listed, Path(frames[0]).parent)
+        return None
     n = min(len(frames), len(gt))
     if len(frames) != len(gt):
         log.warning("%s: %d frames but %d ground-truth rows; using the first %d", name, len(frames), len(gt), n)

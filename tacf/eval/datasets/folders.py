@@ -72,5 +72,7 @@ def load(root: Path) -> list[Sequence]:
         for suffix, gt_path in _gt_files(folder):
             gt = read_boxes(gt_path)
             first = OTB_FIRST_FRAME.get(folder.name.lower(), 1) if len(frames) > len(gt) else 1
-            seqs.append(make_sequence(base + suffix, frames[first - 1:], gt, attributes))
+            seq = make_sequence(base + suffix, frames[first - 1:], gt, attributes)
+            if seq is not None:
+                seqs.append(seq)
     return seqs

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..attributes import read_uav123_flags
-from .base import Sequence, list_frames, make_sequence, read_boxes
+from .base import Sequence, frame_number, list_frames, make_sequence, read_boxes
 
 log = logging.getLogger(__name__)
 
@@ -84,9 +84,9 @@ def _frames_in_range(frames: list[Path], first: int, last: int) -> list[Path]:
     """Frames numbered first..last (by the number in the file name, e.g. 000445.jpg; by position otherwise)."""
     numbered = {}
     for p in frames:
-        digits = re.findall(r"\d+", p.stem)
-        if digits:
-            numbered.setdefault(int(digits[-1]), p)
+        number = frame_number(p)
+        if number is not None:
+            numbered.setdefault(number, p)
     if len(numbered) == len(frames):
         return [numbered[i] for i in range(first, last + 1) if i in numbered]
     return frames[first - 1:last]
@@ -151,6 +151,7 @@ def load(root: Path, ranges: dict[tuple[str | None, str], FrameRange] | Path | N
             last = rng.last if rng.last else rng.first + len(gt) - 1
             flags = set_dir / "att" / anno.name
             attributes = read_uav123_flags(flags) if flags.is_file() else None
-            seqs.append(make_sequence(f"{set_dir.name}/{name}", _frames_in_range(frames, rng.first, last), gt,
-                                      attributes))
+            seq = make_sequence(f"{set_dir.name}/{name}", _frames_in_range(frames, rng.first, last), gt, attributes)
+            if seq is not None:
+                seqs.append(seq)
     return seqs

@@ -48,5 +48,7 @@ def load(root: Path) -> list[Sequence]:
             log.warning("UAVDT/%s: no annotation %s; skipped", seq_dir.name, gt_path)
             continue
         frames = list_frames(seq_dir, prefix="img") or list_frames(seq_dir)
-        seqs.append(make_sequence(f"UAVDT/{seq_dir.name}", frames, read_boxes(gt_path)))
+        seq = make_sequence(f"UAVDT/{seq_dir.name}", frames, read_boxes(gt_path))
+        if seq is not None:
+            seqs.append(seq)
     return seqs
