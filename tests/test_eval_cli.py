@@ -240,6 +240,23 @@ def test_eval_resumes_and_force_reruns(evaluated, capsys):
 
 
 @needs_data
+def test_eval_reruns_a_result_of_another_length_and_scores_the_first_frames_of_a_longer_one(tmp_path):
+    args = ["eval", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7", "--trackers", "identity",
+            "--out", str(tmp_path), "--no-progress"]
+    result = tmp_path / "identity" / "UAV123_10fps" / "wakeboard7.txt"
+
+    def frames_scored() -> int:
+        return json.loads((tmp_path / "summary.json").read_text())["trackers"]["identity"]["frames"]
+
+    assert main(args + ["--max-frames", "5"]) == 0 and frames_scored() == 5
+    assert main(args) == 0 and frames_scored() == 67     # the 5-row smoke result runs again
+    assert len(result.read_text().splitlines()) == 67
+    before = result.stat().st_mtime_ns
+    assert main(args + ["--max-frames", "5"]) == 0 and frames_scored() == 5
+    assert result.stat().st_mtime_ns == before           # the whole run's first 5 boxes are scored, not rerun
+
+
+@needs_data
 def test_eval_with_two_worker_processes(evaluated, tmp_path):
     rc = main(["eval", str(SEQUENCES), "--sequences", EVAL_SEQS, "--trackers", "opencv-mosse", "identity",
                "--out", str(tmp_path), "--workers", "2", "--no-progress"])

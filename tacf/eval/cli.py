@@ -41,7 +41,9 @@ def register(subparsers) -> None:
     p.add_argument("--sequences", metavar="GLOB", help="only sequences whose name matches (comma-separated globs)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help="output folder (default %(default)s)")
     p.add_argument("--workers", type=int, default=1, metavar="N", help="processes (default %(default)s)")
-    p.add_argument("--force", action="store_true", help="rerun pairs that already have a result file")
+    p.add_argument("--force", action="store_true",
+                   help="rerun pairs that already have a result file (one of another length than the sequence, from "
+                        "other --max-frames, always runs again)")
     p.add_argument("--ablation", action="store_true",
                    help="the paper's ablation: kcc, kcc+sa, kcc+da, kcc+ca, tacf-authors, and tacf, with the gains "
                         "over kcc (ignores --trackers)")
@@ -159,7 +161,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         default = "" if args.results else DEFAULT_TRACKERS  # scoring result files only, unless asked
         trackers = list(ABLATION) if args.ablation else _names(args.trackers, default)
         seqs = _load(args.root, args.sequences, args.ranges, args.max_frames)
-        imported = _imported(args.results, trackers, seqs, allow_longer=args.max_frames is not None)
+        # a result longer than the sequence scores its first frames when only they were asked for
+        allow_longer = args.max_frames is not None
+        imported = _imported(args.results, trackers, seqs, allow_longer)
         attribute_table = read_attribute_table(args.attributes) if args.attributes else None
     except (ValueError, OSError) as exc:
         log.error("%s", exc)
@@ -182,7 +186,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         protocols["tre"] = temporal_starts(args.tre)
     # Every protocol begins with the one-pass start (results in out_dir itself): it runs once.
     starts = [Start()] + [start for its_starts in protocols.values() for start in its_starts[1:]]
-    jobs = [job for start in starts for job in pending_jobs(trackers, seqs, args.out, args.force, start)]
+    jobs = [job for start in starts for job in pending_jobs(trackers, seqs, args.out, args.force, start, allow_longer)]
     skipped = sum(len(trackers) * len(start.sequences(seqs)) for start in starts) - len(jobs)
     if skipped:
         log.info("%d (tracker, sequence) results already recorded in %s; skipped (use --force to rerun)",
@@ -191,10 +195,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     failed = [o for o in outcomes if o.error]
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
-    summary, reports = report.summarize(args.out, trackers, seqs, imported, args.absent)
+    summary, reports = report.summarize(args.out, trackers, seqs, imported, args.absent, allow_longer)
     for protocol, its_starts in protocols.items():
         per_start = {start.label: report.summarize(start.directory(args.out), trackers, start.sequences(seqs),
-                                                   absent=args.absent)[0]
+                                                   absent=args.absent,
+                                                   allow_longer=allow_longer and start.from_first_frame)[0]
                      for start in its_starts}
         # OTB pools the frames of a sequence's TRE starts (see report.robustness); its shifted starts weigh alike
         frames_scored = None if protocol != "tre" else {

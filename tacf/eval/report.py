@@ -24,7 +24,7 @@ import numpy as np
 from . import metrics
 from .attributes import ATTRIBUTE_NAMES
 from .datasets import Sequence
-from .runner import read_confidence, read_run, result_path
+from .runner import read_confidence, read_run, result_path, rows_fit
 
 log = logging.getLogger(__name__)
 
@@ -80,23 +80,23 @@ class TrackerReport:
                 np.nanmean([self.precision[i] for i in picked], axis=0))
 
 
-def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence], absent: str = "skip") -> TrackerReport:
+def score_tracker(out_dir: Path, tracker: str, sequences: list[Sequence], absent: str = "skip",
+                  allow_longer: bool = False) -> TrackerReport:
     """Score every recorded result of `tracker` in the result tree `out_dir` against the sequences' ground truth
-    (`absent`: see metrics)."""
+    (`absent`: see metrics; `allow_longer`: see runner.rows_fit)."""
     runs, confidences = {}, {}
     for seq in sequences:
         if not result_path(out_dir, tracker, seq.name).is_file():
             log.warning("%s: no result for %s; left out of the summary", tracker, seq.name)
             continue
         boxes, times = read_run(out_dir, tracker, seq.name)
-        if len(boxes) != len(seq):
-            log.warning("%s/%s: %d result rows for %d frames; left out (rerun with --force)",
-                        tracker, seq.name, len(boxes), len(seq))
+        if not rows_fit(len(boxes), len(seq), allow_longer):
+            log.warning("%s/%s: %d result rows for %d frames; left out", tracker, seq.name, len(boxes), len(seq))
             continue
-        runs[seq.name] = boxes, times
+        runs[seq.name] = boxes[:len(seq)], times[:len(seq)]
         confidence = read_confidence(out_dir, tracker, seq.name)
-        if confidence is not None and len(confidence[0]) == len(seq):
-            confidences[seq.name] = confidence
+        if confidence is not None and len(confidence[0]) == len(boxes):
+            confidences[seq.name] = tuple(column[:len(seq)] for column in confidence)
     return score_runs(tracker, sequences, runs, confidences, absent)
 
 
@@ -131,11 +131,12 @@ def score_runs(name: str, sequences: list[Sequence], runs: dict[str, tuple[np.nd
 
 
 def summarize(out_dir: Path, trackers: list[str], sequences: list[Sequence],
-              imported: dict[str, dict] | None = None, absent: str = "skip") -> tuple[dict, list[TrackerReport]]:
+              imported: dict[str, dict] | None = None, absent: str = "skip",
+              allow_longer: bool = False) -> tuple[dict, list[TrackerReport]]:
     """(summary dict in the summary.json shape, the per-tracker reports): the trackers' results recorded in
     `out_dir`, then the imported runs {name: {sequence name: (boxes, times)}} (`tacf eval --results`), the frames
-    without a target counted as `absent` says (see metrics)."""
-    reports = [score_tracker(out_dir, t, sequences, absent) for t in trackers]
+    without a target counted as `absent` says (see metrics); `allow_longer`: see runner.rows_fit."""
+    reports = [score_tracker(out_dir, t, sequences, absent, allow_longer) for t in trackers]
     reports += [score_runs(name, sequences, runs, absent=absent) for name, runs in (imported or {}).items()]
     return {"trackers": {r.name: r.entry() for r in reports}, "protocol": scoring_protocol(sequences, absent)}, reports
 

@@ -117,6 +117,12 @@ class Start:
     def label(self) -> str:
         return f"{self.segment}/{self.segments}" if self.segments > 1 else f"{self.shift[0]:+d},{self.shift[1]:+d}"
 
+    @property
+    def from_first_frame(self) -> bool:
+        """Whether the runs start on the sequence's first frame, whatever its length: a longer run (`rows_fit`) then
+        holds these runs' boxes, whereas a TRE start moves with the length."""
+        return not self.segment
+
     def describe(self) -> str:
         """For messages; empty for the one-pass start."""
         if self.segment:
@@ -191,6 +197,13 @@ def read_confidence(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndar
         return None
     rows = np.loadtxt(path, delimiter=",", ndmin=2)
     return rows[:, 0], rows[:, 1].astype(bool)
+
+
+def rows_fit(rows: int, frames: int, allow_longer: bool = False) -> bool:
+    """Whether a result of `rows` boxes scores a sequence of `frames` frames: one box per frame, or more with
+    `allow_longer` (only the first frames of the sequence were asked for; a track's first boxes do not depend on
+    the frames after them)."""
+    return rows == frames or (rows > frames and allow_longer)
 
 
 def read_run(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -274,7 +287,7 @@ def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = Fal
         raise FileNotFoundError(f"no result for {seq.name} in {results_dir}")
     box_file, times_file, vot = found
     boxes = _read_pysot_vot(box_file, seq.gt[0]) if vot else read_boxes(box_file, one_based=True)
-    if len(boxes) < len(seq) or (len(boxes) > len(seq) and not allow_longer):
+    if not rows_fit(len(boxes), len(seq), allow_longer):
         raise ValueError(f"{box_file}: {len(boxes)} boxes for the {len(seq)} frames of {seq.name}")
     times = np.full(len(seq), np.nan)
     if times_file is not None:
@@ -322,14 +335,28 @@ def run_job(job: Job) -> JobOutcome:
         return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}{start}")
 
 
+def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool = False) -> bool:
+    """Whether out_dir holds a result of `tracker` that scores `seq` (see `rows_fit`); one of another length, left
+    by a run with other --max-frames or frame ranges, is not."""
+    path = result_path(out_dir, tracker, seq.name)
+    if not path.is_file():
+        return False
+    rows = len(read_boxes(path, one_based=True))
+    if not rows_fit(rows, len(seq), allow_longer):
+        log.info("%s: %d rows for the %d frames of %s; run again", path, rows, len(seq), seq.name)
+        return False
+    return True
+
+
 def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, force: bool = False,
-                 start: Start = Start()) -> list[Job]:
-    """The (tracker, sequence) pairs without a recorded result (all of them with `force`), for runs from `start`."""
+                 start: Start = Start(), allow_longer: bool = False) -> list[Job]:
+    """The (tracker, sequence) pairs without a recorded result (all of them with `force`), for runs from `start`;
+    `allow_longer`: see `rows_fit`."""
     out_dir = start.directory(out_dir)
     jobs = []
     for name in trackers:
         for seq in start.sequences(sequences):
-            if force or not result_path(out_dir, name, seq.name).is_file():
+            if force or not is_recorded(out_dir, name, seq, allow_longer and start.from_first_frame):
                 jobs.append(Job(name, seq, out_dir, start))
             else:
                 log.debug("%s/%s already recorded; skipped", name, seq.name)
