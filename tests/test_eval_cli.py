@@ -337,6 +337,14 @@ def test_the_commit_recorded_is_the_checkout_s_and_says_when_it_was_changed(tmp_
 
 # --- tacf bench tracker -------------------------------------------------------------------------------------
 @needs_data
+@pytest.mark.parametrize("frames", ["0", "-5"])
+def test_bench_tracker_refuses_max_frames_under_one(frames, capsys):
+    assert main(["bench", "tracker", str(SEQUENCES), "--sequences", "OTB100/Football1", "--trackers", "identity",
+                 "--max-frames", frames]) == 2
+    assert capsys.readouterr().out == ""                 # no report of 69 (= 74 - 5) frames at a negative fps
+
+
+@needs_data
 def test_bench_tracker_json(tmp_path):
     out = tmp_path / "bench.json"
     rc = main(["bench", "tracker", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7",

@@ -279,7 +279,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         root = DEFAULT_DATA
     try:
         trackers = _names(args.trackers, "tacf")
-        seqs = _load(root, args.sequences)
+        seqs = _load(root, args.sequences, max_frames=args.max_frames)
     except (ValueError, FileNotFoundError) as exc:
         log.error("%s", exc)
         return 2
@@ -288,7 +288,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if not seqs:
         log.error("no sequences to benchmark in %s", root)
         return 2
-    result = {**bench(trackers, seqs, max_frames=args.max_frames), "run": provenance(args)}
+    result = {**bench(trackers, seqs), "run": provenance(args)}
     text = json.dumps(result, indent=2) + "\n"
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
