@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from tacf.config import PROFILES      # plain data: checks --profile before a service starts
 from tacf.eval.cli import DEFAULT_DATA  # argparse-level module: the same default as `tacf bench tracker`
 
 log = logging.getLogger(__name__)
@@ -58,7 +59,8 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--seconds", type=float, default=20.0, help="measured window per feed count (default 20)")
     p.add_argument("--warmup", type=float, default=5.0,
                    help="seconds tracked after every session's first box, before measuring (default 5)")
-    p.add_argument("--profile", help="tracker profile of the sessions (default: the service's default)")
+    p.add_argument("--profile", choices=PROFILES,
+                   help="tracker profile of the sessions (default: the service's default)")
     p.add_argument("--json", type=Path, metavar="OUT", help="write the report here (default: standard output)")
     p.set_defaults(func=cmd_bench_service)
 
@@ -303,6 +305,9 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
         return 2
     if min(args.feeds) < 1 or args.fps <= 0 or args.seconds <= 0:
         log.error("--feeds, --fps and --seconds must be positive")
+        return 2
+    if args.warmup < 0:
+        log.error("--warmup must be 0 or more seconds, got %g", args.warmup)
         return 2
     try:
         feeds = load_feeds(root, max(args.feeds))

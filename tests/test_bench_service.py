@@ -39,3 +39,11 @@ def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path):
 def test_bench_service_without_sequences_is_a_clear_error(tmp_path, caplog):
     assert main(["bench", "service", str(tmp_path / "nowhere")]) == 2
     assert "does not exist" in caplog.text
+
+
+def test_bench_service_refuses_a_bad_warmup_or_profile_before_starting_a_service(caplog):
+    assert main(["bench", "service", str(DATA), "--warmup", "-1"]) == 2
+    assert "--warmup must be 0 or more" in caplog.text
+    with pytest.raises(SystemExit) as refused:               # argparse: the profiles are listed in the usage error
+        main(["bench", "service", str(DATA), "--profile", "bogus"])
+    assert refused.value.code == 2
