@@ -243,3 +243,19 @@ def test_a_frame_missing_on_disk_skips_its_sequence_instead_of_shifting_the_grou
         (tmp_path / "stamps" / "img" / f"{stamp}.jpg").write_bytes(JPG)
     (tmp_path / "stamps" / "groundtruth.txt").write_text("1,1,5,5\n" * 3)
     assert "stamps" in [s.name for s in load_sequences(tmp_path)]
+
+
+def test_a_vot_polygon_row_is_read_as_its_enclosing_box(tmp_path):
+    write_frames(tmp_path / "bag", 2, "{:08d}.jpg")                 # the official VOT layout: frames beside it
+    (tmp_path / "bag" / "groundtruth.txt").write_text("334.02,128.36,438.19,188.78,396.39,260.83,292.23,200.41\n"
+                                                      "nan,nan,nan,nan,nan,nan,nan,nan\n")
+    (seq,) = load_sequences(tmp_path)
+    np.testing.assert_allclose(seq.gt[0], [291.23, 127.36, 145.96, 132.47])   # not x 333.02, w 438.19
+    assert np.isnan(seq.gt[1]).all()
+
+
+@needs_data
+def test_vot_polygons_give_the_axis_aligned_ground_truth_shipped_beside_them():
+    bag = SEQUENCES / "VOT" / "bag"
+    np.testing.assert_allclose(read_boxes(bag / "groundtruth_poly.txt"), read_boxes(bag / "groundtruth.txt"),
+                               atol=1e-9)

@@ -40,7 +40,8 @@ class Sequence:
 
 
 def read_boxes(path: Path, one_based: bool = True) -> np.ndarray:
-    """N x 4 float boxes from a text file; comma, tab, space or semicolon separated; 'NaN' rows kept.
+    """N x 4 float boxes from a text file; comma, tab, space or semicolon separated; 'NaN' rows kept; a row of 8
+    numbers, a VOT polygon x1,y1,...,x4,y4, becomes the axis-aligned box enclosing it.
 
     With `one_based` (the benchmarks' MATLAB convention) 1 is subtracted from x and y.
     """
@@ -58,9 +59,14 @@ def parse_boxes(lines: list[str], path: Path, one_based: bool = True) -> np.ndar
         if len(parts) < 4:
             raise ValueError(f"{path}:{lineno}: expected 4 numbers x,y,w,h, got {line!r}")
         try:
-            rows.append([float(p) for p in parts[:4]])
+            values = [float(p) for p in parts[:8 if len(parts) == 8 else 4]]
         except ValueError:
             raise ValueError(f"{path}:{lineno}: not a number in {line!r}") from None
+        if len(values) == 8:  # read as x,y,w,h, its first corners would make a box elsewhere and of another size
+            corners = np.reshape(values, (4, 2))
+            low, high = corners.min(axis=0), corners.max(axis=0)
+            values = [*low, *(high - low)]
+        rows.append(values)
     boxes = np.asarray(rows, dtype=np.float64).reshape(-1, 4)
     if one_based:
         boxes[:, :2] -= 1.0

@@ -1,7 +1,8 @@
 """Sequence-per-folder layouts: the generic layout of ../shared/data/sequences and OTB.
 
-generic: <ROOT>/[<dataset>/...]<seq>/img/*.jpg + groundtruth.txt (comma-separated, 1-based);
-         VOT folders also hold groundtruth_poly.txt, which is ignored.
+generic: <ROOT>/[<dataset>/...]<seq>/img/*.jpg + groundtruth.txt (comma-separated, 1-based); the official
+         VOT layout (frames beside a groundtruth.txt of polygons) reads each polygon as its enclosing box.
+         The VOT folders of ../shared/data also hold groundtruth_poly.txt, which is ignored.
 OTB:     <ROOT>/<seq>/img/*.jpg + groundtruth_rect.txt (comma, tab or space separated, 1-based); the
          two-target sequences ship groundtruth_rect.1.txt / .2.txt and become <seq>-1 / <seq>-2.
          An attrs.txt beside them (OTB's Python toolkit: `SV, DEF, FM, OPR, BC`) gives the attributes.
