@@ -268,6 +268,34 @@ def test_eval_with_two_worker_processes(evaluated, tmp_path):
     assert sorted(summary["trackers"]) == ["identity", "opencv-mosse"]
 
 
+@needs_data
+def test_ctrl_c_stops_an_eval_and_its_workers_quietly(tmp_path):
+    import signal
+
+    command = [sys.executable, "-m", "tacf.cli", "eval", str(SEQUENCES), "--sequences", "UAV123_10fps/*",
+               "--trackers", "opencv-csrt", "--out", str(tmp_path), "--workers", "2", "--no-progress"]
+    # a process group of its own, as a terminal's foreground job, with SIGINT not ignored
+    proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+
+    def group() -> list[str]:
+        return subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True, text=True).stdout.split()
+
+    deadline = time.monotonic() + 60
+    while len(group()) < 4 and time.monotonic() < deadline:  # this process, the resource tracker, two workers
+        time.sleep(0.2)
+    time.sleep(1.0)
+    os.killpg(proc.pid, signal.SIGINT)                       # Ctrl-C
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    assert "Traceback" not in err and "interrupted: the pairs finished are recorded" in err
+    deadline = time.monotonic() + 5                          # the resource tracker ends once it sees the end
+    while group() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert group() == []                                     # no worker left behind
+    assert not list(tmp_path.rglob("*.part"))
+
+
 def test_eval_bad_input_exits_2(tmp_path):
     assert main(["eval", str(tmp_path), "--trackers", "opencv-kcf", "--out", str(tmp_path / "o")]) == 2
     assert main(["eval", str(tmp_path), "--trackers", "nope", "--out", str(tmp_path / "o")]) == 2

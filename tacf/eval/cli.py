@@ -191,7 +191,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if skipped:
         log.info("%d (tracker, sequence) results already recorded in %s; skipped (use --force to rerun)",
                  skipped, args.out)
-    outcomes = run_jobs(jobs, workers=args.workers, progress=not args.no_progress)
+    try:
+        outcomes = run_jobs(jobs, workers=args.workers, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        log.error("interrupted: the pairs finished are recorded in %s, and the same command goes on from there",
+                  args.out)
+        return 130
     failed = [o for o in outcomes if o.error]
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)

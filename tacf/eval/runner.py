@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import re
+import signal
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
@@ -377,7 +378,9 @@ def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[J
                 bar.update()
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ctx.Pool(min(workers, len(jobs))) as pool:
+            # Ctrl-C reaches the whole process group: this process alone stops the run, ending the workers
+            with ctx.Pool(min(workers, len(jobs)), initializer=signal.signal,
+                          initargs=(signal.SIGINT, signal.SIG_IGN)) as pool:
                 for outcome in pool.imap_unordered(run_job, jobs):
                     bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
                     outcomes.append(outcome)
