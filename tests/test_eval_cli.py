@@ -638,9 +638,10 @@ def test_eval_scores_result_folders_in_other_toolkits_layouts(tmp_path, capsys):
     flat = tmp_path / "flat"  # pysot's OPE layout, pytracking's tab-separated integers
     flat.mkdir()
     (flat / "drift.txt").write_text("".join(f"{x + 12:.0f}\t{y:.0f}\t24\t24\n" for x, y, _, _ in gt))
-    vot = tmp_path / "vot"  # pysot's VOT layout
+    vot = tmp_path / "vot"  # pysot's VOT layout, got10k's GOT-10k layout with its times of 2 repetitions
     (vot / "drift").mkdir(parents=True)
     (vot / "drift" / "drift_001.txt").write_text("".join(f"{x},{y + 6},24,24\n" for x, y, _, _ in gt))
+    (vot / "drift" / "drift_time.txt").write_text("0.25000000,0.50000000\n" * n)
     out = tmp_path / "out"
     rc = main(["eval", str(data), "--results", f"ours={ours}", "--results", f"flat={flat}", "--results",
                f"vot={vot}", "--out", str(out), "--no-progress"])
@@ -652,6 +653,7 @@ def test_eval_scores_result_folders_in_other_toolkits_layouts(tmp_path, capsys):
     assert scored["ours"]["auc"] == pytest.approx(20 / 21) and scored["ours"]["precision20"] == 1.0
     assert scored["flat"]["auc"] == pytest.approx(7 / 21) and scored["vot"]["auc"] == pytest.approx(12 / 21)
     assert scored["ours"]["fps"] == pytest.approx(2.0) and scored["flat"]["fps"] is None
+    assert scored["vot"]["fps"] == pytest.approx(4.0)
     assert all(t["frames"] == n for t in scored.values())
     assert not any((out / name).exists() for name in scored)  # nothing ran: only files were scored
     assert "| ours | 0.952 |" in capsys.readouterr().out

@@ -242,16 +242,16 @@ def _imported_files(results_dir: Path, seq_name: str, bare: bool = True) -> tupl
 
     Box files: <dir>/<seq name>.txt (ours, got10k's: the name relative to the dataset root), <dir>/<last part>.txt
     (pysot's, pytracking's, the UAV123 MATLAB toolkit's) or <dir>/<last part>/<last part>_001.txt (pysot's VOT
-    layout), the last part also under the other names of `_result_names`. Times: <dir>/times/<that path>_time.txt
-    (ours, got10k's) or <box file stem>_time.txt beside it (pytracking's)."""
+    layout, and got10k's and pysot's GOT-10k layout), the last part also under the other names of `_result_names`.
+    Times: <dir>/times/<that path>_time.txt (ours, got10k's) or <last part>_time.txt beside the box file
+    (pytracking's; got10k's and pysot's <last part>/<last part>_time.txt)."""
     results_dir = Path(results_dir)
     parent = PurePosixPath(seq_name).parent
     for name in _result_names(PurePosixPath(seq_name).name, bare):
         for relative, vot in ((str(parent / name), False), (name, False), (f"{name}/{name}_001", True)):
             box_file = results_dir / f"{relative}.txt"
             if box_file.is_file():
-                times = [results_dir / "times" / f"{relative}_time.txt",
-                         box_file.with_name(f"{box_file.stem}_time.txt")]
+                times = [results_dir / "times" / f"{relative}_time.txt", box_file.with_name(f"{name}_time.txt")]
                 return box_file, next((t for t in times if t.is_file()), None), vot
     return None
 
@@ -292,8 +292,8 @@ def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = Fal
         raise ValueError(f"{box_file}: {len(boxes)} boxes for the {len(seq)} frames of {seq.name}")
     times = np.full(len(seq), np.nan)
     if times_file is not None:
-        try:
-            recorded = np.loadtxt(times_file, ndmin=1)
+        try:  # got10k writes a column per repetition: the first is the run of the <name>_001 boxes
+            recorded = np.loadtxt(times_file, delimiter=",", ndmin=2)[:, 0]
         except ValueError as exc:
             raise ValueError(f"{times_file}: {exc}") from None
         if len(recorded) >= len(seq):
