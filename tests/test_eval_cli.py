@@ -301,6 +301,15 @@ def test_eval_bad_input_exits_2(tmp_path):
     assert main(["eval", str(tmp_path), "--trackers", "nope", "--out", str(tmp_path / "o")]) == 2
 
 
+def test_eval_refuses_an_out_folder_it_cannot_make_before_running(tmp_path, caplog):
+    data = write_synthetic_dataset(tmp_path, 4)
+    (tmp_path / "a_file").write_text("")
+    for out in (tmp_path / "a_file", tmp_path / "a_file" / "below"):
+        caplog.clear()
+        assert main(["eval", str(data), "--trackers", "identity", "--out", str(out), "--no-progress"]) == 2
+        assert f"--out {out}: cannot make this folder" in caplog.text and "failed" not in caplog.text
+
+
 # --- tacf track ---------------------------------------------------------------------------------------------
 def check_boxes_file(path: Path, n: int, box) -> np.ndarray:
     lines = path.read_text().splitlines()

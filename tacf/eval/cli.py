@@ -177,6 +177,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.tre < 0 or args.tre == 1:
         log.error("--tre must be 0 (off) or at least 2 segments, got %d", args.tre)
         return 2
+    try:  # before any pair runs: every one would fail to record, and the report after them
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        log.error("--out %s: cannot make this folder: %s", args.out, exc.strerror)
+        return 2
     if imported and (args.shifts or args.tre):
         log.info("imported results (%s) are scored one pass only", ", ".join(imported))
     protocols = {}  # robustness protocol: its starts, the one-pass start first
