@@ -259,3 +259,12 @@ def test_vot_polygons_give_the_axis_aligned_ground_truth_shipped_beside_them():
     bag = SEQUENCES / "VOT" / "bag"
     np.testing.assert_allclose(read_boxes(bag / "groundtruth_poly.txt"), read_boxes(bag / "groundtruth.txt"),
                                atol=1e-9)
+
+
+def test_an_empty_ground_truth_file_skips_its_sequence(tmp_path, caplog):
+    for name in ("empty", "full"):
+        write_frames(tmp_path / name / "img", 2)
+    (tmp_path / "empty" / "groundtruth.txt").write_text("")
+    (tmp_path / "full" / "groundtruth.txt").write_text("1,1,5,5\n" * 2)
+    assert [s.name for s in load_sequences(tmp_path)] == ["full"]
+    assert "empty: 2 frames and 0 ground-truth rows, nothing to track; skipped" in caplog.text

@@ -118,8 +118,8 @@ def list_frames(folder: Path, prefix: str = "") -> list[Path]:
 def make_sequence(name: str, frames: list[Path], gt: np.ndarray,
                   attributes: frozenset[str] | None = None) -> Sequence | None:
     """A Sequence, cutting frames or ground truth to the shorter of the two (with a warning); None (with a warning)
-    when numbered frames are missing on disk between those the ground truth covers: every row after the gap would
-    be scored against the frame after its own."""
+    when either is empty, or when numbered frames are missing on disk between those the ground truth covers: every
+    row after the gap would be scored against the frame after its own."""
     missing = missing_frame_numbers(frames[:len(gt)])
     if missing:
         listed = ", ".join(map(str, missing[:5])) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
@@ -127,6 +127,9 @@ def make_sequence(name: str, frames: list[Path], gt: np.ndarray,
                     name, "s" * (len(missing) > 1), listed, Path(frames[0]).parent)
         return None
     n = min(len(frames), len(gt))
+    if n == 0:
+        log.warning("%s: %d frames and %d ground-truth rows, nothing to track; skipped", name, len(frames), len(gt))
+        return None
     if len(frames) != len(gt):
         log.warning("%s: %d frames but %d ground-truth rows; using the first %d", name, len(frames), len(gt), n)
     return Sequence(name, tuple(frames[:n]), gt[:n], attributes)
