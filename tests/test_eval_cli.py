@@ -717,6 +717,35 @@ def test_pysot_vot_layout_one_pass_results_start_with_1_and_reset_based_ones_are
     assert "drift_001.txt:3: '2' marks a VOT reset" in caplog.text and "not one-pass results" in caplog.text
 
 
+def test_the_matlab_toolkit_s_mat_results_are_read_under_the_tracker_s_name(tmp_path, caplog):
+    from scipy.io import savemat
+
+    n = 6
+    data = write_synthetic_dataset(tmp_path, n)
+    gt = np.loadtxt(data / "synthetic" / "drift" / "groundtruth.txt", delimiter=",")   # 1-based, as `res` is
+
+    def save(path: Path, res: np.ndarray, kind: str = "rect") -> None:
+        results = np.empty((1, 1), dtype=object)   # main_running.m: save(..., 'results'), results{1} = res
+        results[0, 0] = {"res": res, "type": kind, "fps": 20.0, "len": n, "annoBegin": 1, "startFrame": 1}
+        savemat(path, {"results": results})
+
+    toolkit = tmp_path / "results_OPE"
+    toolkit.mkdir()
+    save(toolkit / "drift_TACF.mat", gt + [0, 6, 0, 0])
+    save(toolkit / "drift_KCF.mat", gt)                                   # another tracker of the same folder
+    out = tmp_path / "out"
+    assert main(["eval", str(data), "--results", f"TACF={toolkit}", "--out", str(out), "--no-progress"]) == 0
+    scored = json.loads((out / "summary.json").read_text())["trackers"]["TACF"]
+    assert scored["auc"] == pytest.approx(12 / 21) and scored["fps"] == pytest.approx(20.0)   # 6 px down: IoU 0.6
+    save(toolkit / "drift_IVT.mat", np.zeros((n, 6)), kind="ivtAff")
+    (toolkit / "drift_BAD.mat").write_text("not a MAT file")
+    for name, says in (("IVT", "type 'ivtAff'; only 'rect'"), ("BAD", "not a MATLAB toolkit result"),
+                       ("MISSING", "<last part>_MISSING.mat")):
+        caplog.clear()
+        assert main(["eval", str(data), "--results", f"{name}={toolkit}", "--out", str(out), "--no-progress"]) == 2
+        assert says in caplog.text, name
+
+
 def test_eval_absent_option_is_recorded_and_scores_absent_frames_as_the_toolkits_do(tmp_path, capsys):
     n, jpg = 10, cv2.imencode(".jpg", np.zeros((40, 60, 3), np.uint8))[1].tobytes()
     seq = tmp_path / "data" / "s"

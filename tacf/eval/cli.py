@@ -59,9 +59,10 @@ def register(subparsers) -> None:
                         "temporal robustness, TRE; K = 10 is 5.5 times the one-pass work), report the mean over these "
                         "starts as --shifts does, and beside it OTB's TRE, which pools each sequence's frames")
     p.add_argument("--results", action="append", metavar="NAME=DIR",
-                   help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking, the "
-                        "UAV123 MATLAB toolkit; one x,y,w,h row per frame, in the ground truth's pixel frame) as "
-                        "tracker NAME, one pass; repeatable. With --results and no --trackers, nothing runs")
+                   help="also score the result files another toolkit wrote in DIR (pysot, got10k, pytracking: one "
+                        "x,y,w,h row per frame, in the ground truth's pixel frame; the OTB / UAV123 MATLAB toolkit: "
+                        "<sequence>_NAME.mat) as tracker NAME, one pass; repeatable. With --results and no --trackers, "
+                        "nothing runs")
     p.add_argument("--absent", choices=("skip", "toolkit"), default="skip",
                    help="frames without a target (NaN ground truth): skip leaves them out of the scores, as got10k's "
                         "UAV123 experiment does; toolkit counts them as pysot and the OTB/UAV123 MATLAB toolkit do, a "
@@ -133,7 +134,8 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
         runs, missing = {}, []
         for seq in seqs:
             try:
-                runs[seq.name] = read_imported_run(Path(folder), seq, allow_longer, stems[otb_stem(seq.name)] == 1)
+                runs[seq.name] = read_imported_run(Path(folder), seq, allow_longer, stems[otb_stem(seq.name)] == 1,
+                                                   toolkit_name=name)
             except FileNotFoundError:
                 missing.append(seq.name)
             except ValueError as exc:
@@ -141,9 +143,9 @@ def _imported(specs: list[str] | None, trackers: list[str], seqs, allow_longer: 
         if missing:
             listed = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
             raise ValueError(f"--results {name}: {folder} has no result for {len(missing)} of the {len(seqs)} "
-                             f"sequences ({listed}; looked for <sequence>.txt, <last part>.txt and <last part>/"
-                             "<last part>_001.txt, <name>.N, <name>_N and <name> for a target <name>-N); "
-                             "--sequences selects the ones it has")
+                             f"sequences ({listed}; looked for <sequence>.txt, <last part>.txt, <last part>/"
+                             f"<last part>_001.txt and <last part>_{name}.mat, <name>.N, <name>_N and <name> for a "
+                             "target <name>-N); --sequences selects the ones it has")
         imported[name] = runs
     return imported
 

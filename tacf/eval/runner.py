@@ -236,24 +236,51 @@ def _result_names(name: str, bare: bool) -> list[str]:
     return [name, f"{stem}.{target}", f"{stem}_{target}"] + ([stem] if bare else [])
 
 
-def _imported_files(results_dir: Path, seq_name: str, bare: bool = True) -> tuple[Path, Path | None, bool] | None:
-    """(box file, times file or None, whether it is pysot's VOT layout) of a sequence in another toolkit's result
-    folder, or None.
+def _imported_files(results_dir: Path, seq_name: str, bare: bool = True,
+                    toolkit_name: str | None = None) -> tuple[Path, Path | None, str] | None:
+    """(result file, times file or None, its layout: "txt", "vot" for pysot's VOT layout, "mat" for the MATLAB
+    toolkit's) of a sequence in another toolkit's result folder, or None.
 
-    Box files: <dir>/<seq name>.txt (ours, got10k's: the name relative to the dataset root), <dir>/<last part>.txt
-    (pysot's, pytracking's, the UAV123 MATLAB toolkit's) or <dir>/<last part>/<last part>_001.txt (pysot's VOT
-    layout, and got10k's and pysot's GOT-10k layout), the last part also under the other names of `_result_names`.
-    Times: <dir>/times/<that path>_time.txt (ours, got10k's) or <last part>_time.txt beside the box file
-    (pytracking's; got10k's and pysot's <last part>/<last part>_time.txt)."""
+    Result files: <dir>/<seq name>.txt (ours, got10k's: the name relative to the dataset root), <dir>/<last part>.txt
+    (pysot's, pytracking's), <dir>/<last part>/<last part>_001.txt (pysot's VOT layout, and got10k's and pysot's
+    GOT-10k layout) or <dir>/<last part>_<toolkit_name>.mat (the OTB / UAV123 MATLAB toolkit's, and the TACF
+    authors' code's), the last part also under the other names of `_result_names`. Times: <dir>/times/<that
+    path>_time.txt (ours, got10k's) or <last part>_time.txt beside the box file (pytracking's; got10k's and pysot's
+    <last part>/<last part>_time.txt); a .mat file holds its run's fps instead."""
     results_dir = Path(results_dir)
     parent = PurePosixPath(seq_name).parent
     for name in _result_names(PurePosixPath(seq_name).name, bare):
-        for relative, vot in ((str(parent / name), False), (name, False), (f"{name}/{name}_001", True)):
+        for relative, layout in ((str(parent / name), "txt"), (name, "txt"), (f"{name}/{name}_001", "vot")):
             box_file = results_dir / f"{relative}.txt"
             if box_file.is_file():
                 times = [results_dir / "times" / f"{relative}_time.txt", box_file.with_name(f"{name}_time.txt")]
-                return box_file, next((t for t in times if t.is_file()), None), vot
+                return box_file, next((t for t in times if t.is_file()), None), layout
+        mat_file = results_dir / f"{name}_{toolkit_name}.mat"
+        if toolkit_name and mat_file.is_file():
+            return mat_file, None, "mat"
     return None
+
+
+def _read_toolkit_mat(mat_file: Path) -> tuple[np.ndarray, float]:
+    """(0-based boxes, frames per second) of the MATLAB toolkit's <seq>_<tracker>.mat: a cell `results` whose first
+    struct is the one-pass run (the later ones are SRE's or TRE's), its `res` the 1-based x,y,w,h rows (type
+    'rect') and its `fps` the speed the toolkit measured."""
+    from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
+
+    try:
+        results = loadmat(mat_file, simplify_cells=True)["results"]
+    except (MatReadError, NotImplementedError, ValueError, KeyError) as exc:   # e.g. a v7.3 (HDF5) file
+        raise ValueError(f"{mat_file}: not a MATLAB toolkit result (a `results` cell in a v5/v7 MAT file): "
+                         f"{type(exc).__name__}: {exc}") from None
+    run = results[0] if isinstance(results, list) else results   # a 1 x 1 cell comes out as its struct
+    if not isinstance(run, dict) or "res" not in run:
+        raise ValueError(f"{mat_file}: `results` holds no struct with a `res` field")
+    if run.get("type", "rect") != "rect":
+        raise ValueError(f"{mat_file}: results of type {run['type']!r}; only 'rect' (x,y,w,h) results are read")
+    boxes = np.array(run["res"], dtype=np.float64).reshape(-1, 4)
+    boxes[:, :2] -= 1.0   # 1-based, as the ground truth the toolkit compares them with
+    return boxes, float(run.get("fps", np.nan))
 
 
 def _read_pysot_vot(box_file: Path, first_box: np.ndarray) -> np.ndarray:
@@ -274,23 +301,30 @@ def _read_pysot_vot(box_file: Path, first_box: np.ndarray) -> np.ndarray:
     return boxes
 
 
-def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = False,
-                      bare: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def read_imported_run(results_dir: Path, seq: Sequence, allow_longer: bool = False, bare: bool = True,
+                      toolkit_name: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(0-based N x 4 boxes, seconds per frame or NaN) of `seq` from a result folder another toolkit wrote.
 
     Box files are in the pixel frame of the dataset's ground-truth files, as every toolkit compares them (1-based
     for the MATLAB-made benchmarks), so they are read the way the ground truth is. One row per frame, the first
     being the init box; more rows than frames only with `allow_longer` (the first frames of a sequence were
     asked for). `bare`: a two-target OTB sequence's result may go by the bare sequence name (no other target of
-    it is scored). Raises FileNotFoundError or ValueError saying what is wrong."""
-    found = _imported_files(results_dir, seq.name, bare)
+    it is scored). `toolkit_name`: the tracker's name in the MATLAB toolkit's file names (<seq>_<name>.mat).
+    Raises FileNotFoundError or ValueError saying what is wrong."""
+    found = _imported_files(results_dir, seq.name, bare, toolkit_name)
     if found is None:
         raise FileNotFoundError(f"no result for {seq.name} in {results_dir}")
-    box_file, times_file, vot = found
-    boxes = _read_pysot_vot(box_file, seq.gt[0]) if vot else read_boxes(box_file, one_based=True)
+    box_file, times_file, layout = found
+    fps = np.nan
+    if layout == "mat":
+        boxes, fps = _read_toolkit_mat(box_file)
+    elif layout == "vot":
+        boxes = _read_pysot_vot(box_file, seq.gt[0])
+    else:
+        boxes = read_boxes(box_file, one_based=True)
     if not rows_fit(len(boxes), len(seq), allow_longer):
         raise ValueError(f"{box_file}: {len(boxes)} boxes for the {len(seq)} frames of {seq.name}")
-    times = np.full(len(seq), np.nan)
+    times = np.full(len(seq), 1.0 / fps if fps > 0 else np.nan)   # the toolkit keeps one speed per run
     if times_file is not None:
         try:  # got10k writes a column per repetition: the first is the run of the <name>_001 boxes
             recorded = np.loadtxt(times_file, delimiter=",", ndmin=2)[:, 0]
