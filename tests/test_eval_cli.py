@@ -254,6 +254,8 @@ def test_eval_reruns_a_result_of_another_length_and_scores_the_first_frames_of_a
     before = result.stat().st_mtime_ns
     assert main(args + ["--max-frames", "5"]) == 0 and frames_scored() == 5
     assert result.stat().st_mtime_ns == before           # the whole run's first 5 boxes are scored, not rerun
+    result.write_text(result.read_text() + "garbage\n")  # edited by hand, say
+    assert main(args) == 0 and frames_scored() == 67     # runs again, instead of a traceback
 
 
 @needs_data

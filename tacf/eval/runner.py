@@ -372,11 +372,15 @@ def run_job(job: Job) -> JobOutcome:
 
 def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool = False) -> bool:
     """Whether out_dir holds a result of `tracker` that scores `seq` (see `rows_fit`); one of another length, left
-    by a run with other --max-frames or frame ranges, is not."""
+    by a run with other --max-frames or frame ranges, is not, nor one that cannot be read."""
     path = result_path(out_dir, tracker, seq.name)
     if not path.is_file():
         return False
-    rows = len(read_boxes(path, one_based=True))
+    try:
+        rows = len(read_boxes(path, one_based=True))
+    except ValueError as exc:
+        log.warning("%s; run again", exc)
+        return False
     if not rows_fit(rows, len(seq), allow_longer):
         log.info("%s: %d rows for the %d frames of %s; run again", path, rows, len(seq), seq.name)
         return False
