@@ -375,6 +375,14 @@ def test_the_commit_recorded_is_the_checkout_s_and_says_when_it_was_changed(tmp_
 
 
 # --- tacf bench tracker -------------------------------------------------------------------------------------
+def test_bench_tracker_on_a_root_without_uav_names_says_how_to_choose_its_sequences(tmp_path, caplog):
+    data = write_synthetic_dataset(tmp_path, 4)          # as the official DTB70 root: its names lack "DTB70/"
+    assert main(["bench", "tracker", str(data), "--trackers", "identity"]) == 2
+    assert "none of the 1 sequences of" in caplog.text and "--sequences chooses others" in caplog.text
+    assert main(["bench", "tracker", str(data), "--trackers", "identity", "--sequences", "*",
+                 "--json", str(tmp_path / "b.json")]) == 0
+
+
 @needs_data
 @pytest.mark.parametrize("frames", ["0", "-5"])
 def test_bench_tracker_refuses_max_frames_under_one(frames, capsys):

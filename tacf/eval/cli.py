@@ -280,7 +280,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import bench, is_uav
+    from .bench import UAV_PREFIXES, bench, is_uav
     from .provenance import provenance
 
     root = args.root
@@ -296,7 +296,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return 2
     if not args.sequences:
-        seqs = [s for s in seqs if is_uav(s.name)]
+        uav = [s for s in seqs if is_uav(s.name)]
+        if seqs and not uav:
+            log.error("none of the %d sequences of %s is named %s* (the UAV sequences timed by default); "
+                      "--sequences chooses others, '*' all of them", len(seqs), root, "*, ".join(UAV_PREFIXES))
+            return 2
+        seqs = uav
     if not seqs:
         log.error("no sequences to benchmark in %s", root)
         return 2
