@@ -37,7 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tacf.config import PROFILES      # plain data: checks --profile before a service starts
-from tacf.eval.cli import DEFAULT_DATA  # argparse-level module: the same default as `tacf bench tracker`
+from tacf.eval.cli import DEFAULT_DATA, report_file  # argparse-level: as `tacf bench tracker` has them
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ def register_bench(bench_subparsers) -> None:
                    help="seconds tracked after every session's first box, before measuring (default 5)")
     p.add_argument("--profile", choices=PROFILES,
                    help="tracker profile of the sessions (default: the service's default)")
-    p.add_argument("--json", type=Path, metavar="OUT", help="write the report here (default: standard output)")
+    p.add_argument("--json", type=report_file, metavar="OUT", help="write the report here (default: standard output)")
     p.set_defaults(func=cmd_bench_service)
 
 

@@ -44,6 +44,7 @@ def test_bench_service_without_sequences_is_a_clear_error(tmp_path, caplog):
 def test_bench_service_refuses_a_bad_warmup_or_profile_before_starting_a_service(caplog):
     assert main(["bench", "service", str(DATA), "--warmup", "-1"]) == 2
     assert "--warmup must be 0 or more" in caplog.text
-    with pytest.raises(SystemExit) as refused:               # argparse: the profiles are listed in the usage error
-        main(["bench", "service", str(DATA), "--profile", "bogus"])
-    assert refused.value.code == 2
+    for bad in (["--profile", "bogus"], ["--json", str(DATA)]):   # argparse: a usage error naming what is wrong
+        with pytest.raises(SystemExit) as refused:
+            main(["bench", "service", str(DATA), *bad])
+        assert refused.value.code == 2

@@ -381,6 +381,9 @@ def test_bench_tracker_on_a_root_without_uav_names_says_how_to_choose_its_sequen
     assert "none of the 1 sequences of" in caplog.text and "--sequences chooses others" in caplog.text
     assert main(["bench", "tracker", str(data), "--trackers", "identity", "--sequences", "*",
                  "--json", str(tmp_path / "b.json")]) == 0
+    with pytest.raises(SystemExit) as refused:          # a folder, refused before the run it would lose
+        main(["bench", "tracker", str(data), "--sequences", "*", "--json", str(tmp_path)])
+    assert refused.value.code == 2
 
 
 @needs_data

@@ -20,6 +20,14 @@ DEFAULT_DATA = Path("../shared/data/sequences")
 RESULTS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")  # `--results NAME=DIR`
 
 
+def report_file(text: str) -> Path:
+    """`--json OUT` of a benchmark: a folder is refused when the command is parsed, not after the run it would lose."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name")
+    return path
+
+
 def _names(values: list[str] | None, default: str) -> list[str]:
     """Tracker names from `--trackers a,b c`: comma- or space-separated, duplicates dropped, each checked."""
     from .trackers import check_name
@@ -91,7 +99,7 @@ def register_bench(bench_subparsers) -> None:
                                     description="Per-stream tracker speed on decoded frames, OpenCV CSRT alongside.")
     p.add_argument("root", metavar="ROOT", type=Path, nargs="?",
                    help=f"dataset root (default {DEFAULT_DATA} when present)")
-    p.add_argument("--json", type=Path, metavar="OUT", help="write the report here (default: standard output)")
+    p.add_argument("--json", type=report_file, metavar="OUT", help="write the report here (default: standard output)")
     p.add_argument("--sequences", metavar="GLOB",
                    help="sequence globs (default: the UAV sequences, UAV123*/UAVDT*/DTB70*)")
     p.add_argument("--trackers", nargs="+", metavar="NAME",
