@@ -137,6 +137,48 @@ def test_matches_got10k_formulas(pairs):
     assert s.auc == pytest.approx(auc) and s.precision20 == pytest.approx(p20)
 
 
+def pysot_curves(gt, pred):
+    """pysot's OPEBenchmark: success_overlap and success_error over all frames (an independent re-statement)."""
+    n = len(gt)
+    iou = -np.ones(n)
+    scored = np.sum(gt[:, 2:] > 0, axis=1) == 2
+    g, r = gt[scored], pred[scored]
+    inter = (np.maximum(0, np.minimum(r[:, 0] + r[:, 2], g[:, 0] + g[:, 2]) - np.maximum(r[:, 0], g[:, 0]))
+             * np.maximum(0, np.minimum(r[:, 1] + r[:, 3], g[:, 1] + g[:, 3]) - np.maximum(r[:, 1], g[:, 1])))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou[scored] = np.maximum(np.minimum(1, inter / (r[:, 2] * r[:, 3] + g[:, 2] * g[:, 3] - inter)), 0)
+    succ = np.array([np.sum(iou > t) / n for t in np.arange(0, 1.05, 0.05)])
+    centre_gt, centre = gt[:, :2] + (gt[:, 2:] - 1) / 2, pred[:, :2] + (pred[:, 2:] - 1) / 2
+    dist = -np.ones(n)
+    present = np.sum(centre_gt > 0, axis=1) == 2
+    dist[present] = np.sqrt(np.sum((centre_gt[present] - centre[present]) ** 2, axis=1))
+    return succ, np.array([np.sum(dist <= t) / n for t in np.arange(0, 51)])
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(box, box, st.sampled_from(["kept", "nan gt", "nan pred", "empty pred", "far pred"])),
+                min_size=1, max_size=40))
+def test_absent_toolkit_matches_pysot_on_absent_targets_and_broken_predictions(rows):
+    """absent="toolkit" against pysot's formulas, with NaN ground truth, NaN, empty or negative predictions and
+    predictions far outside the image (targets with their centre right of and below (0, 0), where pysot's test
+    of an absent target agrees with an empty box: see the module docstring of metrics)."""
+    gt = np.array([g for _, g, _ in rows], float)
+    pred = np.array([p for p, _, _ in rows], float)
+    kinds = np.array([kind for _, _, kind in rows])
+    gt[kinds == "nan gt"] = np.nan
+    pred[kinds == "nan pred"] = np.nan
+    pred[kinds == "empty pred", 2:] = [0, -5]
+    pred[kinds == "far pred", :2] -= 5000
+    assume(np.all(gt[kinds != "nan gt", :2] + (gt[kinds != "nan gt", 2:] - 1) / 2 > 0))
+    valid = metrics.valid_mask(gt)
+    assume(valid.any())
+    ious = metrics.iou(pred[valid], gt[valid])
+    assume(np.all(np.abs(ious[:, None] - np.linspace(0, 1, 21)[None, 1:-1]) > 1e-9))
+    succ, prec = pysot_curves(gt, pred)
+    np.testing.assert_allclose(metrics.success_curve(pred, gt, absent="toolkit"), succ)
+    np.testing.assert_allclose(metrics.precision_curve(pred, gt, absent="toolkit"), prec)
+
+
 @settings(max_examples=30, deadline=None)
 @given(arrays(np.int64, (10, 4), elements=st.integers(1, 400)), st.integers(-3, 3))
 def test_invariant_to_common_shift(boxes, shift):

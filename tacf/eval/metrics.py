@@ -10,6 +10,10 @@ Conventions (docs ECOSYSTEM.md 3.4, as got10k and pysot compute them):
     (absent="skip"), as got10k's UAV123 experiment does. pysot (success_overlap / success_error) and the OTB /
     UAV123 MATLAB toolkit (calcSeqErrRobust + perfPlot) divide by all frames instead, an absent frame being a
     failure at every overlap threshold (IoU -1) and a hit at every distance (error -1): absent="toolkit";
+    where the toolkits' own tests of a missing target differ, these numbers may too, on rare frames only: got10k
+    skips only NaN rows (it scores an empty box as IoU 0); pysot's precision takes a target as absent when its
+    centre is not right of and below (0, 0) rather than when its box is empty; the MATLAB toolkit when any of x, y,
+    w, h is not > 0, and it replaces a NaN or empty prediction by the frame before's;
   - a lost flag: the share of failures (IoU < 0.1) it flags and of tracked frames (IoU > 0.5) it flags wrongly.
 Shifting both boxes by the same offset (0- vs 1-based) changes none of these numbers.
 """
