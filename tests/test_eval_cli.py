@@ -375,6 +375,14 @@ def test_the_commit_recorded_is_the_checkout_s_and_says_when_it_was_changed(tmp_
 
 
 # --- tacf bench tracker -------------------------------------------------------------------------------------
+def test_bench_tracker_names_an_image_it_cannot_read(tmp_path, caplog):
+    data = write_synthetic_dataset(tmp_path, 4)
+    broken = sorted((data / "synthetic" / "drift" / "img").iterdir())[2]
+    broken.write_text("not a PNG")
+    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity"]) == 2
+    assert f"cannot read image {broken}" in caplog.text
+
+
 def test_bench_tracker_on_a_root_without_uav_names_says_how_to_choose_its_sequences(tmp_path, caplog):
     data = write_synthetic_dataset(tmp_path, 4)          # as the official DTB70 root: its names lack "DTB70/"
     assert main(["bench", "tracker", str(data), "--trackers", "identity"]) == 2

@@ -313,7 +313,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if not seqs:
         log.error("no sequences to benchmark in %s", root)
         return 2
-    result = {**bench(trackers, seqs), "run": provenance(args)}
+    try:
+        result = {**bench(trackers, seqs), "run": provenance(args)}
+    except FileNotFoundError as exc:  # an image that cannot be read
+        log.error("%s", exc)
+        return 2
     text = json.dumps(result, indent=2) + "\n"
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
