@@ -7,16 +7,19 @@ with all three attentions off.
 from __future__ import annotations
 
 import dataclasses
-import math
+import sys
 from dataclasses import dataclass
 
 PROFILES = ("paper", "authors", "kcc")
 DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; see README "Accuracy"
 
 
-# Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 4 (`paper`: 2), 32).
+# Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 4 (`paper`: 2), 32,
+# and for the sigmas 0.5, 1/40, 1/16): the square of a sigma over 1e154 overflows, and init failed with a math range
+# error.
 LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_step": 2.0,
-          "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256}
+          "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256,
+          "hog_kernel_sigma": 1e6, "hog_output_sigma_factor": 1e6, "cn_output_sigma_factor": 1e6}
 # Combinations the tracker can run (defaults: 2,500 cells, scales up to 1.6 times the target, 32 bins, sigma 0.5).
 MIN_CELLS, MAX_CELLS = 16, 250.0**2         # 1000^2 pixels in cells of 4
 MAX_SCALE_RANGE = 4.0
@@ -34,7 +37,8 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
         # bool is an int in Python: num_scales=True must not pass as 1, nor a float switch as True
         if not isinstance(v, expected) or (isinstance(v, bool) and f.type != "bool"):
             raise ValueError(f"{name}.{f.name} must be {f.type}, got {v!r}")
-        if isinstance(v, float) and not math.isfinite(v):
+        # an int is a float's value too, but one past the float range (lambda1=10**400) failed in init
+        if f.type == "float" and not abs(v) <= sys.float_info.max:
             raise ValueError(f"{name}.{f.name} must be finite, got {v}")
     for field in positive:
         if getattr(config, field) <= 0:

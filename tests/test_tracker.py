@@ -192,7 +192,10 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     assert TrackerConfig().profile_name == "authors" and TrackerConfig.profile().profile_name == "paper"
     for bad, message in [(dict(cell_size=1e-300), "cell_size must be int"), (dict(num_scales=True), "must be int"),
                          (dict(context_attention=1), "must be bool"), (dict(fixed_area=2.0**62), "<= 1e\\+06"),
-                         (dict(scale_step=2.0**62), "scale_step must be <= 2")]:
+                         (dict(scale_step=2.0**62), "scale_step must be <= 2"),
+                         (dict(lambda1=10**400), "lambda1 must be finite"),             # an int past float range
+                         (dict(hog_kernel_sigma=1e200), "hog_kernel_sigma must be <= 1e\\+06"),  # its square overflows
+                         (dict(cn_output_sigma_factor=1e200), "cn_output_sigma_factor must be <= 1e\\+06")]:
         with pytest.raises(ValueError, match=message):
             TrackerConfig.profile("authors", **bad)
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
