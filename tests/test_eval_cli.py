@@ -94,6 +94,19 @@ def test_adapters_follow_the_interface(name):
         assert run.boxes[-1, 0] > box[0] + 4      # followed the drift to the right
 
 
+def test_opencv_names_this_opencv_lacks_are_refused_up_front(monkeypatch):
+    """opencv-python-headless (installed in place of the contrib build) has no CSRT, KCF or MOSSE: the names were
+    accepted, then every sequence failed with "module 'cv2' has no attribute 'TrackerCSRT'"."""
+    monkeypatch.delattr(cv2, "TrackerCSRT")
+    monkeypatch.delattr(cv2, "legacy")
+    for name in ("opencv-csrt", "opencv-mosse"):
+        with pytest.raises(ValueError, match="needs OpenCV's contrib modules.*opencv-contrib-python-headless"):
+            trackers.check_name(name)
+        with pytest.raises(ValueError, match="contrib"):
+            trackers.make_tracker(name)
+    assert trackers.check_name("opencv-kcf") == "opencv-kcf"
+
+
 # --- tacf eval ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):

@@ -73,16 +73,22 @@ class LibraryAdapter:
 
 
 def _opencv_factory(kind: str):
+    """The constructor of OpenCV's tracker `kind`; ValueError if this OpenCV lacks it (of the four,
+    opencv-python-headless has MIL only: CSRT, KCF and MOSSE are in the contrib modules)."""
     import cv2
 
-    if kind == "csrt":
-        return cv2.TrackerCSRT.create
-    if kind == "kcf":
-        return cv2.TrackerKCF.create
-    if kind == "mil":
-        return cv2.TrackerMIL.create
-    if kind == "mosse":
-        return cv2.legacy.TrackerMOSSE_create
+    try:
+        if kind == "csrt":
+            return cv2.TrackerCSRT.create
+        if kind == "kcf":
+            return cv2.TrackerKCF.create
+        if kind == "mil":
+            return cv2.TrackerMIL.create
+        if kind == "mosse":
+            return cv2.legacy.TrackerMOSSE_create
+    except AttributeError:
+        raise ValueError(f"opencv-{kind} needs OpenCV's contrib modules, which this cv2 {cv2.__version__} lacks: "
+                         "install opencv-contrib-python-headless in place of opencv-python-headless") from None
     raise ValueError(f"unknown OpenCV tracker {kind!r}")
 
 
@@ -147,8 +153,12 @@ def _overrides(settings: list[str], name: str) -> dict:
 
 
 def check_name(name: str) -> str:
-    """`name` if it is a known tracker name (without building the tracker), else ValueError."""
-    if name in ("identity", "staple") or name in OPENCV_TRACKERS:
+    """`name` if it is a known tracker name that this installation can run (without building the tracker), else
+    ValueError."""
+    if name in ("identity", "staple"):
+        return name
+    if name in OPENCV_TRACKERS:
+        _opencv_factory(name.split("-", 1)[1])
         return name
     try:
         tacf_config(name)
