@@ -107,6 +107,21 @@ def test_opencv_names_this_opencv_lacks_are_refused_up_front(monkeypatch):
     assert trackers.check_name("opencv-kcf") == "opencv-kcf"
 
 
+def test_opencv_mil_refuses_a_box_too_small_for_its_features():
+    """OpenCV's MIL draws Haar features in the box until each fits; on a 4x4 box none can, and its init spun for
+    ever (an eval job that never ended). Sizes measured with OpenCV 5.1: those that hung, then those that started."""
+    for width, height in [(1, 30), (30, 1), (2, 10), (10, 2), (3, 5), (5, 3), (4, 4), (3, 4)]:
+        assert not trackers.mil_features_fit(width, height)
+    for width, height in [(2, 11), (11, 2), (3, 6), (7, 3), (4, 5), (5, 4), (5, 5), (2, 30)]:
+        assert trackers.mil_features_fit(width, height)
+    frames, _ = synthetic_frames(2)
+    mil = trackers.make_tracker("opencv-mil")
+    with pytest.raises(ValueError, match="opencv-mil cannot start on a 4x4 box"):
+        mil.init(frames[0], (50.0, 50.0, 4.2, 3.6))
+    mil.init(frames[0], (50.0, 50.0, 2.0, 11.0))
+    assert mil.update(frames[1])[2:] == (2.0, 11.0)
+
+
 # --- tacf eval ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):

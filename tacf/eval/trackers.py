@@ -92,20 +92,31 @@ def _opencv_factory(kind: str):
     raise ValueError(f"unknown OpenCV tracker {kind!r}")
 
 
+def mil_features_fit(width: int, height: int) -> bool:
+    """Whether OpenCV's MIL can start on a box of width x height pixels. Its init draws random Haar features in
+    the box until each fits: two blocks side by side or stacked (or four, or 2x2) of at least 9 pixels together,
+    short of the box's last row and column. Where none can (1xN, 2x10, 3x5, 4x4), init never returns."""
+    return max(2 * ((height - 1) // 2) * (width - 1), 2 * ((width - 1) // 2) * (height - 1)) >= 9
+
+
 class OpenCVAdapter:
     """An OpenCV tracker; recreated on every init (OpenCV ignores a second init), last box kept when lost."""
 
     def __init__(self, name: str, kind: str) -> None:
         self.name, self.ok, self.pme = name, True, math.nan
         self._create = _opencv_factory(kind)
+        self._kind = kind
         self._legacy = kind == "mosse"
         self._tracker = None
         self._box: Box | None = None
 
     def init(self, frame, box: Box) -> None:
         x, y, w, h = (float(v) for v in box)
-        self._tracker = self._create()
         rect = (x, y, w, h) if self._legacy else (round(x), round(y), max(1, round(w)), max(1, round(h)))
+        if self._kind == "mil" and not mil_features_fit(rect[2], rect[3]):
+            raise ValueError(f"opencv-mil cannot start on a {rect[2]}x{rect[3]} box: OpenCV's MIL would search for "
+                             "room for its features for ever")
+        self._tracker = self._create()
         self._tracker.init(frame, rect)
         self._box, self.ok = (x, y, w, h), True
 
