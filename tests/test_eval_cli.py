@@ -92,6 +92,8 @@ def test_adapters_follow_the_interface(name):
     assert np.isfinite(run.boxes).all() and run.ok.dtype == bool
     if name not in ("identity", "opencv-mosse"):   # OpenCV's MOSSE gives up (PSR < 5.7) on small targets
         assert run.boxes[-1, 0] > box[0] + 4      # followed the drift to the right
+    with pytest.raises(RuntimeError, match="call init"):  # as tacf's: not AttributeError, nor a None box
+        trackers.make_tracker(name).update(frames[0])
 
 
 def test_opencv_names_this_opencv_lacks_are_refused_up_front(monkeypatch):

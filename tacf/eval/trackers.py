@@ -51,6 +51,8 @@ class IdentityTracker:
         self._box = tuple(float(v) for v in box)
 
     def update(self, frame) -> Box:
+        if self._box is None:
+            raise RuntimeError("call init(frame, box) before update(frame)")
         return self._box
 
 
@@ -121,6 +123,8 @@ class OpenCVAdapter:
         self._box, self.ok = (x, y, w, h), True
 
     def update(self, frame) -> Box:
+        if self._tracker is None:
+            raise RuntimeError("call init(frame, box) before update(frame)")
         ok, rect = self._tracker.update(frame)
         self.ok = bool(ok)
         if ok:
