@@ -8,11 +8,12 @@ features on background-coloured pixels count less. TACF does not merge it into t
 from __future__ import annotations
 
 import cv2
-import numba
 import numpy as np
 
+from tacf.compiled import compiled
 
-@numba.njit(cache=True)
+
+@compiled
 def _per_pixel(values: np.ndarray, patch: np.ndarray, shift: int, bits: int) -> np.ndarray:
     """values[bin of each pixel] as float32 (H, W), for an (H, W, C) uint8 patch with C = 3 or 1: the joint bin of
     the channels quantised by `shift`, the first channel varying slowest (bits = log2 of bins per channel), or the

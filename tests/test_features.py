@@ -385,3 +385,18 @@ def _package_table() -> np.ndarray:
     from importlib import resources
     with resources.files("tacf.data").joinpath("w2c.npz").open("rb") as handle:
         return np.load(handle)["w2c"]
+
+
+def test_compiled_loops_need_no_writable_cache_folder():
+    """numba's cache=True raises at import where it cannot write its cache (a read-only container: `import
+    tacf.tracker` failed with "no locator available"); tacf.compiled then compiles in the process. A function
+    whose source is in no file has no cache folder either."""
+    import numba
+
+    from tacf.compiled import compiled
+
+    namespace = {}
+    exec("def add_one(x):\n    return x + 1\n", namespace)
+    with pytest.raises(RuntimeError, match="no locator available"):
+        numba.njit(cache=True)(namespace["add_one"])
+    assert compiled(namespace["add_one"])(41) == 42

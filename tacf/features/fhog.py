@@ -12,7 +12,7 @@ is its N = 1 case; images never mix, so each image's result is what ``fhog`` giv
 first laid out as one plane per colour channel, so that the gradient loops read contiguous rows. Constants
 that depend only on the image size (each pixel's two cells and bilinear weights along each axis) or on nothing
 (the orientation lookup table) are computed once in numpy and cached. The compiled code is cached on disk
-(numba ``cache=True``), so a new process does not recompile.
+(tacf.compiled), so a new process does not recompile.
 
 Orientation binning follows the C code step by step: cos(theta) is truncated to the 10000-step acos table,
 pi is added for gy < 0, and the bin is floor(theta * 18 / (2 pi) + 0.5) in float32. All of this is folded
@@ -33,8 +33,9 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import numba
 import numpy as np
+
+from tacf.compiled import compiled
 
 N_ORIENTS = 9  # contrast-insensitive orientations; the sensitive ones are twice as many
 N_SENSITIVE = 2 * N_ORIENTS
@@ -162,7 +163,7 @@ def _axis_cells(n_cells: int, cell_size: int) -> tuple[np.ndarray, np.ndarray]:
 
 # ---------------------------------------------------------------------------------------------- compiled loops
 
-@numba.njit(cache=True)
+@compiled
 def _fhog_images(planes, orientation_bins, row_cells, row_weights, col_cells, col_weights, eps, clip, out):
     """Fill out (N, 31, rows, cols) with the fHOG of each image of planes (N, C, H, W).
 
@@ -185,7 +186,7 @@ def _fhog_images(planes, orientation_bins, row_cells, row_weights, col_cells, co
                                 normalisers, out[n])
 
 
-@numba.njit(cache=True)
+@compiled
 def _magnitude_and_orientation(planes, orientation_bins, magnitude, orientation):
     """Gradient magnitude and hard orientation bin of each pixel of the binned area, from the colour channel
     with the largest float32 squared magnitude (the first one on a tie). Gradients are central differences
@@ -227,7 +228,7 @@ def _magnitude_and_orientation(planes, orientation_bins, magnitude, orientation)
             orientation[y, x] = orientation_bins[table_index[x]]
 
 
-@numba.njit(cache=True)
+@compiled
 def _spatial_histograms(magnitude, orientation, row_cells, row_weights, col_cells, col_weights, sensitive):
     """Contrast-sensitive histograms R1 (18, rows, cols): bilinear in space (each pixel to its two row cells
     times its two column cells), hard in orientation, summed in float64. row_weights carry the 1 / cell^2
@@ -247,7 +248,7 @@ def _spatial_histograms(magnitude, orientation, row_cells, row_weights, col_cell
                         histogram[col] += np.float32(row_weight * col_weights[j, x]) * magnitude[y, x]
 
 
-@numba.njit(cache=True)
+@compiled
 def _normalise_and_truncate(sensitive, eps, clip, histograms, energy, block, normalisers, out):
     """The 31 output channels (31, rows, cols) from the float64 histograms R1 (18, rows * cols):
     0.5 * sum_k min(R n_k, clip) for R1 and the contrast-insensitive R2, and the 4 texture channels.
