@@ -3,7 +3,8 @@ camera tracking protocol (QGroundControl) starts and stops tracking on it and is
 
     tacf mavlink --key uav1/camera/front --link udpout:10.0.0.2:14550      # the ground station's address
 
-It announces itself with a HEARTBEAT (MAV_TYPE_CAMERA, component 100 by default) once a second and answers:
+It announces itself with a HEARTBEAT (MAV_TYPE_CAMERA, component 100 by default) once a second and answers these
+commands, sent as COMMAND_LONG or COMMAND_INT:
 - MAV_CMD_CAMERA_TRACK_RECTANGLE: starts a session on the image key with that rectangle (normalised 0..1,
   converted with the size of the newest frame on the key and applied to that frame), or re-initialises the
   running one. ACCEPTED once the service has the session; TEMPORARILY_REJECTED while no frame has been seen on
@@ -49,6 +50,9 @@ DEFAULT_STATUS_HZ = 10.0
 HEARTBEAT_S = 1.0
 SESSION_CHECK_S = 2.0       # how often a running session is asked whether it still runs
 VENDOR, MODEL = b"tacf", b"TACF tracker"
+# A ground station may send any command in either message; the commands answered here read param1-4 only, which
+# both carry as floats (COMMAND_INT's x, y, z hold a position, which none of them has).
+COMMAND_MESSAGES = ["COMMAND_LONG", "COMMAND_INT"]
 
 
 def signing_key_from_passphrase(passphrase: str) -> bytes:
@@ -133,7 +137,7 @@ class MavlinkCamera:
             if self.tracking and self.status_interval_s > 0 and now >= next_status:
                 self._send_status()
                 next_status = now + self.status_interval_s
-            message = self.mav.recv_match(type="COMMAND_LONG", blocking=True, timeout=0.02)
+            message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
             if message is not None:
                 self._command(message)
 

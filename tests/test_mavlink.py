@@ -214,6 +214,30 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     camera.hold.clear()
 
 
+def test_commands_sent_as_command_int_are_answered_alike(rig):
+    """The command protocol lets a ground station send any command as COMMAND_INT instead of COMMAND_LONG (the
+    same four float params, then x, y, z): the rectangle starts the session and the stop ends it either way."""
+    gcs, camera, client, _ = rig
+    camera.hold.set()
+    time.sleep(0.5)
+    target = SCENE.box(camera.index_of(camera.last_seq))
+
+    def command_int(command: int, *params: float):
+        params = list(params) + [0.0] * (4 - len(params))
+        gcs.mav.command_int_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_FRAME_GLOBAL, command, 0, 0, *params, 0, 0, 0.0)
+        ack = _receive(gcs, "COMMAND_ACK", 20, where=lambda m: m.command == command)
+        return None if ack is None else ack.result
+
+    assert command_int(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION) == mav.MAV_RESULT_ACCEPTED
+    assert _receive(gcs, "CAMERA_INFORMATION") is not None
+    assert command_int(mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.6, 0.2, 0.4, 0.5) == mav.MAV_RESULT_DENIED
+    assert command_int(mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == mav.MAV_RESULT_ACCEPTED
+    assert client.status(SID).image_key == KEY
+    assert command_int(mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+    assert SID not in {s.sid for s in client.list()}
+    camera.hold.clear()
+
+
 def test_a_session_left_running_by_a_killed_component_is_taken_over(rig):
     """A component killed before it could stop its session leaves it running under the same sid: the next
     component's first drag re-targets it, and its stop stops it. A session under that sid on another key is not
