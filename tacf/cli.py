@@ -2,8 +2,9 @@
 
 Each module in COMMAND_MODULES defines `register(subparsers)`, adding its subcommands with
 `set_defaults(func=...)`, and may define `register_bench(bench_subparsers)` for a `tacf bench WHAT`
-benchmark; `func(args)` returns the exit code. Those modules import only argparse-level
-things at import time, so `tacf publish` never loads the tracker and `tacf eval` never loads Zenoh.
+benchmark; `func(args)` returns the exit code (130 after a Ctrl-C the command does not handle itself).
+Those modules import only argparse-level things at import time, so `tacf publish` never loads the tracker
+and `tacf eval` never loads Zenoh.
 """
 from __future__ import annotations
 
@@ -41,7 +42,11 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
-    return int(args.func(args) or 0)
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:       # Ctrl-C where a command does not handle it: a line, not a traceback
+        print(f"tacf {args.command}: interrupted", file=sys.stderr)
+        return 130                  # 128 + SIGINT, as shells report it
 
 
 if __name__ == "__main__":

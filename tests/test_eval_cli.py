@@ -386,6 +386,35 @@ def test_track_bad_arguments(tmp_path):
     assert main(["track", str(tmp_path), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2   # empty folder
 
 
+def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
+    """Ctrl-C in a command that does not handle it itself (here `tacf track` half way through a long video): exit
+    code 130 and one line on stderr; the boxes tracked so far stay in the --out file."""
+    import signal
+
+    frames, box = synthetic_frames(20)
+    video = tmp_path / "long.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (160, 120))
+    for i in range(3000):
+        writer.write(frames[i % len(frames)])
+    writer.release()
+    out = tmp_path / "boxes.txt"
+    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "track", str(video), "--box",
+                                ",".join(str(v) for v in box), "--out", str(out)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and process.poll() is None and \
+                (not out.exists() or out.read_text().count("\n") < 10):
+            time.sleep(0.05)
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=20)
+    finally:
+        process.kill()
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and err.splitlines()[-1] == "tacf track: interrupted"
+    assert 10 <= out.read_text().count("\n") < 3001
+
+
 def test_the_commit_recorded_is_the_checkout_s_and_says_when_it_was_changed(tmp_path):
     from tacf.eval.provenance import source_commit
 
