@@ -19,6 +19,7 @@ from tacf_schemas import keys
 from tacf_schemas.models import BoxResult, Health, SessionInfo
 
 STALE_S = 5.0
+STOP_CHECK_S = 0.2      # how soon a stop (Ctrl-C) is seen while no data comes
 CLEAR = "\x1b[H\x1b[2J"
 
 
@@ -121,7 +122,9 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
         with client.results(sid, node=node, latest_only=True) as stream:
             next_draw = time.monotonic()
             while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-                item = stream.get(timeout=max(0.0, next_draw - time.monotonic()))
+                # wait for data until the next refresh, in slices: a long --interval must not hide a stop (Ctrl-C)
+                # or the end of --duration
+                item = stream.get(timeout=min(max(0.0, next_draw - time.monotonic()), STOP_CHECK_S))
                 if item is not None:
                     rows.setdefault((item.node, item.sid), SessionRow(item.node, item.sid)).apply(item)
                 if time.monotonic() < next_draw:

@@ -174,6 +174,23 @@ def test_watch_prints_live_rows(net):
     assert "tacf watch" in out.getvalue()
 
 
+def test_watch_ends_on_time_and_on_stop_whatever_the_interval(net):
+    """A refresh period longer than --duration, or than the wait for Ctrl-C, does not hold the watch: with no
+    session sending anything it used to sleep a whole interval before looking at either."""
+    started = time.monotonic()
+    assert watch(options=net.options, interval=60, duration=1, out=io.StringIO()) == 0
+    assert time.monotonic() - started < 5
+
+    stop = threading.Event()
+    thread = threading.Thread(target=watch, kwargs=dict(options=net.options, interval=60, stop=stop,
+                                                        out=io.StringIO()))
+    thread.start()
+    time.sleep(1)
+    stop.set()
+    thread.join(timeout=5)
+    assert not thread.is_alive(), "the watch ends soon after Ctrl-C"
+
+
 _wait = functools.partial(wait_until, timeout=5.0, period=0.02)
 
 
