@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -224,9 +225,10 @@ def _image_key(text: str) -> str:
 
 
 def _positive_float(text: str) -> float:
+    """A time or rate: finite (an infinity overflows Zenoh's timeouts and Python's waits) and > 0."""
     value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a number > 0")
+    if not 0 < value < math.inf:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
     return value
 
 

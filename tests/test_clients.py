@@ -244,6 +244,20 @@ def test_command_line_bad_image_keys_are_usage_errors(capsys):
         assert exc.value.code == 2 and "argument --key/-k: invalid image key 'cam/*'" in err, (argv, err)
 
 
+def test_command_line_infinite_numbers_are_usage_errors(capsys):
+    """'inf' passed the '> 0' check of times and rates, then came back as tracebacks: a Zenoh timeout out of
+    range (list --timeout inf), an Event.wait overflow (nodes --follow --duration inf), a line count that
+    is not an integer (demo --fps inf)."""
+    from tacf.cli import main
+
+    for argv in (["list", "--timeout", "inf"], ["nodes", "--follow", "--duration", "inf"], ["demo", "--fps", "inf"],
+                 ["watch", "--interval", "Infinity"], ["publish", "scene", "--key", "cam/a", "--fps", "inf"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and "expected a finite number > 0" in err, (argv, err)
+
+
 def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
     from tacf.cli import main
 
