@@ -360,6 +360,35 @@ def test_tacf_mavlink_command_announces_itself_until_sigterm():
     assert done.returncode == 2 and "--component must be 1 to 255" in done.stderr, done.stderr
 
 
+def test_a_serial_link_works_and_a_missing_device_is_a_one_line_error():
+    """--link takes a serial device (a radio modem): here a pseudo-terminal, the ground station on its other end.
+    pymavlink opens serial devices with pyserial, which the [mavlink] extra must bring (without it: a traceback
+    ending in "No module named 'serial'", for a real device as for a mistyped --link)."""
+    import pty
+    import subprocess
+    import sys
+
+    ground, device = pty.openpty()
+    try:
+        with tacf_command("mavlink", "--key", KEY, "--link", os.ttyname(device), "--baud", "115200",
+                          "--connect", f"tcp/127.0.0.1:{free_port()}") as process:
+            assert "camera component 1/100" in process.stdout.readline()
+            parser = mav.MAVLink(None)
+            deadline, heartbeat = time.monotonic() + 30, None
+            while heartbeat is None and time.monotonic() < deadline:
+                for message in parser.parse_buffer(os.read(ground, 1024)) or []:
+                    if message.get_type() == "HEARTBEAT" and message.get_srcComponent() == mav.MAV_COMP_ID_CAMERA:
+                        heartbeat = message
+            assert heartbeat is not None and heartbeat.type == mav.MAV_TYPE_CAMERA
+    finally:
+        os.close(ground)
+        os.close(device)
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link", "/dev/ttyNOPE",
+                           "--connect", f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.startswith("tacf mavlink: ") and "/dev/ttyNOPE" in done.stderr, done.stderr
+
+
 def test_with_signing_only_signed_commands_are_answered():
     """MAVLink 2 signing: the component signs what it sends and answers only commands signed with its key."""
     key = signing_key_from_passphrase("correct horse battery staple")
