@@ -148,7 +148,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; on any other the services are off unless "
                         "--control: the protocol has no authentication)")
-    p.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765, Foxglove's; 0 = any free)")
+    p.add_argument("--port", type=_port, default=8765, help="WebSocket port (default 8765, Foxglove's; 0 = any free)")
     p.add_argument("--control", action=argparse.BooleanOptionalAction, default=None,
                    help="offer the start/stop/reinit/list services (default: on loopback only)")
     p.add_argument("--image-hz", type=_positive_float, default=10.0, metavar="HZ",
@@ -171,7 +171,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "session. Also /metrics (Prometheus) and /healthz.")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; any other address asks for a token)")
-    p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0 = any free port)")
+    p.add_argument("--port", type=_port, default=8080, help="HTTP port (default 8080; 0 = any free port)")
     p.add_argument("--token-file", metavar="FILE",
                    help="the access token, from this file (default: $TACF_DASHBOARD_TOKEN; on an address that is "
                         "not loopback a new one is made up; the printed address carries it)")
@@ -229,6 +229,13 @@ def _positive_float(text: str) -> float:
     value = float(text)
     if not 0 < value < math.inf:
         raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
+    return value
+
+
+def _port(text: str) -> int:
+    value = int(text)
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a port number 0-65535")
     return value
 
 
@@ -491,7 +498,7 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
             camera = MavlinkCamera(args.link, args.key, options=options_from_args(args), sid=args.sid,
                                    node=args.node, profile=args.profile, system=args.system,
                                    component=args.component, baud=args.baud, signing_key=key)
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, OverflowError) as exc:     # OverflowError: a --link port over 65535
             print(f"tacf mavlink: {exc}", file=sys.stderr)
             return 2
         with camera:

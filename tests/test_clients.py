@@ -258,6 +258,22 @@ def test_command_line_infinite_numbers_are_usage_errors(capsys):
         assert exc.value.code == 2 and "expected a finite number > 0" in err, (argv, err)
 
 
+def test_command_line_ports_out_of_range_are_one_line_errors(capsys):
+    """A port outside 0-65535 used to reach socket.bind and end in an OverflowError traceback."""
+    from tacf.cli import main
+
+    for argv in (["dashboard", "--port", "70000"], ["foxglove", "--port", "-1"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and "a port number 0-65535" in err, (argv, err)
+    pytest.importorskip("pymavlink")
+    assert main(["mavlink", "--key", "cam/a", "--link", "udpin:127.0.0.1:99999",
+                 "--connect", f"tcp/127.0.0.1:{free_port()}"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tacf mavlink: ") and "port must be 0-65535" in err and "Traceback" not in err, err
+
+
 def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
     from tacf.cli import main
 
