@@ -217,6 +217,10 @@ class TrackingClient:
         nodes = self.nodes()
         if not nodes:
             raise NoService("no tracking service answered on tacf/*/control/list")
+        if twins := sorted({node for node in nodes if nodes.count(node) > 1}):
+            # node=... cannot tell them apart: every query to that node reaches all of them
+            raise AmbiguousNode(f"several services answer as node {', '.join(map(repr, twins))}: give each its own "
+                                "node id (tacf serve --node); a session started there would run on each of them")
         if len(nodes) > 1:
             raise AmbiguousNode(f"{len(nodes)} services on the network ({', '.join(nodes)}): pass node=...")
         return nodes[0]

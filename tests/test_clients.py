@@ -309,6 +309,16 @@ def test_command_line_mode_help_says_the_mode_each_command_opens(capsys):
         _help(main, "list", capsys)
 
 
+def test_two_services_with_one_node_id_are_named_as_such(service, client, camera):
+    """Two services started with the same --node both answer every query to that node: a start without node=...
+    said "2 services on the network (n, n): pass node=...", and passing that node started the session on both."""
+    with LocalService(node=service.node, extra_args=("--connect", service.endpoint)):
+        assert _wait(lambda: len(client.nodes()) == 2, timeout=30)
+        with pytest.raises(AmbiguousNode) as exc:
+            client.start(camera.key, SCENE.box(0))
+        assert str(exc.value).startswith(f"several services answer as node {service.node!r}: give each its own node id")
+
+
 def test_list_across_two_services(service, client, camera):
     with LocalService(node=f"second{free_port()}") as second:
         options = ZenohOptions(connect=(service.endpoint, second.endpoint))
