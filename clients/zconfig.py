@@ -33,8 +33,21 @@ _RUST_LOCATION = re.compile(r"\s*at \S+\.rs:\d+\.?")
 
 
 def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
-    """Build a `zenoh.Config` from `options` (None: loopback defaults)."""
+    """Build a `zenoh.Config` from `options` (None: loopback defaults).
+
+    ZenohUnavailable if Zenoh refuses the config file (missing, malformed) or an endpoint."""
+    import zenoh
+
     options = options or ZenohOptions()
+    try:
+        return _config(options)
+    except zenoh.ZError as exc:
+        where = f" ({options.config_file})" if options.config_file else ""
+        reason = " ".join(_RUST_LOCATION.sub("", str(exc)).split())      # a JSON5 syntax error spans lines
+        raise ZenohUnavailable(f"bad Zenoh configuration{where}: {reason}") from exc
+
+
+def _config(options: ZenohOptions) -> "zenoh.Config":
     conf = base_config(options.config_file)
     if options.config_file is None:
         conf.insert_json5("connect/retry", json.dumps(FAST_RETRY))

@@ -319,6 +319,24 @@ def test_two_services_with_one_node_id_are_named_as_such(service, client, camera
         assert str(exc.value).startswith(f"several services answer as node {service.node!r}: give each its own node id")
 
 
+def test_command_line_bad_zenoh_settings_are_one_line_errors(capsys, tmp_path):
+    """A malformed endpoint, a missing or malformed --zenoh-config file: Zenoh refuses them while the config is
+    built, before the session opens, and that used to escape as a zenoh.ZError traceback."""
+    from tacf.cli import main
+
+    broken = tmp_path / "broken.json5"
+    broken.write_text("{ mode: ")
+    for argv, reason in ((["list", "--connect", "foo"], "Endpoints must be of the form"),
+                         (["watch", "--listen", "tcp-127.0.0.1"], "Endpoints must be of the form"),
+                         (["list", "--zenoh-config", str(tmp_path / "missing.json5")], "No such file"),
+                         (["publish", "scene", "--key", "cam/a", "--zenoh-config", str(broken)], "")):
+        err = _cli_error(main, argv, capsys)
+        assert err.startswith(f"tacf {argv[0]}: ZenohUnavailable: bad Zenoh configuration"), err
+        assert reason in err and ".rs:" not in err, err
+        if "--zenoh-config" in argv:
+            assert argv[-1] in err, "the message names the file"
+
+
 def test_list_across_two_services(service, client, camera):
     with LocalService(node=f"second{free_port()}") as second:
         options = ZenohOptions(connect=(service.endpoint, second.endpoint))
