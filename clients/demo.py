@@ -25,7 +25,7 @@ from tacf_clients.errors import TacfError
 from tacf_clients.local_service import LocalService, LocalServiceError
 from tacf_clients.publisher import FramePublisher
 from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.sources import FrameSource, ImageFolderSource, Pacer, SourceFrame, open_source
+from tacf_clients.sources import FrameSource, ImageFolderSource, Pacer, SourceFrame, Thinner, open_source
 from tacf_clients.zconfig import open_session
 from tacf_schemas.models import BoxResult, Health
 
@@ -152,16 +152,21 @@ class HoldingPublisher:
                 self._index_of_seq.popitem(last=False)
 
     def _run(self) -> None:
-        pacer = Pacer(self.fps)
+        # As publish() does: a replayed source is paced at fps and stands still while held; a live one is read as
+        # fast as it delivers, thinned to fps, and drained while its first frame is held (its buffers would
+        # otherwise hand out ever older frames).
+        live = self.source.live
+        pacer, thinner = Pacer(None if live else self.fps), Thinner(self.fps if live else None)
         try:
             frames = self.source.frames(should_stop=self.stop.is_set)
-            current = next(frames, None)
+            first = current = next(frames, None)
             while current is not None and not self.stop.is_set():
-                pacer.wait(should_stop=self.stop.is_set)
-                if self.stop.is_set():
-                    break
-                self._put(current)
-                if not self.hold.is_set():
+                if thinner.admit():
+                    pacer.wait(should_stop=self.stop.is_set)
+                    if self.stop.is_set():
+                        break
+                    self._put(first if self.hold.is_set() else current)
+                if live or not self.hold.is_set():
                     current = next(frames, None)
         except BaseException as exc:  # reported by the demo, never lost on this thread
             self.error = exc

@@ -6,13 +6,17 @@ import io
 import subprocess
 import sys
 import threading
+import time
 
 import cv2
 import pytest
+import zenoh
 
 from tacf_clients.demo import DemoOptions, GroundTruth, run_demo
+from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from tacf_clients.sources import open_source
+from tacf_clients.sources import FrameSource, SourceFrame, open_source
+from tacf_clients.zconfig import ZenohOptions, make_config
 
 pytestmark = pytest.mark.zenoh
 
@@ -63,3 +67,45 @@ def test_demo_stops_cleanly_when_interrupted():
     timer.join()
     assert report.service_exit is not None, out.getvalue()
     assert "service exited" in out.getvalue()
+
+
+class BufferedCamera(FrameSource):
+    """A live 30 fps camera whose frames queue up while nobody reads them, as a stream's buffers do: frame i is
+    captured at `started + i / 30` and handed out in order, however late it is asked for."""
+
+    name, fps, live = "buffered-camera", 30.0, True
+
+    def __init__(self):
+        self.started = time.monotonic()
+        self.image = Scene.from_spec("scene:160x120").frame(0)
+
+    def frames(self, should_stop=lambda: False):
+        index = 0
+        while not should_stop():
+            time.sleep(max(0.0, self.started + index / self.fps - time.monotonic()))
+            yield SourceFrame(index, self.image, time.time_ns())
+            index += 1
+
+
+def test_the_demo_keeps_up_with_a_live_camera_faster_than_its_rate():
+    """The demo paced every source at its rate (20 fps) and held a live one unread until the first box: a 30 fps
+    stream was then published 2.4 s late after a 2 s hold, and 0.33 s later every second. A live source is read
+    as fast as it delivers (thinned to the rate), and drained while the first frame is held."""
+    from tacf_clients.demo import HoldingPublisher
+
+    camera = BufferedCamera()
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        publisher = HoldingPublisher(session, camera, "test/demo/live", 20, "jpeg")
+        publisher.start()
+        try:
+            time.sleep(1.0)                                  # the first frame held while the session starts
+            assert publisher.index_of(publisher.last_seq) == 0
+            publisher.hold.clear()
+            time.sleep(2.0)
+            index = publisher.index_of(publisher.last_seq)
+            late = time.monotonic() - (camera.started + index / camera.fps)
+            seqs = publisher.last_seq
+        finally:
+            publisher.close()
+    assert late < 0.3, f"the frame published last was captured {late:.2f} s before"
+    assert 40 <= seqs <= 75, "about 20 frames a second published"
