@@ -285,7 +285,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
     try:
         with stop_on_signals() as stop, source, _reported("publish"), \
                 open_session(options_from_args(args)) as session:
-            if args.wait_subscriber > 0 and not _wait_subscriber(session, args, stop):
+            if args.wait_subscriber > 0 and not _wait_subscriber(session, source, args, stop):
                 return 0
             stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
                             max_frames=args.frames, stop=stop)
@@ -298,13 +298,19 @@ def cmd_publish(args: argparse.Namespace) -> int:
     return 0
 
 
-def _wait_subscriber(session, args: argparse.Namespace, stop: threading.Event) -> bool:
+def _wait_subscriber(session, source, args: argparse.Namespace, stop: threading.Event) -> bool:
     """Wait as --wait-subscriber says; False when stopped meanwhile (then nothing is to be published)."""
+    import time
+
     from tacf_clients.publisher import FramePublisher
 
     print(f"waiting up to {args.wait_subscriber:g} s for a subscriber on {args.key}", file=sys.stderr, flush=True)
+    deadline = time.monotonic() + args.wait_subscriber
     with FramePublisher(session, args.key) as probe:
-        matched = probe.wait_matched(args.wait_subscriber, stop)
+        if source.live:     # read on meanwhile: a stream's buffers would keep the frames of the wait for later
+            for _ in source.frames(should_stop=lambda: stop.is_set() or probe.matched or time.monotonic() > deadline):
+                pass
+        matched = probe.wait_matched(deadline - time.monotonic(), stop)
     if stop.is_set():
         print(f"stopped while waiting for a subscriber on {args.key}: nothing published", file=sys.stderr)
         return False

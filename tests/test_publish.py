@@ -27,6 +27,7 @@ from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
 from tacf_schemas.images import FrameError, decode_frame, encode_frame
 from tacf_schemas.models import Frame
+from tacf_service.loopback import wait_until
 
 KEY = "test/camera/front"
 
@@ -496,3 +497,49 @@ def test_publish_runs_on_through_reconnections_with_one_seq_count(camera, collec
     assert stats.frames == 9 and [f.seq for f in frames] == list(range(9))
     assert source.reconnects == 2
     assert [MjpegCamera.connection_of(decode_frame(frame)) for frame in frames] == [1] * 4 + [2] * 4 + [3]
+
+
+class CountingCamera(MjpegCamera):
+    """An MjpegCamera whose frame i carries i in binary (8 blocks of 16 px, white for 1) and which remembers the
+    index it sent last."""
+
+    latest = -1
+
+    def frame(self, connection: int, index: int) -> np.ndarray:
+        self.latest = index
+        image = np.zeros((96, 128, 3), np.uint8)
+        for bit in range(8):
+            if index >> bit & 1:
+                image[32:64, 16 * bit + 2:16 * bit + 14] = 255
+        return image
+
+    @staticmethod
+    def index_of(image: np.ndarray) -> int:
+        return sum(1 << bit for bit in range(8) if image[48, 16 * bit + 8].mean() > 128)
+
+
+def test_a_live_source_is_read_on_while_waiting_for_a_subscriber():
+    """--wait-subscriber left a live stream unread: its buffers kept the frames of the wait, and the first frames
+    published when a subscriber came were as old as the wait (8 s after an 8 s wait), then sent in a burst."""
+    cam = CountingCamera(frames_per_connection=250)         # 20 fps for 12.5 s
+    port = free_port()
+    try:
+        with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as session:
+            cmd = [sys.executable, "-m", "tacf.cli", "publish", cam.url, "--key", KEY, "--wait-subscriber", "30",
+                   "--encoding", "bgr8", "--connect", f"tcp/127.0.0.1:{port}"]
+            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            try:
+                assert any("waiting up to 30 s" in line for line in proc.stderr)    # stops reading at that line
+                time.sleep(3)
+                first: list[tuple[int, int]] = []                   # (index shown, index the camera is at)
+                subscriber = session.declare_subscriber(KEY, lambda sample: first or first.append(
+                    (CountingCamera.index_of(decode_frame(decode(sample.payload.to_bytes(), Frame))), cam.latest)))
+                assert wait_until(lambda: first, timeout=10)
+                subscriber.undeclare()
+            finally:
+                proc.kill()
+                proc.wait()
+    finally:
+        cam.close()
+    shown, at = first[0]
+    assert at - shown <= 5, f"the first frame published was {at - shown} frames old ({shown}; the camera at {at})"
