@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from tacf_clients.sources import FrameSource, SourceFrame, never_stop
+from tacf_schemas.images import check_dimensions
 
 Box = tuple[float, float, float, float]
 
@@ -42,6 +43,7 @@ class Scene:
         width, height = int(match.group(1)), int(match.group(2))
         if width < 160 or height < 120:
             raise ValueError("scene must be at least 160x120")
+        check_dimensions(width, height)         # FrameError (a ValueError) beyond what a frame may be on the wire
         scale = min(width / 640, height / 360)
         return cls(width, height, max(12, round(48 * scale)), max(10, round(36 * scale)))
 

@@ -131,6 +131,19 @@ def test_scene_is_deterministic_and_the_target_stays_inside():
         Scene.from_spec("scene:big")
 
 
+def test_a_scene_larger_than_a_frame_may_be_is_refused_at_once():
+    """scene:100000x100000 went on to build its terrain and died of a MemoryError (83.8 GiB) in a traceback; no
+    service would take frames over the wire limits anyway."""
+    for spec in ("scene:100000x100000", "scene:9000x200", "scene:5000x5000"):
+        with pytest.raises(ValueError, match="exceeds the limits"):
+            Scene.from_spec(spec)
+    assert Scene.from_spec("scene:8192x2048").width == 8192
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "publish", "scene:100000x100000", "--key", KEY,
+                           "--connect", f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stderr.startswith("tacf publish: frame size 100000x100000 exceeds"), \
+        done.stderr
+
+
 def test_image_folder_source_sorted_skips_non_images_and_loops(tmp_path):
     images = _frames(4)
     folder = _write_folder(tmp_path / "seq" / "img", images)
