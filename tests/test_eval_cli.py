@@ -386,6 +386,28 @@ def test_track_bad_arguments(tmp_path):
     assert main(["track", str(tmp_path), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2   # empty folder
 
 
+def test_track_that_cannot_start_leaves_an_existing_box_file_alone(tmp_path):
+    """--out was opened (emptied) before anything was checked: a mistyped source or a box outside the frame wiped
+    the boxes of an earlier run. The outputs are now opened once the first frame is tracked. A box outside the
+    frame is refused alike for every tracker."""
+    frames, box = synthetic_frames(5)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(folder / f"{i:06d}.png"), f)
+    out, video = tmp_path / "boxes.txt", tmp_path / "tracked.mp4"
+    out.write_text("the boxes of an earlier run\n")
+    for source, bad_box, tracker in ((tmp_path / "frames-typo", "30,40,24,24", "opencv-kcf"),
+                                     (folder, "500,500,24,24", "tacf-kcc"),
+                                     (folder, "500,500,24,24", "opencv-kcf"),      # was a cv2.error traceback
+                                     (folder, "500,500,24,24", "opencv-mosse")):   # was tracked, exit 0
+        assert main(["track", str(source), "--box", bad_box, "--tracker", tracker, "--out", str(out),
+                     "--video", str(video)]) == 2
+        assert out.read_text() == "the boxes of an earlier run\n" and not video.exists()
+    assert main(["track", str(folder), "--box", "30,40,24,24", "--tracker", "opencv-kcf", "--out", str(out)]) == 0
+    check_boxes_file(out, 5, box)
+
+
 def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
     """Ctrl-C in a command that does not handle it itself (here `tacf track` half way through a long video): exit
     code 130 and one line on stderr; the boxes tracked so far stay in the --out file."""

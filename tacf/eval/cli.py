@@ -273,12 +273,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return 2
     try:
-        if args.out:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            with open(args.out, "w") as f:
-                n = track_source(tracker, args.source, box, f, args.video)
-        else:
-            n = track_source(tracker, args.source, box, sys.stdout, args.video)
+        n = track_source(tracker, args.source, box, args.out, args.video)
     except (ValueError, FileNotFoundError, OSError) as exc:
         log.error("%s", exc)
         return 2

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
+from ..boxes import check_box
 from . import metrics
 from .datasets import Sequence, list_frames
 from .runner import read_frame
@@ -76,38 +79,52 @@ def draw(frame: np.ndarray, box, ok: bool, pme: float, index: int) -> np.ndarray
     return out
 
 
-def track_source(tracker: BoxTracker, source: Path, box, boxes_out=None, video_out: Path | None = None) -> int:
-    """Track through `source`; write box lines to the text stream `boxes_out` and, if asked, an mp4v video.
+def track_source(tracker: BoxTracker, source: Path, box, boxes_out: Path | None = None,
+                 video_out: Path | None = None) -> int:
+    """Track through `source`; write box lines to the file `boxes_out` (standard output if None) and, if asked, an
+    mp4v video. Both are opened once the first frame is tracked, so a run that cannot start (no such source, a box
+    outside the frame) leaves the files of an earlier run as they were.
 
     Returns the number of frames processed.
     """
     frames, fps = open_source(source)
-    writer = None
+    lines = writer = None
     n = 0
-    if boxes_out is not None:
-        boxes_out.write(BOXES_HEADER + "\n")
     try:
         for frame in frames:
             if n == 0:
+                check_box(box, frame.shape)     # the library tracker's check, for OpenCV's peers too
                 tracker.init(frame, box)
                 cur, ok, pme = tuple(float(v) for v in box), True, math.nan
+                if video_out is not None:
+                    writer = _open_video(Path(video_out), fps, frame.shape[1::-1])
+                lines = _open_boxes(boxes_out)
+                lines.write(BOXES_HEADER + "\n")
             else:
                 cur = tracker.update(frame)
                 ok, pme = bool(tracker.ok), float(tracker.pme)
-            if boxes_out is not None:
-                boxes_out.write(",".join(f"{v:.3f}" for v in cur) + f",{pme:.3f},{int(ok)}\n")
-            if video_out is not None:
-                if writer is None:
-                    writer = _open_video(Path(video_out), fps, frame.shape[1::-1])
+            lines.write(",".join(f"{v:.3f}" for v in cur) + f",{pme:.3f},{int(ok)}\n")
+            if writer is not None:
                 writer.write(draw(frame, cur, ok, pme, n))
             n += 1
     finally:
         if writer is not None:
             writer.release()
+        if lines is not None and lines is not sys.stdout:
+            lines.close()
     if n == 0:
         raise ValueError(f"{source}: no frames")
     log.info("tracked %d frames of %s", n, source)
     return n
+
+
+def _open_boxes(path: Path | None) -> TextIO:
+    """The box file at `path` (its folder made), or standard output."""
+    if path is None:
+        return sys.stdout
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return open(path, "w")
 
 
 def _bgr(hex_colour: str) -> tuple[int, int, int]:
