@@ -63,6 +63,8 @@ def describe_session(info: SessionInfo) -> str:
         h = info.health
         text += (f", {h.fps:.1f} fps, {h.processing_ms_p95:.1f} ms p95, processed {h.frames_processed}, "
                  f"lost {h.frames_lost}, dropped {h.frames_dropped}")
+        if h.message:                   # why it failed, is lost or waits (no frames, a cropped feed...)
+            text += f": {h.message}"
     return text
 
 

@@ -15,10 +15,10 @@ import zenoh
 
 from tacf_clients.consumer import BoxConsumer, TrackedBox, tracked_box
 from tacf_clients.local_service import free_port
-from tacf_clients.watch import SessionRow, render_table, watch
+from tacf_clients.watch import SessionRow, describe_session, render_table, watch
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas import box_key, encode, health_key
-from tacf_schemas.models import BoxResult, Health
+from tacf_schemas.models import BoxResult, Health, SessionInfo
 from tacf_service.loopback import wait_until
 
 pytestmark = pytest.mark.zenoh
@@ -152,6 +152,16 @@ def test_render_table():
     assert "cam1" in lines[1] and "lost" in lines[1] and "LOST" in lines[1] and "42" in lines[1]
     assert "(64, 48, 32, 24)" in lines[1] and "29.5" in lines[1]
     assert "no sessions" in render_table([])
+
+
+def test_a_session_s_line_says_why_it_failed_or_waits():
+    """`tacf status` of a failed session said "failed" and not why, though the health it shows carries the reason."""
+    reason = "cannot initialise on seq 0: box (1.0, 1.0, 5000.0, 5000.0) is larger than the 320x240 image"
+    health = _health("s1", state="failed").model_copy(update={"message": reason})
+    info = SessionInfo(node="edge1", sid="s1", image_key="cam/a", profile="paper", state="failed",
+                       box=(1.0, 1.0, 5000.0, 5000.0), created_ns=time.time_ns(), health=health)
+    assert describe_session(info).endswith(f"dropped 2: {reason}")
+    assert describe_session(info.model_copy(update={"health": _health("s1")})).endswith("dropped 2")
 
 
 def test_watch_prints_live_rows(net):
