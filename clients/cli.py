@@ -428,13 +428,16 @@ def cmd_nodes(args: argparse.Namespace) -> int:
 
     with _client(args) as client:
         alive = client.alive_nodes()
-        listings = {lst.node: lst for lst in client.services()}
+        listings: dict[str, list] = {}
+        for listing in client.services():   # a row per service that answers, even two under one node id
+            listings.setdefault(listing.node, []).append(listing)
     rows = []
     for node in sorted(set(alive) | set(listings)):
-        lst = listings.get(node)        # None: its token is up but it did not answer the list query in time
-        rows.append({"node": node, "alive": node in alive, "answers": lst is not None,
-                     "sessions": len(lst.sessions) if lst else None, "max_sessions": lst.max_sessions if lst else None,
-                     "load": round(node_load(lst), 3) if lst else None})
+        for lst in listings.get(node, [None]):  # None: its token is up but it did not answer the list query in time
+            rows.append({"node": node, "alive": node in alive, "answers": lst is not None,
+                         "sessions": len(lst.sessions) if lst else None,
+                         "max_sessions": lst.max_sessions if lst else None,
+                         "load": round(node_load(lst), 3) if lst else None})
     if args.json:
         print(json.dumps(rows))
     elif rows:
