@@ -2,7 +2,8 @@
 
     with LocalService(node="demo") as service:          # waits until the service answers a list query
         options = service.options                        # ZenohOptions that connect to it
-    # SIGTERM, then SIGKILL after a grace period: the child never outlives the block
+    # SIGTERM, then SIGKILL after a grace period: the child never outlives the block; its log (in the temporary
+    # folder) goes with it unless it failed
 
 The child is a fresh interpreter (subprocess, not fork), so it is safe to start even after this process has
 opened Zenoh sessions (ZENOH.md §2.5).
@@ -45,6 +46,7 @@ class LocalService:
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.extra_args, self.ready_timeout = tuple(extra_args), ready_timeout
         self.log_path = log_path or Path(tempfile.gettempdir()) / f"tacf-serve-{node}-{self.port}.log"
+        self._own_log = log_path is None        # made up here: removed after a clean stop, kept after a failure
         self.env = env
         self.process: subprocess.Popen | None = None
         self.returncode: int | None = None       # the child's exit code once stopped
@@ -114,6 +116,8 @@ class LocalService:
                 process.wait(timeout=5)
         log.debug("tacf serve exited with code %s", process.returncode)
         self.returncode = process.returncode
+        if self._own_log and process.returncode == 0:
+            self.log_path.unlink(missing_ok=True)
         return process.returncode
 
     def __enter__(self) -> "LocalService":

@@ -109,3 +109,22 @@ def test_the_demo_keeps_up_with_a_live_camera_faster_than_its_rate():
             publisher.close()
     assert late < 0.3, f"the frame published last was captured {late:.2f} s before"
     assert 40 <= seqs <= 75, "about 20 frames a second published"
+
+
+def test_a_local_service_leaves_its_log_only_when_it_failed():
+    """Every `tacf demo` (and test) left /tmp/tacf-serve-<node>-<port>.log behind: hundreds piled up. The log of a
+    service that stopped cleanly goes; one that failed keeps it, since the error names it."""
+    from tacf_clients.local_service import LocalService, LocalServiceError
+
+    with LocalService(node="logtest") as service:
+        with zenoh.open(make_config(service.options)) as session:
+            service.wait_ready(session)
+        assert service.log_path.exists()
+    assert service.returncode == 0 and not service.log_path.exists()
+
+    broken = LocalService(node="logtest", extra_args=("--no-such-option",)).start()
+    with zenoh.open(make_config(broken.options)) as session, pytest.raises(LocalServiceError) as failed:
+        broken.wait_ready(session)
+    broken.stop()
+    assert broken.returncode == 2 and broken.log_path.exists() and str(broken.log_path) in str(failed.value)
+    broken.log_path.unlink()
