@@ -1,7 +1,8 @@
 """Run `tacf serve` as a child process on a free loopback port: for `tacf demo` and for tests.
 
-    with LocalService(node="demo") as service:          # waits until the service answers a list query
-        options = service.options                        # ZenohOptions that connect to it
+    with LocalService(node="demo") as service:          # started, not yet answering
+        with open_session(service.options) as session:   # service.options: ZenohOptions that connect to it
+            service.wait_ready(session)                  # returns once the service answers a list query
     # SIGTERM, then SIGKILL after a grace period: the child never outlives the block; its log (in the temporary
     # folder) goes with it unless it failed
 
