@@ -5,7 +5,8 @@ restored session re-initialises its tracker on the very frame its box belongs to
 feed, instead of applying a stale box to a frame where the target has moved.
 
 A missing file is an empty table; a corrupt one is logged, kept aside as <file>.corrupt and treated as empty,
-so a bad file never stops the service from starting.
+so a bad file never stops the service from starting. A table of another version (a newer service's) is kept aside
+as <file>.v<version> rather than read with the wrong meaning and overwritten.
 """
 from __future__ import annotations
 
@@ -44,28 +45,40 @@ class StateStore:
 
     def load(self) -> list[PersistedSession]:
         try:
-            text = self.path.read_text()
+            data = self.path.read_bytes()
         except FileNotFoundError:
             return []
         except OSError as exc:
             log.error("cannot read state file %s: %s", self.path, exc)
             return []
         try:
-            doc = json.loads(text)
+            doc = json.loads(data)
             entries = doc["sessions"] if isinstance(doc, dict) else None
             if not isinstance(entries, list):
                 raise ValueError("no 'sessions' list")
-        except (ValueError, KeyError, TypeError) as exc:
+        except (ValueError, KeyError, TypeError, RecursionError) as exc:   # bad UTF-8 is a ValueError too
             log.error("state file %s is corrupt (%s); keeping it as .corrupt and starting empty", self.path, exc)
-            self._set_aside()
+            self._set_aside(".corrupt")
             return []
-        sessions = []
+        version = doc.get("version")
+        if version != STATE_VERSION:
+            suffix = f".v{version}" if isinstance(version, int) else ".corrupt"
+            log.error("state file %s has version %r, this service reads version %d; keeping it as %s and starting "
+                      "empty", self.path, version, STATE_VERSION, suffix)
+            self._set_aside(suffix)
+            return []
+        sessions: dict[str, PersistedSession] = {}
         for entry in entries:
             try:
-                sessions.append(PersistedSession.model_validate(entry))
+                session = PersistedSession.model_validate(entry)
             except ValidationError as exc:
                 log.warning("skipping an invalid session in %s: %s", self.path, exc.errors()[:1])
-        return sessions
+                continue
+            if session.sid in sessions:
+                log.warning("skipping a second session %s in %s", session.sid, self.path)
+                continue
+            sessions[session.sid] = session
+        return list(sessions.values())
 
     def save(self, sessions: list[PersistedSession]) -> None:
         doc = {"version": STATE_VERSION, "sessions": [s.model_dump(mode="json") for s in sessions]}
@@ -97,9 +110,9 @@ class StateStore:
                 except OSError:
                     pass
 
-    def _set_aside(self) -> None:
+    def _set_aside(self, suffix: str) -> None:
         try:
-            os.replace(self.path, self.path.with_name(self.path.name + ".corrupt"))
+            os.replace(self.path, self.path.with_name(self.path.name + suffix))
         except OSError:
             pass
 

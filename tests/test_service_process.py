@@ -223,6 +223,31 @@ def test_state_file_is_atomic_and_survives_corruption(tmp_path):
     assert [s.sid for s in store.load()] == ["a"]
 
 
+@pytest.mark.parametrize("content, kept_as", [
+    (b"\xff\xfe\x00garbage\x9c", "state.json.corrupt"),                  # not UTF-8 (a torn or foreign file)
+    (b"[" * 100_000 + b"]" * 100_000, "state.json.corrupt"),               # nested beyond the JSON parser's depth
+    (json.dumps({"sessions": []}).encode(), "state.json.corrupt"),          # no version
+    (json.dumps({"version": 2, "sessions": [{"sid": "a", "box": {"cx": 1}}]}).encode(), "state.json.v2"),
+])
+def test_an_unreadable_or_foreign_state_file_is_kept_aside_and_the_table_starts_empty(tmp_path, content, kept_as):
+    """Such a file never stops the service from starting, and a newer service's table is neither read with the
+    wrong meaning nor overwritten by the next save."""
+    path = tmp_path / "state.json"
+    path.write_bytes(content)
+    assert StateStore(path).load() == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == [kept_as]
+    assert (tmp_path / kept_as).read_bytes() == content
+
+
+def test_a_session_twice_in_the_state_file_is_restored_once(tmp_path):
+    path = tmp_path / "state.json"
+    entry = PersistedSession(sid="a", image_key="cam", profile="kcc", box=(1.0, 2.0, 3.0, 4.0), created_ns=1)
+    other = entry.model_copy(update={"box": (5.0, 6.0, 7.0, 8.0)})
+    path.write_text(json.dumps({"version": 1, "sessions": [entry.model_dump(mode="json"),
+                                                           other.model_dump(mode="json")]}))
+    assert StateStore(path).load() == [entry]       # one worker per session: the second would have no owner
+
+
 def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     port = free_port()
     path = tmp_path / "zenoh.json5"
