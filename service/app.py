@@ -54,6 +54,7 @@ class TrackingService:
         self._session = None
         self._token = None
         self._history: FrameHistory | None = None
+        self._store: StateStore | None = None
         self.manager: SessionManager | None = None
         self._control: ControlServer | None = None
 
@@ -61,12 +62,14 @@ class TrackingService:
         import zenoh
         options = self.options
         endpoints = worker_endpoints(options.zenoh)
-        self._session = zenoh.open(service_config(options.zenoh))
+        if options.state_file:
+            self._store = StateStore(options.state_file)
+            self._store.lock()          # before the session: a service that cannot persist never goes live
         try:
+            self._session = zenoh.open(service_config(options.zenoh))
             self._history = FrameHistory(self._session)
-            store = StateStore(options.state_file) if options.state_file else None
             self.manager = SessionManager(self._session, self.node, self._history, options.zenoh, endpoints,
-                                          max_sessions=options.max_sessions, store=store,
+                                          max_sessions=options.max_sessions, store=self._store,
                                           tracker_factory=options.tracker_factory, init_wait_s=options.init_wait_s,
                                           spare_workers=options.spare_workers, log_level=options.log_level)
             self.manager.restore()
@@ -99,6 +102,9 @@ class TrackingService:
         if self._session is not None:
             _quietly(self._session.close)
             self._session = None
+        if self._store is not None:
+            self._store.unlock()        # after the manager's last save
+            self._store = None
         log.info("tacf service %r stopped in %.2f s", self.node, time.monotonic() - started)
 
     def __enter__(self) -> "TrackingService":

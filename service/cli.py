@@ -22,7 +22,8 @@ def register(subparsers) -> None:
     parser.add_argument("--node", metavar="ID", help="service id, [A-Za-z0-9_-]{1,64} (default: the hostname "
                                                     "sanitised, or 'edge')")
     parser.add_argument("--max-sessions", type=int, default=8, metavar="N", help="session limit (default 8)")
-    parser.add_argument("--state", metavar="FILE", help="persist sessions in FILE and restore them on start")
+    parser.add_argument("--state", metavar="FILE", help="persist sessions in FILE and restore them on start (one "
+                                                       "service per file: a second one refuses to start)")
     parser.add_argument("--init-wait", type=float, default=1.0, metavar="S",
                         help="how long start waits for a first frame to check the box against (default 1 s)")
     parser.add_argument("--spare-workers", type=int, default=1, metavar="N",

@@ -7,6 +7,9 @@ feed, instead of applying a stale box to a frame where the target has moved.
 A missing file is an empty table; a corrupt one is logged, kept aside as <file>.corrupt and treated as empty,
 so a bad file never stops the service from starting. A table of another version (a newer service's) is kept aside
 as <file>.v<version> rather than read with the wrong meaning and overwritten.
+
+A service holds <file>.lock (an OS lock, gone with the process) while it uses the file: a second service given the
+same file would restore the first one's sessions, and each would overwrite the other's table.
 """
 from __future__ import annotations
 
@@ -16,6 +19,12 @@ import os
 import tempfile
 from pathlib import Path
 from typing import Union
+
+try:
+    import fcntl
+except ImportError:         # Windows
+    fcntl = None
+    import msvcrt
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -39,9 +48,36 @@ class PersistedSession(BaseModel):
     restarts: int = 0
 
 
+class StateError(Exception):
+    """The state file cannot be used (in use by another service, or not writable)."""
+
+
 class StateStore:
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
+        self._lock_file = None
+
+    def lock(self) -> None:
+        """Take the state file for this service (StateError if another service holds it). Creating the lock file
+        also finds, at start, a state file that could never be saved."""
+        if self.path.is_dir():
+            raise StateError(f"state file {self.path} is a directory")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            lock_file = open(self.path.with_name(self.path.name + ".lock"), "ab")
+        except OSError as exc:
+            raise StateError(f"cannot use state file {self.path}: {exc}") from None
+        try:
+            _lock_exclusively(lock_file)
+        except OSError:
+            lock_file.close()
+            raise StateError(f"state file {self.path} is in use by another service") from None
+        self._lock_file = lock_file
+
+    def unlock(self) -> None:
+        if self._lock_file is not None:
+            self._lock_file.close()         # closing the file releases the lock
+            self._lock_file = None
 
     def load(self) -> list[PersistedSession]:
         try:
@@ -115,6 +151,14 @@ class StateStore:
             os.replace(self.path, self.path.with_name(self.path.name + suffix))
         except OSError:
             pass
+
+
+def _lock_exclusively(lock_file) -> None:
+    """Lock an open file for this process without waiting (OSError if another holds it)."""
+    if fcntl is not None:
+        fcntl.flock(lock_file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    else:
+        msvcrt.locking(lock_file.fileno(), msvcrt.LK_NBLCK, 1)
 
 
 def _atomic_write(path: Path, data: bytes) -> None:

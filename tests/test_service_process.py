@@ -22,7 +22,8 @@ from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import call
 from tacf_service.scene import MovingTargetScene
-from tacf_service.state import PersistedSession, StateStore
+from tacf_service.app import ServiceOptions, TrackingService
+from tacf_service.state import PersistedSession, StateError, StateStore
 
 NODE = "proc-test"
 
@@ -246,6 +247,34 @@ def test_a_session_twice_in_the_state_file_is_restored_once(tmp_path):
     path.write_text(json.dumps({"version": 1, "sessions": [entry.model_dump(mode="json"),
                                                            other.model_dump(mode="json")]}))
     assert StateStore(path).load() == [entry]       # one worker per session: the second would have no owner
+
+
+def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
+    """It would restore the first one's sessions and track them too, and each would overwrite the other's table."""
+    state = str(tmp_path / "sessions.json")
+
+    def service(node: str) -> TrackingService:
+        return TrackingService(ServiceOptions(node=node, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                              state_file=state, spare_workers=0))
+    first = service("first").open()
+    try:
+        with pytest.raises(StateError, match="in use by another service"):
+            service("second").open()
+    finally:
+        first.close()
+    service("third").open().close()             # the first one's exit released the file
+
+
+def test_serve_with_a_state_file_it_cannot_write_fails_at_start(tmp_path):
+    """Not an error every second for as long as it runs, and sessions that never survive a restart."""
+    not_a_dir = tmp_path / "file"
+    not_a_dir.write_text("")
+    serve = Serve(tmp_path, f"tcp/127.0.0.1:{free_port()}", "--state", str(not_a_dir / "sessions.json"))
+    try:
+        assert serve.proc.wait(timeout=30) == 1
+    finally:
+        serve.cleanup()
+    assert serve.log().count("\n") == 1 and "cannot use state file" in serve.log(), serve.log()
 
 
 def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
