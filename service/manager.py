@@ -126,6 +126,7 @@ class SessionManager:
         self._sessions: dict[str, Session] = {}
         self._closing = threading.Event()
         self._dirty = False
+        self._save_failing = False          # the last save failed (logged once until one works again)
         self._supervisor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
 
     # ------------------------------------------------------------------ lifecycle
@@ -657,7 +658,17 @@ class SessionManager:
             self._store.save(table)
             self._store.prune_frames({s.sid for s in sessions})
         except OSError as exc:
-            log.error("cannot save the session table to %s: %s", self._store.path, exc)
+            # Saved again every SAVE_PERIOD_S until it works (disk full, say): a stop must reach the file even
+            # when nothing else changes after it.
+            self._dirty = True
+            if not self._save_failing:
+                log.error("cannot save the session table to %s: %s; retrying every %.0f s", self._store.path, exc,
+                          SAVE_PERIOD_S)
+            self._save_failing = True
+            return
+        if self._save_failing:
+            log.info("session table saved to %s again", self._store.path)
+            self._save_failing = False
 
 
 def _zenoh_key(key: str) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import statistics
 import subprocess
@@ -17,12 +18,12 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
-from tacf_schemas import StartRequest, service_liveliness_key
+from tacf_schemas import StartRequest, StopRequest, service_liveliness_key
+from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import call
 from tacf_service.scene import MovingTargetScene
-from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.state import PersistedSession, StateError, StateStore
 
 NODE = "proc-test"
@@ -276,6 +277,27 @@ def test_serve_with_a_state_file_it_cannot_write_fails_at_start(tmp_path):
         serve.cleanup()
     assert serve.log().count("\n") == 1 and "cannot use state file" in serve.log(), serve.log()
 
+
+def test_a_stop_while_the_state_file_cannot_be_written_reaches_it_once_it_can(tmp_path):
+    """A failed save (disk full, say) is tried again until it works, so a service killed later does not bring a
+    stopped session back, even when nothing changes after the stop."""
+    state, endpoint = tmp_path / "sessions.json", f"tcp/127.0.0.1:{free_port()}"
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(endpoint,)), state_file=str(state),
+                                             spare_workers=0, init_wait_s=0.1)).open()
+    client = zenoh.open(peer_config(connect=[endpoint]))
+    try:
+        request = StartRequest(sid="gone", image_key="test/cam/none", box=(1.0, 1.0, 10.0, 10.0), profile="kcc")
+        call(client, NODE, "start", request, timeout=20)
+        assert [s.sid for s in StateStore(state).load()] == ["gone"]
+        state.unlink()
+        state.mkdir()
+        (state / "blocker").write_text("")          # no file can replace a directory that is not empty
+        call(client, NODE, "stop", StopRequest(sid="gone"), timeout=10)
+        shutil.rmtree(state)
+        assert wait_until(lambda: state.is_file() and StateStore(state).load() == [], 5)
+    finally:
+        client.close()
+        service.close()
 
 def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     port = free_port()
