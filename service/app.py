@@ -8,6 +8,7 @@ the `tacf serve` main loop with SIGTERM/SIGINT handling.
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import socket
 import threading
@@ -49,6 +50,8 @@ class TrackingService:
         validate_id(options.node, "node id")
         if options.max_sessions < 1:
             raise ValueError("max_sessions must be >= 1")
+        if not (math.isfinite(options.init_wait_s) and options.init_wait_s >= 0):     # NaN would wait for ever
+            raise ValueError(f"init_wait_s must be finite and >= 0, not {options.init_wait_s}")
         self.options = options
         self.node = options.node
         self._session = None

@@ -330,6 +330,18 @@ def test_serve_mode_overrides_the_config_files(tmp_path):
         == "peer"
 
 
+@pytest.mark.parametrize("option, value", [("--init-wait", "nan"), ("--init-wait", "inf"), ("--init-wait", "-1"),
+                                           ("--spare-workers", "-3"), ("--max-sessions", "0")])
+def test_serve_refuses_a_bad_setting_in_one_line(option, value, capsys):
+    """--init-wait nan let every start on a feed with no frame yet wait for ever, holding a control thread and a
+    session slot; a negative count was silently taken as 0."""
+    from tacf.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["serve", option, value])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err.splitlines()[-1].startswith(f"tacf serve: error: argument {option}: '{value}'")
+
 def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
     import socket
     with socket.socket() as busy:
