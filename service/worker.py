@@ -139,7 +139,6 @@ def run_worker(spec: WorkerSpec, conn) -> None:
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     worker = Worker(spec, conn)
     signal.signal(signal.SIGINT, signal.SIG_IGN)           # a terminal's Ctrl-C goes to the service
-    signal.signal(signal.SIGTERM, worker.on_sigterm)
     try:
         worker.run()
     except Exception:
@@ -166,6 +165,7 @@ class Worker:
         self._pump: threading.Thread | None = None
         self.job: Assignment | None = None
         self._assigned = _Flag()
+        self._connected = False         # the Zenoh session is open (SIGTERM then has its handler)
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
         self._extra_received = 0        # catch-up frames handed over by the service
         self._skipped = 0               # frames not used: duplicates, no box to track yet, or a reinit came
@@ -198,6 +198,10 @@ class Worker:
         conf = worker_config(self.spec.zenoh, list(self.spec.endpoints))
         try:
             with zenoh.open(conf) as session:
+                # SIGTERM kept its default action until now, ending the process at once: a Python handler runs only
+                # between bytecodes, and zenoh.open blocks up to connect/timeout_ms (5 s) when the service is gone.
+                self._connected = True
+                signal.signal(signal.SIGTERM, self.on_sigterm)
                 self._send(("idle",))
                 if self._assigned.wait_until(self._stop):
                     try:
@@ -278,6 +282,10 @@ class Worker:
             except (EOFError, OSError):
                 log.warning("service pipe closed: stopping")
                 self.request_stop()
+                if not self._connected:
+                    # Still in zenoh.open, which tries to reach the gone service for seconds: end now (SIGTERM's
+                    # default action). A worker the fork server made after the service had exited lands here.
+                    os.kill(os.getpid(), signal.SIGTERM)
                 return
             if message[0] == "assign":
                 self.job = message[1]

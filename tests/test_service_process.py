@@ -53,6 +53,22 @@ def descendants(pid: int) -> set[int]:
     return found
 
 
+def group_members(pgid: int) -> set[int]:
+    """Every live process of process group pgid (zombies excluded), also those no longer the leader's children."""
+    members = set()
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            members.add(int(entry.name))
+    return members
+
+
 def alive(pids: set[int]) -> set[int]:
     still = set()
     for pid in pids:
@@ -68,11 +84,13 @@ def alive(pids: set[int]) -> set[int]:
 class Serve:
     """A `tacf serve` subprocess with its log in a file."""
 
-    def __init__(self, tmp_path: Path, endpoint: str, *extra: str) -> None:
+    def __init__(self, tmp_path: Path, endpoint: str, *extra: str, own_group: bool = False) -> None:
+        """own_group: in a process group of its own (as a shell runs it), which a test can signal as a terminal
+        does."""
         self.log_path = tmp_path / f"serve-{time.monotonic_ns()}.log"
         self._log = open(self.log_path, "w")
         cmd = [sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE, *extra]
-        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=own_group)
 
     def log(self) -> str:
         return self.log_path.read_text()
@@ -84,7 +102,7 @@ class Serve:
         return code, time.monotonic() - started
 
     def cleanup(self) -> None:
-        for pid in descendants(self.proc.pid):
+        for pid in descendants(self.proc.pid) | group_members(self.proc.pid):
             try:
                 os.kill(pid, signal.SIGKILL)
             except OSError:
@@ -204,6 +222,25 @@ def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, cli
     finally:
         serve.cleanup()
 
+
+@pytest.mark.parametrize("to_group", [False], ids=["sigterm"])
+def test_a_stop_right_after_start_leaves_no_worker_and_no_traceback(tmp_path, endpoint, to_group):
+    """The first spare worker, asked for at start, is made once the fork server has loaded the tracker, about 1 s
+    later, even when the service has exited meanwhile. Such a worker tried to reach the gone service for 5 s, then
+    logged a 'worker crashed' traceback."""
+    serve = Serve(tmp_path, endpoint, own_group=True)
+    try:
+        assert wait_until(lambda: "ready" in serve.log(), 30), serve.log()
+        time.sleep(0.2)
+        if to_group:
+            os.killpg(serve.proc.pid, signal.SIGINT)
+        else:
+            serve.proc.send_signal(signal.SIGTERM)
+        assert serve.proc.wait(timeout=5) == 0
+        assert wait_until(lambda: not group_members(serve.proc.pid), 4.0), cmdlines(group_members(serve.proc.pid))
+        assert "Traceback" not in serve.log(), serve.log()
+    finally:
+        serve.cleanup()
 
 def _status(sid: str):
     from tacf_schemas import StatusRequest
