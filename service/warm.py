@@ -8,8 +8,14 @@ thread pool before its first call, and Zenoh is not imported at all (its runtime
 2.5; each worker opens its session after the fork).
 """
 import gc
+import signal
 
-from .worker import hold_blas_to_one_thread  # imports neither numpy nor Zenoh
+# A terminal's Ctrl-C reaches the whole process group. multiprocessing makes the fork server ignore SIGINT only
+# after this module is loaded: a Ctrl-C meanwhile would end it with a KeyboardInterrupt traceback on the terminal.
+# (Workers ignore SIGINT as well: the service stops them.)
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+from .worker import hold_blas_to_one_thread  # noqa: E402  (imports neither numpy nor Zenoh)
 
 hold_blas_to_one_thread()
 

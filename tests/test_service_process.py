@@ -223,11 +223,12 @@ def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, cli
         serve.cleanup()
 
 
-@pytest.mark.parametrize("to_group", [False], ids=["sigterm"])
+@pytest.mark.parametrize("to_group", [False, True], ids=["sigterm", "ctrl-c"])
 def test_a_stop_right_after_start_leaves_no_worker_and_no_traceback(tmp_path, endpoint, to_group):
     """The first spare worker, asked for at start, is made once the fork server has loaded the tracker, about 1 s
     later, even when the service has exited meanwhile. Such a worker tried to reach the gone service for 5 s, then
-    logged a 'worker crashed' traceback."""
+    logged a 'worker crashed' traceback. A terminal's Ctrl-C, which reaches the whole process group, also ended the
+    loading fork server with a KeyboardInterrupt traceback."""
     serve = Serve(tmp_path, endpoint, own_group=True)
     try:
         assert wait_until(lambda: "ready" in serve.log(), 30), serve.log()
