@@ -1,9 +1,9 @@
 """TrackingService: one Zenoh session, the control queryable, the session manager, liveliness; and serve(),
-the `tacf serve` main loop with SIGTERM/SIGINT handling.
+the `tacf serve` main loop with SIGTERM/SIGINT/SIGHUP handling.
 
     with TrackingService(ServiceOptions(node="edge")) as service:   # in-process (tests)
         ...
-    serve(options)                                                  # until SIGTERM/SIGINT, then clean exit
+    serve(options)                                                  # until SIGTERM/SIGINT/SIGHUP, then clean exit
 """
 from __future__ import annotations
 
@@ -27,6 +27,8 @@ from .trackers import DEFAULT_FACTORY
 log = logging.getLogger(__name__)
 
 SHUTDOWN_BUDGET_S = 1.3     # workers get this long in total; the whole exit stays under 2 s
+# SIGHUP too: a closed terminal or ssh session would otherwise end the service without saving its table.
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 
 
 def default_node_id() -> str:
@@ -118,9 +120,9 @@ class TrackingService:
 
 
 def serve(options: ServiceOptions) -> int:
-    """Run until SIGTERM or SIGINT; return the exit code."""
+    """Run until one of STOP_SIGNALS; return the exit code."""
     stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGTERM, signal.SIGINT)}
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
     try:
         service = TrackingService(options).open()
     except Exception as exc:

@@ -243,6 +243,18 @@ def test_a_stop_right_after_start_leaves_no_worker_and_no_traceback(tmp_path, en
     finally:
         serve.cleanup()
 
+def test_sighup_stops_the_service_cleanly(tmp_path, endpoint):
+    """A closed terminal or ssh session sends SIGHUP: the service stops as on SIGTERM (its table saved), instead of
+    being killed by the signal's default action."""
+    serve = Serve(tmp_path, endpoint, "--state", str(tmp_path / "sessions.json"))
+    try:
+        assert wait_until(lambda: "ready" in serve.log(), 30), serve.log()
+        code, took = serve.signal_and_wait(signal.SIGHUP)
+        assert code == 0 and took < 2.0, (code, took, serve.log()[-2000:])
+        assert "stopped in" in serve.log()
+    finally:
+        serve.cleanup()
+
 def _status(sid: str):
     from tacf_schemas import StatusRequest
     return StatusRequest(sid=sid)
