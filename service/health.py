@@ -35,9 +35,12 @@ class HealthStats:
         self.frames_rejected += 1
 
     def processed(self, seq: int, stamp_ns: int, processing_ms: float, pme: float | None, ok: bool) -> None:
+        """A frame used: tracked (with its pme), or the tracker initialised on it (pme None: the last one stays)."""
         self.frames_processed += 1
         self.frames_lost += not ok
-        self.last_seq, self.last_stamp_ns, self.last_pme = seq, stamp_ns, pme
+        self.last_seq, self.last_stamp_ns = seq, stamp_ns
+        if pme is not None:
+            self.last_pme = pme
         self._processing_ms.append(processing_ms)
         now = time.monotonic()
         self._processed_at.append(now)

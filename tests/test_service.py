@@ -162,13 +162,42 @@ def test_frames_with_the_target_lost_are_counted_in_health(service, client, feed
         start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="doubtful",
               overrides={"lost_pme": 1e9})
         health = wait_until(lambda: (h := results.last_health()) and h.frames_processed >= 5 and h, 30)
-        assert health.state == "lost" and health.frames_lost == health.frames_processed
+        assert health.state == "lost" and health.frames_lost == health.frames_processed - 1   # all but the init frame
         assert results.results() and not any(r.ok for r in results.results())
         assert call(client, NODE, "status", StatusRequest(sid="doubtful")).state == "lost"
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="doubtful"))
 
+
+def test_health_counters_add_up(service, client):
+    """Every frame a worker received is processed (the one it was initialised on included), dropped or rejected."""
+    key = "test/cam/counted"
+    scene = MovingTargetScene(320, 240, target=48, speed=1.0)
+    results = Collector(client, NODE, "counted")
+    publisher = client.declare_publisher(key)
+    try:
+        start(client, service, image_key=key, box=scene.box(0), sid="counted")    # inits on the next live frame
+        seq = 0
+
+        def tracking():
+            nonlocal seq
+            seq += 1
+            publisher.put(encode(encode_frame(scene.frame(seq)[0], seq, "jpeg")))
+            return call(client, NODE, "status", StatusRequest(sid="counted")).state == "tracking"
+        assert wait_until(tracking, 30, period=0.2)
+        for seq in range(seq + 1, seq + 11):
+            publisher.put(encode(encode_frame(scene.frame(seq)[0], seq, "jpeg")))
+            time.sleep(0.15)
+        publisher.put(b"\xc1garbage")
+        health = wait_until(lambda: (h := results.last_health()) and h.last_seq == seq and h.frames_rejected and h, 10)
+        assert health, results.last_health()
+        assert health.frames_received == health.frames_processed + health.frames_dropped + health.frames_rejected, \
+            health
+    finally:
+        publisher.undeclare()
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="counted"))
 
 def test_workers_fork_from_a_server_with_one_thread_and_no_zenoh(service, client, feed):
     """Workers are forked from a fork server that loaded the tracker once (tacf_service.warm). A fork keeps only
