@@ -139,7 +139,12 @@ class SessionManager:
         if self._store is None:
             return 0
         restored = 0
-        for saved in self._store.load()[: self.max_sessions]:
+        table = self._store.load()
+        if len(table) > self.max_sessions:
+            log.warning("not restoring %d session(s) of %s beyond --max-sessions %d: %s",
+                        len(table) - self.max_sessions, self._store.path, self.max_sessions,
+                        ", ".join(s.sid for s in table[self.max_sessions:]))
+        for saved in table[: self.max_sessions]:
             try:
                 validate_image_key(saved.image_key)
             except InvalidKeyError as exc:

@@ -300,6 +300,23 @@ def test_a_session_twice_in_the_state_file_is_restored_once(tmp_path):
     assert StateStore(path).load() == [entry]       # one worker per session: the second would have no owner
 
 
+def test_sessions_beyond_max_sessions_are_not_restored_silently(tmp_path, caplog):
+    """A service restarted with a smaller --max-sessions restores what fits and names the sessions it drops (the
+    next save forgets them)."""
+    state = tmp_path / "sessions.json"
+    entry = PersistedSession(sid="a", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0),
+                             created_ns=1)
+    StateStore(state).save([entry.model_copy(update={"sid": sid}) for sid in ("a", "b", "c")])
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                             state_file=str(state), max_sessions=2, spare_workers=0))
+    with caplog.at_level("WARNING", logger="tacf_service.manager"):
+        service.open()
+    try:
+        assert [s.sid for s in service.manager.list().sessions] == ["a", "b"]
+        assert "not restoring 1 session(s)" in caplog.text and "--max-sessions 2: c" in caplog.text
+    finally:
+        service.close()
+
 def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
     """It would restore the first one's sessions and track them too, and each would overwrite the other's table."""
     state = str(tmp_path / "sessions.json")
