@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from .trackers import DEFAULT_FACTORY
 
     log = logging.getLogger("tacf_service")
-    node = args.node or default_node_id()
+    node = default_node_id() if args.node is None else args.node     # --node "" is an invalid id, not a default
     try:
         validate_id(node, "node id")
     except InvalidIdError as exc:

@@ -163,10 +163,14 @@ def test_default_zenoh_config_is_loopback_only():
         worker_endpoints(ZenohOptions(listen=("tcp/127.0.0.1:0",)))
 
 
-def test_serve_rejects_a_bad_node_id():
-    out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--node", "bad/id"], capture_output=True,
-                         text=True, timeout=30)
-    assert out.returncode == 2 and "invalid node id" in out.stderr
+@pytest.mark.parametrize("node", ["bad/id", ""])
+def test_serve_rejects_a_bad_node_id(tmp_path, endpoint, node):
+    serve = Serve(tmp_path, endpoint, "--node", node)       # the last --node wins
+    try:
+        assert serve.proc.wait(timeout=30) == 2             # "" was taken as "use the hostname"
+    finally:
+        serve.cleanup()
+    assert "invalid node id" in serve.log()
 
 
 def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, client):
