@@ -90,6 +90,7 @@ class TrackingService:
     def close(self) -> None:
         """Withdraw the service token, stop answering, stop the workers, close the session. Idempotent."""
         started = time.monotonic()
+        was_open = self._session is not None      # not after a Zenoh session that failed to open, nor twice
         if self._token is not None:
             _quietly(self._token.undeclare)
             self._token = None
@@ -110,7 +111,8 @@ class TrackingService:
         if self._store is not None:
             self._store.unlock()        # after the manager's last save
             self._store = None
-        log.info("tacf service %r stopped in %.2f s", self.node, time.monotonic() - started)
+        if was_open:
+            log.info("tacf service %r stopped in %.2f s", self.node, time.monotonic() - started)
 
     def __enter__(self) -> "TrackingService":
         return self.open()

@@ -422,6 +422,7 @@ def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
         out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE],
                              capture_output=True, text=True, timeout=30)
     assert out.returncode == 1 and "cannot start the service" in out.stderr
+    assert "stopped" not in out.stderr, out.stderr          # it never started
 
 
 COLD_OPEN_AND_CLOSE = """
