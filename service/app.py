@@ -27,6 +27,7 @@ from .trackers import DEFAULT_FACTORY
 log = logging.getLogger(__name__)
 
 SHUTDOWN_BUDGET_S = 1.3     # workers get this long in total; the whole exit stays under 2 s
+NODE_CHECK_TIMEOUT_S = 1.0  # the liveliness query ends as soon as every linked node has answered
 # SIGHUP too: a closed terminal or ssh session would otherwise end the service without saving its table.
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 
@@ -72,6 +73,7 @@ class TrackingService:
             self._store.lock()          # before the session: a service that cannot persist never goes live
         try:
             self._session = zenoh.open(service_config(options.zenoh))
+            _refuse_a_taken_node(self._session, self.node)
             self._history = FrameHistory(self._session)
             self.manager = SessionManager(self._session, self.node, self._history, options.zenoh, endpoints,
                                           max_sessions=options.max_sessions, store=self._store,
@@ -139,6 +141,18 @@ def serve(options: ServiceOptions) -> int:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return 0
+
+
+def _refuse_a_taken_node(session, node: str) -> None:
+    """Two services under one node id both answer every query to it: a start there starts the session on both, whose
+    boxes then interleave on one key. Boxes flashed from one SD-card image share a hostname, the default id. The
+    check sees the nodes linked when the session opens (those of --connect, and the ones gossip has named by then),
+    not one found later by multicast scouting; clients name such a clash when they meet it (AmbiguousNode)."""
+    replies = session.liveliness().get(service_liveliness_key(node), timeout=NODE_CHECK_TIMEOUT_S)
+    if any(reply.ok is not None for reply in replies):
+        raise RuntimeError(f"another tacf service already runs as node {node!r} on this network; give this one its "
+                           "own --node (a service that has just died keeps its token until its link drops: up to "
+                           "10 s on a lost network)")
 
 
 def _quietly(fn) -> None:

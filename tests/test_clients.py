@@ -309,20 +309,26 @@ def test_command_line_mode_help_says_the_mode_each_command_opens(capsys):
         _help(main, "list", capsys)
 
 
-def test_two_services_with_one_node_id_are_named_as_such(service, client, camera, capsys):
-    """Two services started with the same --node both answer every query to that node: a start without node=...
-    said "2 services on the network (n, n): pass node=...", and passing that node started the session on both;
-    `tacf nodes` showed one row for the two."""
+def test_two_services_with_one_node_id_are_named_as_such(service, camera, capsys):
+    """Two services under the same --node both answer every query to that node: a start without node=... said
+    "2 services on the network (n, n): pass node=...", and passing that node started the session on both;
+    `tacf nodes` showed one row for the two. A service refuses to start under a node id already live where it
+    connects (tests/test_service_process.py), so the clash here is met by a client that links two services started
+    apart, as a ground station linking two boxes flashed from one image would."""
+    import dataclasses
     import json
 
     from tacf.cli import main
 
-    with LocalService(node=service.node, extra_args=("--connect", service.endpoint)):
-        assert _wait(lambda: len(client.nodes()) == 2, timeout=30)
-        with pytest.raises(AmbiguousNode) as exc:
-            client.start(camera.key, SCENE.box(0))
-        assert str(exc.value).startswith(f"several services answer as node {service.node!r}: give each its own node id")
-        assert main(["nodes", "--json", "--connect", service.endpoint]) == 0
+    with LocalService(node=service.node) as twin:
+        both = dataclasses.replace(service.options, connect=(service.endpoint, twin.endpoint))
+        with TrackingClient(both, timeout=5.0) as client:
+            assert _wait(lambda: len(client.nodes()) == 2, timeout=30)
+            with pytest.raises(AmbiguousNode) as exc:
+                client.start(camera.key, SCENE.box(0))
+            assert str(exc.value).startswith(f"several services answer as node {service.node!r}: give each its own "
+                                             "node id")
+        assert main(["nodes", "--json", "--connect", service.endpoint, "--connect", twin.endpoint]) == 0
         assert [row["node"] for row in json.loads(capsys.readouterr().out)] == [service.node] * 2
 
 

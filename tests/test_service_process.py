@@ -22,7 +22,7 @@ from tacf_schemas import StartRequest, StopRequest, service_liveliness_key
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
-from tacf_service.probe import call
+from tacf_service.probe import call, list_all
 from tacf_service.scene import MovingTargetScene
 from tacf_service.state import PersistedSession, StateError, StateStore
 
@@ -423,6 +423,28 @@ def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
                              capture_output=True, text=True, timeout=30)
     assert out.returncode == 1 and "cannot start the service" in out.stderr
     assert "stopped" not in out.stderr, out.stderr          # it never started
+
+
+def test_serve_refuses_a_node_id_already_live_where_it_connects():
+    """A second service under a live node id (two boxes flashed from one image share a hostname, the default id)
+    would answer every query to that node beside the first: a start there started the session on both. It now
+    refuses to start, and the first serves on alone."""
+    first_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    first = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(first_endpoint,)),
+                                           spare_workers=0)).open()
+    try:
+        out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--node", NODE, "--listen",
+                              f"tcp/127.0.0.1:{free_port()}", "--connect", first_endpoint],
+                             capture_output=True, text=True, timeout=30)
+        assert out.returncode == 1, out.stderr[-2000:]
+        assert f"another tacf service already runs as node {NODE!r}" in out.stderr
+        session = zenoh.open(peer_config(connect=[first_endpoint]))
+        try:
+            assert [lst.node for lst in list_all(session)] == [NODE]
+        finally:
+            session.close()
+    finally:
+        first.close()
 
 
 COLD_OPEN_AND_CLOSE = """
