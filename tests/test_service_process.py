@@ -31,9 +31,8 @@ NODE = "proc-test"
 
 # ---------------------------------------------------------------------------------------------- helpers
 
-def descendants(pid: int) -> set[int]:
-    """Every live descendant of pid (from /proc), zombies excluded."""
-    children: dict[int, list[int]] = {}
+def _live_processes():
+    """(pid, the fields of /proc/<pid>/stat after the command name) of every process but the zombies."""
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -43,7 +42,14 @@ def descendants(pid: int) -> set[int]:
             continue
         fields = stat[stat.rindex(")") + 2:].split()
         if fields[0] != "Z":
-            children.setdefault(int(fields[1]), []).append(int(entry.name))
+            yield int(entry.name), fields
+
+
+def descendants(pid: int) -> set[int]:
+    """Every live descendant of pid (from /proc), zombies excluded."""
+    children: dict[int, list[int]] = {}
+    for child, fields in _live_processes():
+        children.setdefault(int(fields[1]), []).append(child)
     found, todo = set(), [pid]
     while todo:
         for child in children.get(todo.pop(), []):
@@ -55,18 +61,7 @@ def descendants(pid: int) -> set[int]:
 
 def group_members(pgid: int) -> set[int]:
     """Every live process of process group pgid (zombies excluded), also those no longer the leader's children."""
-    members = set()
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2:].split()
-        if fields[0] != "Z" and int(fields[2]) == pgid:
-            members.add(int(entry.name))
-    return members
+    return {pid for pid, fields in _live_processes() if int(fields[2]) == pgid}
 
 
 def alive(pids: set[int]) -> set[int]:
