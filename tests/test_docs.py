@@ -35,3 +35,15 @@ def test_every_extra_is_named_in_the_readme():
     table = (ROOT / "pyproject.toml").read_text().split("[project.optional-dependencies]")[1].split("\n[")[0]
     extras = re.findall(r"^([A-Za-z0-9_-]+)\s*=", table, re.M)      # tomllib is Python 3.11+
     assert extras and [extra for extra in extras if f"[{extra}]" not in README] == []
+
+
+def test_the_docker_image_gets_the_files_the_package_metadata_names():
+    """pyproject's readme and license-files must reach `pip install .` in docker/Dockerfile: LICENSE was left out
+    of the build context, so the image's package carried no licence and setuptools warned that the build will
+    fail from 2027-02-18 ("Pattern 'LICENSE' did not match any files")."""
+    pyproject = (ROOT / "pyproject.toml").read_text()
+    named = re.findall(r'^readme = "([^"]+)"', pyproject, re.M)
+    named += re.findall(r'"([^"]+)"', re.search(r"^license-files = \[(.*)\]", pyproject, re.M).group(1))
+    let_in = (ROOT / ".dockerignore").read_text().split()
+    copied = " ".join(re.findall(r"^COPY (.*)$", (ROOT / "docker" / "Dockerfile").read_text(), re.M)).split()
+    assert named and [name for name in named if f"!{name}" not in let_in or name not in copied] == []
