@@ -22,7 +22,6 @@ from tacf_clients.local_service import free_port
 from tacf_clients.zconfig import make_config
 from tacf_schemas import StartRequest, StopRequest
 from tacf_service.app import ServiceOptions, TrackingService
-from tacf_service.config import worker_config
 from tacf_service.loopback import FramePublisher, SessionResults, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
@@ -42,7 +41,7 @@ def etc(tmp_path_factory) -> Path:
     etc = tmp_path_factory.mktemp("etc")
     subprocess.run(["sh", str(DOCS / "make-certs.sh"), str(etc / "certs")], check=True, capture_output=True)
     shutil.copy(DOCS / "users.txt.example", etc / "users.txt")
-    for name in ("service", "ground", "viewer"):
+    for name in ("service", "ground", "viewer", "camera"):
         text = (DOCS / f"{name}.json5").read_text().replace("/etc/tacf/", f"{etc}/")
         (etc / f"{name}.json5").write_text(text)
     return etc
@@ -81,8 +80,10 @@ def derive(source: Path, target: Path, settings: dict) -> Path:
 
 @pytest.fixture(scope="module")
 def camera(etc, endpoint, service):
-    """An onboard camera on the edge box: it connects like the service's workers (user "edge")."""
-    session = zenoh.open(worker_config(ZenohOptions(config_file=str(etc / "service.json5")), [endpoint]))
+    """A camera with camera.json5 (user "camera"), its session made as `tacf publish --zenoh-config` makes it.
+    service.json5, which the README once offered cameras, kept its access control in the camera's session:
+    that denied the camera's link to the service, and `tacf publish` sent its frames nowhere."""
+    session = open_client(etc, endpoint, "camera")
     with FramePublisher(session, FEED, MovingTargetScene(640, 360, speed=2.0), fps=10) as feed:
         assert wait_until(lambda: feed.seq >= 3, 10)
         yield feed
@@ -153,6 +154,18 @@ def test_viewer_reads_boxes_but_cannot_call_control(etc, endpoint, ground, track
     assert [(s.sid, s.state) for s in sessions.sessions] == [(SID, "tracking")]
 
 
+def test_camera_publishes_frames_but_cannot_call_control_or_read_boxes(etc, endpoint, tracked):
+    with open_client(etc, endpoint, "camera") as camera:
+        seen = SessionResults(camera, "*", "*")
+        assert list_all(camera, timeout=1.0) == []
+        with pytest.raises(ControlError) as err:
+            call(camera, NODE, "start", StartRequest(image_key=FEED, box=(1, 1, 9, 9)), timeout=1.0)
+        assert err.value.code == "no_service"
+        assert boxes_grow(tracked)
+        assert seen.results() == [] and seen.last_health() is None
+        seen.close()
+
+
 def tacf(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "tacf.cli", *args], capture_output=True, text=True, timeout=60)
 
@@ -180,7 +193,8 @@ def test_mutual_tls_with_access_control_by_certificate_common_name(etc):
 
     subjects = [{"id": "edge", "cert_common_names": ["tacf-service"]},
                 {"id": "ground", "cert_common_names": ["ground"]},
-                {"id": "viewer", "cert_common_names": ["viewer"]}]
+                {"id": "viewer", "cert_common_names": ["viewer"]},
+                {"id": "camera", "cert_common_names": ["camera"]}]
     config = derive(etc / "service.json5", etc / "service-mtls.json5",
                     {**presenting("service"), "access_control/subjects": subjects})
     endpoint = f"tls/127.0.0.1:{free_port()}"

@@ -5,8 +5,8 @@
 #
 # DIR gets: ca.pem + ca.key (the CA; keep ca.key offline), service.pem + service.key (the edge box's listen
 # certificate, valid for localhost, 127.0.0.1 and every NAME: DNS names or IP addresses that clients use to reach
-# the box), and ground.pem/.key and viewer.pem/.key (client certificates with CN ground / viewer, only needed with
-# mutual TLS). Keys are EC P-256, certificates are valid for 825 days. Never commit the keys.
+# the box), and ground.pem/.key, viewer.pem/.key and camera.pem/.key (client certificates with CN ground / viewer /
+# camera, only needed with mutual TLS). Keys are EC P-256, certificates are valid for 825 days. Never commit the keys.
 set -eu
 dir=${1:?usage: make-certs.sh DIR [NAME ...]}
 shift
@@ -41,6 +41,7 @@ leaf() {
 leaf service tacf-service serverAuth,clientAuth "$san"
 leaf ground ground clientAuth "DNS:ground"
 leaf viewer viewer clientAuth "DNS:viewer"
+leaf camera camera clientAuth "DNS:camera"
 rm -f ca.srl
 chmod 644 ./*.pem
-echo "certificates in $(pwd): ca.pem service.pem ground.pem viewer.pem (keys: *.key)"
+echo "certificates in $(pwd): ca.pem service.pem ground.pem viewer.pem camera.pem (keys: *.key)"
