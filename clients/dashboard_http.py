@@ -172,8 +172,12 @@ class DashboardHandler(BaseHTTPRequestHandler):
         except (BrokenPipeError, ConnectionResetError, TimeoutError):
             self.close_connection = True
 
-    def do_HEAD(self) -> None:
-        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET", {"Allow": "GET, POST"})
+    def _not_allowed(self) -> None:
+        """A 405 in JSON like every other refusal (the stdlib answers PUT and the like with a 501 HTML page)."""
+        self.close_connection = self.command != "HEAD"       # a body left unread is not the next request
+        self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET or POST", {"Allow": "GET, POST"})
+
+    do_HEAD = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed
 
     def do_POST(self) -> None:
         path = urlsplit(self.path).path
@@ -190,14 +194,21 @@ class DashboardHandler(BaseHTTPRequestHandler):
             if body is None:                        # refused, maybe with the body unread: it is not a request
                 self.close_connection = True
                 return
-            self._json(HTTPStatus.OK, action(body))
+            self._act(action, body)
+        except (BrokenPipeError, ConnectionResetError, TimeoutError):      # the error replies' writes too
+            self.close_connection = True
+
+    def _act(self, action, body: dict) -> None:
+        """Run a POST's action and send its reply: the service's errors and invalid fields as 4xx/5xx JSON."""
+        try:
+            reply = action(body)
         except TacfError as exc:
             status = next(s for cls, s in _ERROR_STATUS if isinstance(exc, cls))
             self._error(status, getattr(exc, "code", type(exc).__name__), str(exc))
         except (ValueError, TypeError, KeyError) as exc:
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", str(exc) or type(exc).__name__)
-        except (BrokenPipeError, ConnectionResetError, TimeoutError):
-            self.close_connection = True
+        else:
+            self._json(HTTPStatus.OK, reply)
 
     def _admitted(self) -> bool:
         """Whether dashboard_access lets this request in; if not, the refusal (or the token's login) is sent."""
@@ -248,8 +259,12 @@ class DashboardHandler(BaseHTTPRequestHandler):
     # --- pages ------------------------------------------------------------------------------------------------
     def _static(self, name: str) -> None:
         root = self.server.static.resolve()
-        target = (root / unquote(name)).resolve()
-        if root not in target.parents or not target.is_file():
+        try:
+            target = (root / unquote(name)).resolve()
+            found = root in target.parents and target.is_file()
+        except (ValueError, OSError):              # a NUL byte, a name too long for the file system
+            found = False
+        if not found:
             self._error(HTTPStatus.NOT_FOUND, "not_found", f"no such file: {name}")
             return
         body = target.read_bytes()
@@ -381,11 +396,15 @@ class DashboardHandler(BaseHTTPRequestHandler):
         except ValueError:
             length = -1
         if not 0 < length <= MAX_BODY:
-            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"a JSON body of 1 to {MAX_BODY} bytes is needed")
+            self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.BAD_REQUEST,
+                        "invalid_request", f"a JSON body of 1 to {MAX_BODY} bytes is needed")
+            return None
+        data = self.rfile.read(length)
+        if len(data) < length:                     # the client gave up: what came is not the request it meant
             return None
         try:
-            body = json.loads(self.rfile.read(length))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            body = json.loads(data)
+        except (ValueError, RecursionError) as exc:      # also a 5000-digit number, and [[[[... too deep
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"not JSON: {exc}")
             return None
         if not isinstance(body, dict):

@@ -331,6 +331,44 @@ def test_odd_requests_get_a_clear_answer():
         assert after.startswith(b"HTTP/1.1 200"), "no body after a HEAD reply, to be read as the next reply"
 
 
+def _raw_reply(address, request: bytes, half_close: bool = False) -> bytes:
+    with socket.create_connection(address, timeout=10) as raw:
+        raw.sendall(request)
+        if half_close:
+            raw.shutdown(socket.SHUT_WR)
+        return b"".join(iter(lambda: raw.recv(65536), b""))
+
+
+def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
+    """Each of these ended in a traceback on the server and a connection closed without a reply (or a 501 HTML
+    page): a body nested too deep for json, a 5000-digit number, a NUL byte or an over-long name under /static/;
+    PUT and friends."""
+    def post(path: str, body: bytes) -> bytes:
+        return (b"POST %s HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: %d\r\n"
+                b"Connection: close\r\n\r\n%s" % (path.encode(), len(body), body))
+
+    def get(path: str, method: str = "GET") -> bytes:
+        return f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n".encode()
+
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        for request, status in ((post("/api/stop", b'{"sid": ' + b"[" * 30000 + b"]" * 30000 + b"}"), 400),
+                                (post("/api/start", b'{"seq": ' + b"9" * 5000 + b"}"), 400),
+                                (post("/api/stop", b'{"sid": "' + b"x" * 70000 + b'"}'), 413),
+                                (get("/static/%00"), 404), (get("/static/" + "a" * 5000), 404),
+                                (get("/api/start", "PUT"), 405), (get("/api/stop", "DELETE"), 405),
+                                (get("/api/start", "OPTIONS"), 405)):
+            reply = _raw_reply(address, request)
+            head, _, body = reply.partition(b"\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 %d " % status), (request[:40], reply[:200])
+            assert json.loads(body)["error"], reply[:200]
+        # a client that gave up half way through its body: what came is not the request it meant
+        truncated = b"POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n" \
+                    b"Content-Length: 100\r\n\r\n{\"key\": \"test/dashboard/half\"}"
+        assert _raw_reply(address, truncated, half_close=True) == b""
+        assert app.dashboard.image_keys() == []
+
+
 def test_an_ipv6_host_is_served():
     try:
         socket.create_server(("::1", 0), family=socket.AF_INET6).close()
