@@ -218,19 +218,19 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self._error(HTTPStatus.FORBIDDEN, "host_not_allowed",
                         f"this dashboard does not answer to the host name {host!r} (see tacf dashboard --allow-host)")
             return False
-        if access.is_token(access.presented(self.headers)):
-            return True
         url = urlsplit(self.path)
         query = parse_qs(url.query)
-        if self.command == "GET" and access.is_token((query.pop("token", None) or [None])[-1]):
-            if url.path not in ("/", "/index.html"):
-                return True                          # a program that cannot send headers (VLC on /mjpeg/...)
-            # a browser's first visit: keep the token as a cookie, and out of the address bar and history
+        url_token = (query.pop("token", None) or [None])[-1] if self.command == "GET" else None
+        if access.token is not None and url.path in ("/", "/index.html") and access.is_token(url_token):
+            # a browser's visit, logged in already or not: keep the token as a cookie, and out of the address bar
+            # and history
             rest = urlencode(query, doseq=True)
             self._send(HTTPStatus.SEE_OTHER, b"", None,
                        {"Location": url.path + (f"?{rest}" if rest else ""),
                         "Set-Cookie": access.cookie(secure=self.server.tls is not None)})
             return False
+        if access.is_token(access.presented(self.headers)) or access.is_token(url_token):
+            return True                              # the URL's: a program that cannot send headers (VLC on /mjpeg/)
         self._error(HTTPStatus.UNAUTHORIZED, "unauthorized", "open the address tacf dashboard printed (it carries "
                     "?token=...), or send Authorization: Bearer TOKEN",
                     {"WWW-Authenticate": 'Bearer realm="tacf dashboard"'})

@@ -445,6 +445,9 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         # another app on this host (any port) with a cookie SimpleCookie finds malformed
         assert _get(base + "/api/state", {"Cookie": 'prefs={"theme":"dark"}; ' + cookie.split(";")[0]})[0] == 200
         assert _get(base + "/", {"Cookie": f"{COOKIE}=wrong-wrong-wrong-wrong"})[0] == 401
+        with pytest.raises(urllib.error.HTTPError) as again:   # the printed address opened again, logged in already
+            opener.open(urllib.request.Request(app.url, headers={"Cookie": cookie.split(";")[0]}), timeout=10)
+        assert again.value.code == 303 and again.value.headers["Location"] == "/", "the token leaves the address bar"
 
 
 def test_https_with_the_certificates_of_make_certs(tmp_path):
