@@ -82,6 +82,9 @@ class DashboardServer(ThreadingHTTPServer):
 
     daemon_threads = True
     allow_reuse_address = True
+    # the stdlib's 5: the connections of many viewers (re)connecting at once, beyond it, waited 1 s, 3 s... for
+    # their SYN to be sent again
+    request_queue_size = socket.SOMAXCONN
 
     def __init__(self, address: tuple[str, int], dashboard: Dashboard, *, events_hz: float = EVENTS_HZ,
                  access: DashboardAccess | None = None, tls: ssl.SSLContext | None = None):

@@ -316,6 +316,25 @@ def test_an_mjpeg_viewer_that_leaves_while_no_frame_comes_is_let_go():
         assert _wait(lambda: _request_threads() == before, timeout=3), _request_threads()
 
 
+def test_many_viewers_connecting_at_once_are_all_answered_at_once():
+    """The listen backlog was the stdlib's 5: of 40 viewers connecting together (a dashboard restarted under open
+    pages, a wall of screens), most waited a second or more for the kernel to take their connection."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        started = time.monotonic()
+        viewers = [socket.create_connection(app.server.server_address[:2], timeout=10) for _ in range(40)]
+        try:
+            for viewer in viewers:
+                viewer.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            for viewer in viewers:
+                received = b""
+                while b"event: state" not in received:
+                    received += viewer.recv(65536)
+            assert time.monotonic() - started < 1.0, "a dropped SYN is sent again after 1 s"
+        finally:
+            for viewer in viewers:
+                viewer.close()
+
+
 def test_odd_requests_get_a_clear_answer():
     with DashboardApp(no_service_options(), port=0, image_keys=[KEY]) as app:
         base = app.url.rstrip("/")
