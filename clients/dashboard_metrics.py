@@ -3,7 +3,8 @@
 Per session (labels node, sid, image_key): fps, processing latency (mean and p95), frame age, capture-to-
 dashboard latency of the newest box, PME, frame counters (received, processed, dropped, rejected), worker
 restarts, and the state as a one-hot gauge over every SessionState. Counters are the service's running totals
-as of its last health report. Pure functions: the HTTP side passes in the views.
+as of its last health report. Per watched image key: the frames the dashboard read and the messages it could not
+decode. Pure functions: the HTTP side passes in the views.
 """
 from __future__ import annotations
 
@@ -90,6 +91,10 @@ def render(views: Iterable, *, frame_counts: Mapping[str, tuple[int, int]] | Non
                "Frames the dashboard read per image key (at most its frame rate cap; the rest are skipped).")
         for key, (received, _) in sorted(frame_counts.items()):
             lines.append(f"tacf_dashboard_frames_received_total{_labels({'image_key': key})} {received}")
+        family("tacf_dashboard_frames_rejected_total", "counter",
+               "Messages on an image key that the dashboard could not decode as a frame.")
+        for key, (_, rejected) in sorted(frame_counts.items()):
+            lines.append(f"tacf_dashboard_frames_rejected_total{_labels({'image_key': key})} {rejected}")
 
     family("tacf_session_state", "gauge", "1 for the session's current state, 0 for the others.")
     for v in views:

@@ -296,6 +296,19 @@ def test_frames_kept_are_capped_in_bytes(monkeypatch):
         assert board.frame(key, seq=0).seq == 7, "the newest stays, whatever its size"
 
 
+def test_metrics_count_what_the_dashboard_could_not_decode_on_a_key():
+    """A camera publishing something else than frames: the dashboard counted the rejects, /metrics never showed
+    them, and the page just waits for frames."""
+    key = "test/dashboard/garbage"
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=[key]) as app:
+        session.put(key, b"not a frame")
+        assert _wait(lambda: app.dashboard.frame_counts()[key] == (0, 1)), app.dashboard.frame_counts()
+        samples = _metrics(_get(app.url + "metrics")[2].decode())
+        assert samples[("tacf_dashboard_frames_rejected_total", frozenset({("image_key", key)}))] == 1
+        assert samples[("tacf_dashboard_frames_received_total", frozenset({("image_key", key)}))] == 0
+
+
 def _request_threads() -> int:
     """The HTTP server's handler threads (ThreadingMixIn names them after process_request_thread)."""
     import threading
