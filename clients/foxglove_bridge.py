@@ -4,7 +4,8 @@ foxglove_relay.py; no ROS).
 
     tacf foxglove          # in Foxglove: Open connection > Foxglove WebSocket > ws://127.0.0.1:8765
 
-Topics, for each watched image key K (the key of every listed session, plus the ones given) and session N/S:
+Topics, for each watched image key K (the key of every listed session, plus the ones given; a session's key's
+topics are withdrawn once no session uses it) and session N/S (withdrawn when it goes):
 - `/K/image` (foxglove.CompressedImage): the newest frame of K, at most `image_hz` a second, only while someone
   subscribes; JPEG frames go as they came, raw ones are encoded once.
 - `/K/tracks` (foxglove.ImageAnnotations): the newest box of every session on K, a rectangle (green while the
@@ -249,7 +250,10 @@ class FoxgloveBridge:
 
     def publish_images(self) -> None:
         """The newest frame of each watched key whose image topic somebody subscribes to (or all, recording)."""
-        for key in self.board.image_keys():
+        watched = self.board.image_keys()
+        for key in self._images.keys() - set(watched):
+            self._withdraw(key)
+        for key in watched:
             topic = f"/{key}/image"
             if key not in self._images:
                 self._images[key] = CompressedImageChannel(topic, context=self.context)
@@ -261,6 +265,18 @@ class FoxgloveBridge:
             self._sent_frames[key] = (snap.seq, snap.received_ns)
             self._images[key].log(CompressedImage(timestamp=_timestamp(snap.stamp_ns), frame_id=key,
                                                   data=snap.jpeg, format="jpeg"), log_time=snap.received_ns)
+
+    def _withdraw(self, key: str) -> None:
+        """Withdraw the topics of a key no longer watched (no session uses it any more), once its rectangles are
+        taken off: the last of its tracks messages, sent by publish_sessions, is an empty one."""
+        if self._sent_boxes.get(key, ()) != ():
+            return
+        self._images.pop(key).close()
+        self._sent_frames.pop(key, None)
+        self._sent_boxes.pop(key, None)
+        tracks = self._tracks.pop(key, None)
+        if tracks is not None:
+            tracks.close()
 
     def _channel_of(self, sid_id: str) -> foxglove.Channel:
         channel = self._session_channels.get(sid_id)

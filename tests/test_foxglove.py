@@ -311,6 +311,35 @@ def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path
     assert any(s["health"] for s in statuses) and statuses[-1]["box"] is not None
 
 
+def test_the_topics_of_a_key_go_with_its_last_session(rig):
+    """A key nobody asked for is watched while a session uses it: its image and tracks topics are advertised with
+    the session's and withdrawn after it (its rectangle taken off first), not left in the viewer's list for good."""
+    service, _, camera, rig_board = rig
+    with Dashboard(session=rig_board.session) as board, FoxgloveBridge(board, port=0) as bridge, \
+            foxglove_client(bridge.port) as fox:
+        stop = threading.Event()
+        loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge-keys")
+        loop.start()
+        try:
+            camera.hold.set()
+            seq = camera.last_seq
+            ok, info = fox.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
+                                                "seq": seq, "sid": "fox-keys", "node": service.node})
+            assert ok, info
+            topics = {f"/{KEY}/image", f"/{KEY}/tracks", f"/tacf/{service.node}/fox-keys"}
+            assert fox.pump_until(lambda: {c["topic"] for c in fox.channels.values()} == topics), fox.channels
+            fox.subscribe(f"/{KEY}/tracks")
+            assert fox.pump_until(lambda: any(m.points for m in fox.received(f"/{KEY}/tracks")), timeout=20)
+            ok, info = fox.call("/tacf/stop", {"sid": "fox-keys"})
+            assert ok, info
+            assert fox.pump_until(lambda: not fox.channels, timeout=15), fox.channels
+            assert not fox.received(f"/{KEY}/tracks")[-1].points, "the rectangle was taken off before"
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+            camera.hold.clear()
+
+
 @pytest.mark.parametrize("request_bytes, expected", [
     (b"not json", "not JSON"),
     (b"[1, 2]", "JSON object"),
