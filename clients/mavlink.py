@@ -187,7 +187,7 @@ class MavlinkCamera:
         box = (x1 * frame.width, y1 * frame.height, (x2 - x1) * frame.width, (y2 - y1) * frame.height)
         try:
             if self.tracking:
-                self.client.reinit(self.sid, box, seq=frame.seq)
+                self._reinit_or_start(box, frame.seq)
             else:
                 self._start_or_take_over(box, frame.seq)
         except TacfError as exc:
@@ -210,10 +210,21 @@ class MavlinkCamera:
             log.info("session %s already runs: taking it over", self.sid)
             self.client.reinit(self.sid, box, seq=seq)
 
+    def _reinit_or_start(self, box: tuple[float, float, float, float], seq: int) -> None:
+        """Re-target the running session, or start it again when it was stopped elsewhere (the dashboard, `tacf
+        stop`) since _check_session last looked."""
+        try:
+            self.client.reinit(self.sid, box, seq=seq)
+        except UnknownSession:
+            log.info("session %s was stopped elsewhere: starting it again", self.sid)
+            self._start_or_take_over(box, seq)
+
     def _stop_tracking(self) -> int:
         if self.tracking:
             try:
                 self.client.stop(self.sid)
+            except UnknownSession:
+                log.info("session %s was stopped elsewhere already", self.sid)
             except TacfError as exc:
                 log.warning("STOP_TRACKING: %s", exc)
                 return mav.MAV_RESULT_FAILED

@@ -238,6 +238,45 @@ def test_commands_sent_as_command_int_are_answered_alike(rig):
     camera.hold.clear()
 
 
+def test_a_session_stopped_elsewhere_is_dragged_again_and_stopped_at_once(rig, monkeypatch):
+    """The component notices a session stopped elsewhere (the dashboard, `tacf stop`) only every SESSION_CHECK_S:
+    a drag or a stop from the ground station in between is not refused for it. The drag starts the session again,
+    the stop is done (ACCEPTED)."""
+    import tacf_clients.mavlink
+
+    _, camera, client, rig_component = rig
+    monkeypatch.setattr(tacf_clients.mavlink, "SESSION_CHECK_S", 60.0)   # only the check right after a start
+    sid, port = "mavlink-elsewhere", free_port()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                     source_component=GCS_COMPONENT, dialect="common")
+    stop = threading.Event()
+    with MavlinkCamera(f"udpout:127.0.0.1:{port}", KEY, session=rig_component.session, sid=sid) as component:
+        loop = threading.Thread(target=component.serve, args=(stop,))
+        loop.start()
+        try:
+            assert _receive(gcs, "HEARTBEAT") is not None
+            camera.hold.set()
+            time.sleep(0.5)
+            target = _normalised_corners(SCENE.box(camera.index_of(camera.last_seq)))
+            assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *target) == mav.MAV_RESULT_ACCEPTED
+            time.sleep(0.5)                             # the check that follows the start is done
+            for stop_from_the_ground_station in (False, True):
+                client.stop(sid)
+                assert component.tracking, "not noticed yet"
+                if stop_from_the_ground_station:
+                    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+                    assert not component.tracking
+                else:
+                    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *target) == mav.MAV_RESULT_ACCEPTED
+                    assert client.status(sid).state in ("starting", "tracking")
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+            gcs.close()
+            camera.hold.clear()
+    assert sid not in {s.sid for s in client.list()}
+
+
 def test_a_session_left_running_by_a_killed_component_is_taken_over(rig):
     """A component killed before it could stop its session leaves it running under the same sid: the next
     component's first drag re-targets it, and its stop stops it. A session under that sid on another key is not
