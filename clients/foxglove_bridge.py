@@ -159,13 +159,7 @@ class FoxgloveBridge:
         self.context = foxglove.Context()         # our own: other Foxglove users in the process are not mixed in
         self._subscriptions = _Subscriptions()
         services = self._services() if self.control else []
-        self._recording = None
-        if record is not None:
-            try:
-                self._recording = foxglove.open_mcap(record, context=self.context)
-            except OSError as exc:
-                raise OSError(exc.errno, f"cannot record to {record}: {exc.strerror or exc}") from None
-        self.server = self.relay = None
+        self.server = self.relay = self._recording = None
         try:
             self.server = foxglove.start_server(
                 name=name, host="127.0.0.1", port=0, context=self.context, server_listener=self._subscriptions,
@@ -174,6 +168,9 @@ class FoxgloveBridge:
             self.relay = SubprotocolRelay(self.server.port, host=host, port=port, tls=tls)
             log.info("viewers connect to %s:%d; the SDK's server on 127.0.0.1:%d is internal, behind the relay",
                      host, self.relay.port, self.server.port)
+            # last: a bridge that cannot serve leaves no empty recording behind, which a retry could not overwrite
+            if record is not None:
+                self._recording = _open_recording(record, self.context)
         except Exception:
             self.close()
             raise
@@ -324,6 +321,13 @@ class FoxgloveBridge:
             raise ValueError(f"bad request: unknown fields {sorted(set(fields) - {'node'})}; only node is taken")
         infos = self.board.client.list(node=fields.get("node"))
         return json.dumps([info.model_dump(mode="json") for info in infos]).encode()
+
+
+def _open_recording(path: str | Path, context: foxglove.Context):
+    try:
+        return foxglove.open_mcap(path, context=context)
+    except OSError as exc:     # the SDK's has no errno: str() of a rebuilt OSError(errno, ...) would say "[Errno None]"
+        raise type(exc)(f"cannot record to {path}: {exc}") from None
 
 
 def _call(handler, request) -> bytes:

@@ -291,8 +291,12 @@ def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path
         finally:
             stop.set()
             loop.join(timeout=10)
-    with pytest.raises(OSError, match="flight.mcap"):
+    with pytest.raises(FileExistsError, match="^cannot record to .*flight.mcap: File exists"):
         FoxgloveBridge(board, port=0, record=path)             # never overwrites a recording
+    # a bridge that cannot serve (its port taken) leaves no empty recording, which would refuse the retry
+    with pytest.raises(OSError, match="in use"):
+        FoxgloveBridge(board, port=rig[1].port, record=tmp_path / "retry.mcap")
+    assert not (tmp_path / "retry.mcap").exists()
 
     messages: dict[str, list] = {}
     with open(path, "rb") as stream:
