@@ -44,6 +44,7 @@ from pydantic import ValidationError
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.dashboard_access import is_loopback
 from tacf_clients.foxglove_relay import SubprotocolRelay
+from tacf_schemas.images import FrameError
 from tacf_schemas.models import ReinitRequest, StartRequest, StopRequest
 
 log = logging.getLogger(__name__)
@@ -179,6 +180,7 @@ class FoxgloveBridge:
         self._session_channels: dict[str, foxglove.Channel] = {}
         self._sent_versions: dict[str, tuple[int, int]] = {}
         self._sent_frames: dict[str, tuple[int, int]] = {}       # key -> (seq, received_ns) last sent
+        self._unshowable: set[str] = set()                        # keys whose newest frame is no image
         self._sent_boxes: dict[str, tuple] = {}                   # key -> (sid id, seq, ok) of the boxes last sent
 
     @property
@@ -256,7 +258,14 @@ class FoxgloveBridge:
                 self._images[key] = CompressedImageChannel(topic, context=self.context)
             if topic not in self._subscriptions and self._recording is None:
                 continue
-            snap = self.board.frame(key)
+            try:
+                snap = self.board.frame(key)
+            except FrameError as exc:     # a camera sending frames that are no images holds up no other key's
+                if key not in self._unshowable:
+                    log.warning("cannot show the frames of %s: %s", key, exc)
+                    self._unshowable.add(key)
+                continue
+            self._unshowable.discard(key)
             if snap is None or self._sent_frames.get(key) == (snap.seq, snap.received_ns):
                 continue
             self._sent_frames[key] = (snap.seq, snap.received_ns)
@@ -271,6 +280,7 @@ class FoxgloveBridge:
         self._images.pop(key).close()
         self._sent_frames.pop(key, None)
         self._sent_boxes.pop(key, None)
+        self._unshowable.discard(key)
         tracks = self._tracks.pop(key, None)
         if tracks is not None:
             tracks.close()

@@ -344,6 +344,40 @@ def test_the_topics_of_a_key_go_with_its_last_session(rig):
             camera.hold.clear()
 
 
+def test_a_camera_sending_frames_that_are_no_images_holds_up_no_other(caplog):
+    """A raw frame shorter than its size says cannot be shown: that key gets no images (one warning), the other
+    keys' images go on (keys are published in order: "a/..." came first and stopped the ones after it)."""
+    import zenoh
+
+    from tacf_clients.zconfig import ZenohOptions, make_config
+    from tacf_schemas.codec import encode
+    from tacf_schemas.images import encode_frame
+
+    options = no_service_options()
+    good = encode_frame(SCENE.frame(0), 0, "bgr8")
+    short = good.model_copy(update={"data": good.data[:-10]})
+    with Dashboard(options, image_keys=["a/broken", "b/fine"]) as board, \
+            zenoh.open(make_config(ZenohOptions(connect=options.listen, listen=()))) as cameras, \
+            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox:
+        stop = threading.Event()
+        loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge-broken")
+        loop.start()
+        try:
+            fox.subscribe("/a/broken/image")
+            fox.subscribe("/b/fine/image")
+            for seq in range(40):
+                cameras.put("a/broken", encode(short.model_copy(update={"seq": seq})))
+                cameras.put("b/fine", encode(good.model_copy(update={"seq": seq})))
+                fox.pump_until(lambda: False, timeout=0.05)
+            assert fox.pump_until(lambda: len(fox.received("/b/fine/image")) >= 5), "the fine camera is shown"
+            assert not fox.received("/a/broken/image")
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+    warnings = [r for r in caplog.records if "a/broken" in r.getMessage()]
+    assert len(warnings) == 1 and "230390" in warnings[0].getMessage(), warnings
+
+
 @pytest.mark.parametrize("request_bytes, expected", [
     (b"not json", "not JSON"),
     (b"[1, 2]", "JSON object"),
