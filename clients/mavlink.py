@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 DEFAULT_STATUS_HZ = 10.0
 HEARTBEAT_S = 1.0
 SESSION_CHECK_S = 2.0       # how often a running session is asked whether it still runs
+LINK_RETRY_S = 1.0          # pause between reconnections to a TCP ground station that went away
 VENDOR, MODEL = b"tacf", b"TACF tracker"
 # A ground station may send any command in either message; the commands answered here read param1-4 only, which
 # both carry as floats (COMMAND_INT's x, y, z hold a position, which none of them has).
@@ -137,7 +138,12 @@ class MavlinkCamera:
             if self.tracking and self.status_interval_s > 0 and now >= next_status:
                 self._send_status()
                 next_status = now + self.status_interval_s
-            message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
+            try:
+                message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
+            except OSError as exc:     # a TCP ground station went away: pymavlink tries again on the next recv
+                log.warning("MAVLink link %s is down: %s; reconnecting", self.mav.address, exc)
+                stop.wait(LINK_RETRY_S)
+                continue
             if message is not None:
                 self._command(message)
 
@@ -297,7 +303,8 @@ class MavlinkCamera:
             except TacfError as exc:
                 log.warning("could not stop %s: %s", self.sid, exc)
             self.tracking = False
-        if getattr(self, "mav", None) is not None:
+        # a TCP link whose reconnection failed has no port, and pymavlink's close() would fail on it
+        if getattr(self, "mav", None) is not None and self.mav.port is not None:
             self.mav.close()
         if self._boxes is not None:
             self._boxes.close()

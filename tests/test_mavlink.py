@@ -375,6 +375,37 @@ def test_no_frame_yet_is_a_temporary_refusal():
                 gcs.close()
 
 
+def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
+    """Over TCP the component connects to the ground station. When that goes away for longer than pymavlink's
+    reconnection tries (3 s), the component tries on rather than dying, and answers the ground station once it is
+    back; closing it then works too."""
+    port = free_port()
+
+    def ground_station():
+        return mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                          source_component=GCS_COMPONENT, dialect="common")
+    gcs = ground_station()
+    stop = threading.Event()
+    component = MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp", options=no_service_options())
+    loop = threading.Thread(target=component.serve, args=(stop,))
+    loop.start()
+    try:
+        assert _receive(gcs, "HEARTBEAT") is not None
+        gcs.close()
+        time.sleep(5.0)
+        assert loop.is_alive(), "the component lives on"
+        gcs = ground_station()
+        assert _receive(gcs, "HEARTBEAT", timeout=15) is not None, "announces itself again"
+        assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION) == \
+            mav.MAV_RESULT_ACCEPTED
+        gcs.close()
+        time.sleep(5.0)                                 # gone again: its link has no socket as it closes
+    finally:
+        stop.set()
+        loop.join(timeout=15)
+        component.close()
+
+
 def test_tacf_mavlink_command_announces_itself_until_sigterm():
     import signal
     import subprocess
