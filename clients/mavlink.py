@@ -122,30 +122,31 @@ class MavlinkCamera:
     def serve(self, stop: threading.Event) -> None:
         next_heartbeat = next_status = next_check = 0.0
         while not stop.is_set():
-            now = time.monotonic()
-            if now >= next_heartbeat:
-                self.mav.mav.heartbeat_send(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 0, mav.MAV_STATE_ACTIVE)
-                next_heartbeat = now + HEARTBEAT_S
-            if self.tracking and now >= next_check:
-                self._check_session()
-                next_check = now + SESSION_CHECK_S
-            self._newest_frame = self._frames.try_recv() or self._newest_frame
-            while (box := self._boxes.get(timeout=0)) is not None:
-                if self._started_on is None or not _precedes(box, self._started_on):
-                    # boxes arrive in order: once one is from after the (re)start, later ones are too, even with
-                    # the seq of a camera that restarted from 0
-                    self._box, self._started_on = box, None
-            if self.tracking and self.status_interval_s > 0 and now >= next_status:
-                self._send_status()
-                next_status = now + self.status_interval_s
             try:
+                now = time.monotonic()
+                if now >= next_heartbeat:
+                    self.mav.mav.heartbeat_send(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 0,
+                                                mav.MAV_STATE_ACTIVE)
+                    next_heartbeat = now + HEARTBEAT_S
+                if self.tracking and now >= next_check:
+                    self._check_session()
+                    next_check = now + SESSION_CHECK_S
+                self._newest_frame = self._frames.try_recv() or self._newest_frame
+                while (box := self._boxes.get(timeout=0)) is not None:
+                    if self._started_on is None or not _precedes(box, self._started_on):
+                        # boxes arrive in order: once one is from after the (re)start, later ones are too, even
+                        # with the seq of a camera that restarted from 0
+                        self._box, self._started_on = box, None
+                if self.tracking and self.status_interval_s > 0 and now >= next_status:
+                    self._send_status()
+                    next_status = now + self.status_interval_s
                 message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
-            except OSError as exc:     # a TCP ground station went away: pymavlink tries again on the next recv
+                if message is not None:
+                    self._command(message)
+            except OSError as exc:
+                # a TCP ground station went away, met by a send or a receive: pymavlink connects again on the next
                 log.warning("MAVLink link %s is down: %s; reconnecting", self.mav.address, exc)
                 stop.wait(LINK_RETRY_S)
-                continue
-            if message is not None:
-                self._command(message)
 
     def _command(self, message) -> None:
         if message.target_system not in (0, self.mav.mav.srcSystem) or \

@@ -400,6 +400,7 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
             mav.MAV_RESULT_ACCEPTED
         gcs.close()
         time.sleep(5.0)                                 # gone again: its link has no socket as it closes
+        assert loop.is_alive(), "the component lives on through a heartbeat sent to a ground station gone"
     finally:
         stop.set()
         loop.join(timeout=15)
