@@ -26,6 +26,7 @@ from tacf_schemas.keys import InvalidKeyError, validate_image_key
 from .config import ZenohOptions
 from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
+from .outbox import Outbox
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
 from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, run_worker, worker_context
@@ -41,17 +42,31 @@ RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
 SPARE_RESPAWN_MIN_S = 2.0      # a spare that dies is replaced at most this often (no spawn storm)
 WORKER_SILENCE_S = 15.0        # a serving worker that sends nothing (not even health) this long is hung: kill it
+REINIT_WRITE_WAIT_S = 0.2      # a reinit is answered once its init is written to the worker, or after this long
+WRITER_JOIN_S = 1.0            # closing a worker's pipe waits this long for a write in progress (the worker is gone)
 
 
 @dataclass
 class WorkerHandle:
     """A worker process and the parent's end of its pipe. Only _drain_worker reads the pipe, under recv_lock,
-    and routes each message to the owning session (none while the worker is a spare)."""
+    and routes each message to the owning session (none while the worker is a spare); only the outbox's thread
+    writes to it."""
     process: multiprocessing.process.BaseProcess
     conn: multiprocessing.connection.Connection
+    outbox: Outbox
     idle: bool = False              # said "idle": warm and waiting for an assignment
     owner: "Session | None" = None
     recv_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def close(self) -> None:
+        """End the writer thread, then close the pipe, never under the reader nor under a write. A write still in
+        progress (to a worker alive and not reading) keeps the pipe, closed when that write ends and it is freed."""
+        if not self.outbox.close(WRITER_JOIN_S):
+            log.warning("worker pid %s: a write to its pipe is still in progress; the pipe is closed once it ends",
+                        self.process.pid)
+            return
+        with self.recv_lock:
+            _quiet_close(self.conn)
 
 
 @dataclass
@@ -74,7 +89,6 @@ class Session:
     process: multiprocessing.process.BaseProcess | None = None
     conn: multiprocessing.connection.Connection | None = None
     worker: WorkerHandle | None = None
-    send_lock: threading.Lock = field(default_factory=threading.Lock)
     worker_ready: bool = False          # the worker said "ready": it can take an init
     heard_at: float = 0.0               # monotonic time of the worker's last message
     init_pending: bool = False          # an init (init_box, init_seq) waits to be sent
@@ -205,7 +219,7 @@ class SessionManager:
         for session in sessions:
             _close_conn(session)
         for spare in spares:
-            _quiet_close(spare.conn)
+            spare.close()
 
     # ------------------------------------------------------------------ control operations
 
@@ -285,7 +299,9 @@ class SessionManager:
             _close_conn(session)
             self._spawn(session)
         else:
-            self._flush_init(session)
+            written = self._flush_init(session)
+            if written is not None:             # the common case: answered once the worker has the new box
+                written.wait(REINIT_WRITE_WAIT_S)
         self._mark_dirty(save_now=True)
         log.info("re-initialised session %s with box %s (seq %s)", session.sid, request.box, request.drawn_on)
         return reply
@@ -383,7 +399,7 @@ class SessionManager:
         if gone:
             if not returned:
                 handle.process.terminate()
-                _quiet_close(handle.conn)
+                handle.close()
             self._check_open()
             raise _stopped_meanwhile(session, self.node)
         with handle.recv_lock:
@@ -398,14 +414,14 @@ class SessionManager:
                                    daemon=True)
         process.start()
         child_conn.close()
-        return WorkerHandle(process, parent_conn)
+        return WorkerHandle(process, parent_conn, Outbox(parent_conn, f"outbox-{process.pid}"))
 
     def _replenish_spares(self) -> None:
         with self._lock:
             dead = [w for w in self._spares if w.process.exitcode is not None]
             for handle in dead:
                 self._spares.remove(handle)
-                _quiet_close(handle.conn)
+                handle.close()
             missing = self._spare_target - len(self._spares)
             now = time.monotonic()
             if missing <= 0 or self._closing.is_set() or (dead and now - self._spare_spawned_at < SPARE_RESPAWN_MIN_S):
@@ -420,7 +436,7 @@ class SessionManager:
             # shutdown() began while the worker started (the first can wait ~1 s for the fork server) and has
             # already taken the spares it stops: this one is stopped here.
             handle.process.terminate()
-            _quiet_close(handle.conn)
+            handle.close()
 
     def _drain_spares(self) -> None:
         with self._lock:
@@ -469,11 +485,12 @@ class SessionManager:
         session.init_released = True
         self._flush_init(session)
 
-    def _flush_init(self, session: Session) -> None:
-        """Send the pending init once the worker is ready: the box and the frames from init_seq on."""
+    def _flush_init(self, session: Session) -> threading.Event | None:
+        """Send the pending init once the worker is ready: the box and the frames from init_seq on. The event
+        returned is set once the init is written (None: nothing sent)."""
         with self._lock:
             if not (session.init_pending and session.init_released and session.worker_ready):
-                return
+                return None
             session.init_pending = False
             box, pinned, session.init_frames = session.init_box, session.init_frames, []
         if pinned:
@@ -481,14 +498,12 @@ class SessionManager:
         else:
             frames = self._history.frames_from(session.image_key, None)
         frames = catch_up_subset(frames, CATCHUP_FRAMES)
-        self._send(session, ("init", box, [f.payload for f in frames]))
+        return self._send(session, ("init", box, [f.payload for f in frames]))
 
-    def _send(self, session: Session, message: tuple) -> None:
-        conn = session.conn
-        if conn is None:
-            return
-        with session.send_lock:
-            _send_to(conn, message)
+    def _send(self, session: Session, message: tuple) -> threading.Event | None:
+        """Queue a message to the session's worker (Outbox); the event is set once it is written."""
+        worker = session.worker
+        return worker.outbox.put(message) if worker is not None else None
 
     # ------------------------------------------------------------------ supervision
 
@@ -727,13 +742,6 @@ def _reap(processes: list, deadline: float, kill_after: float = 0.3) -> None:
             process.join(timeout=0.5)
 
 
-def _send_to(conn, message: tuple) -> None:
-    try:
-        conn.send(message)
-    except (BrokenPipeError, EOFError, OSError):
-        pass            # the worker is gone; the supervisor reports it
-
-
 def _quiet_close(conn) -> None:
     try:
         conn.close()
@@ -742,11 +750,7 @@ def _quiet_close(conn) -> None:
 
 
 def _close_conn(session: Session) -> None:
-    worker, conn = session.worker, session.conn
+    worker = session.worker
     session.worker, session.conn = None, None
-    if conn is not None:
-        if worker is not None:
-            with worker.recv_lock:       # never close a pipe under a reader
-                _quiet_close(conn)
-        else:
-            _quiet_close(conn)
+    if worker is not None:
+        worker.close()

@@ -1,16 +1,20 @@
 """Faults, over real Zenoh on loopback (scouting off, explicit endpoints), with real processes where the fault is a
 process: a publisher process killed and started again, frames duplicated or out of order, a consumer that never
-reads, and a Zenoh router restarted under a `tacf serve` process.
+reads, a worker that does not read its pipe, and a Zenoh router restarted under a `tacf serve` process.
 
 Covered elsewhere, not repeated here: a worker SIGKILLed while tracking (test_service.py) and `tacf serve`
 SIGKILLed and restarted with its --state file (test_service_process.py).
 """
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 
+import numpy as np
 import pytest
 
 zenoh = pytest.importorskip("zenoh")
@@ -18,13 +22,14 @@ zenoh = pytest.importorskip("zenoh")
 from tacf_clients.local_service import free_port
 from tacf_clients.local_service import LocalService
 from tacf_clients.scene import Scene
-from tacf_schemas import (Frame, SessionInfo, StartRequest, StatusRequest, StopRequest, box_key, decode, encode,
-                          health_key, service_liveliness_key)
+from tacf_schemas import (Frame, ReinitRequest, SessionInfo, StartRequest, StatusRequest, StopRequest, box_key,
+                          decode, encode, health_key, service_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
+from tacf_service.control import CONTROL_THREADS
 from tacf_service.loopback import SessionResults, peer_config, wait_until
-from tacf_service.probe import call
+from tacf_service.probe import ControlError, call
 
 pytestmark = pytest.mark.zenoh
 
@@ -224,6 +229,57 @@ def test_a_consumer_that_never_reads_slows_nobody(service, client, endpoint, tmp
         kill(publisher)
         results.close()
         call(client, NODE, "stop", StopRequest(sid="busy"))
+
+
+# ---------------------------------------------------------------------------------------------- workers
+
+def test_a_worker_that_does_not_read_its_pipe_delays_no_control_reply(service, client):
+    """A worker that stops reading its pipe (stopped here; starved of CPU or wedged alike) while reinits hand it
+    more frames than the pipe holds: every reinit is answered, and so is a query to another session behind them
+    on the control threads; the worker gets the last reinit once it reads again."""
+    deaf = SessionResults(client, NODE, "deaf")
+    pid = None
+    try:
+        start(service, client, image_key="faults/cam/deaf", box=(10.0, 10.0, 40.0, 40.0), sid="deaf")
+        start(service, client, image_key="faults/cam/other", box=(10.0, 10.0, 40.0, 40.0), sid="other")
+        assert wait_until(lambda: deaf.last_health() is not None, 10)     # ready: a reinit goes out at once
+        pid = service.manager.worker_pids()["deaf"]
+        os.kill(pid, signal.SIGSTOP)
+        image = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+        frames = [encode_frame(image, seq, "bgr8") for seq in (1, 2)]      # 1.8 MB: far more than a pipe holds
+        took: dict[int, float | str] = {}
+
+        def reinit(i: int) -> None:
+            asked = time.monotonic()
+            try:
+                call(client, NODE, "reinit", ReinitRequest(sid="deaf", box=(100.0, 100.0, 50.0, 50.0),
+                                                           frames=frames), timeout=5)
+                took[i] = time.monotonic() - asked
+            except ControlError as exc:
+                took[i] = exc.code
+        threads = [threading.Thread(target=reinit, args=(i,)) for i in range(CONTROL_THREADS)]
+        for thread in threads:                  # one control thread each
+            thread.start()
+            time.sleep(0.1)
+        asked = time.monotonic()
+        try:
+            status(client, "other")
+            other_took = time.monotonic() - asked
+        except ControlError as exc:
+            other_took = exc.code
+        for thread in threads:
+            thread.join(10)
+        assert isinstance(other_took, float) and other_took < 1.0, other_took
+        assert all(isinstance(t, float) and t < 1.0 for t in took.values()), took
+        os.kill(pid, signal.SIGCONT)
+        assert wait_until(lambda: status(client, "deaf").state == "tracking", 10), status(client, "deaf")
+        assert status(client, "deaf").init_seq == 1
+    finally:
+        if pid is not None:
+            os.kill(pid, signal.SIGCONT)
+        deaf.close()
+        for sid in ("deaf", "other"):
+            call(client, NODE, "stop", StopRequest(sid=sid), timeout=10)
 
 
 # ---------------------------------------------------------------------------------------------- router
