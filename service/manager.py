@@ -2,8 +2,9 @@
 
 Control operations (start, stop, reinit, list, status) run on the control threads; a supervisor thread reads
 every worker's pipe, notices dead workers (process sentinels) and restarts them from their last box with a
-backoff, and saves the table when it changed. A session whose worker keeps crashing (MAX_CRASHES within
-CRASH_WINDOW_S) stays `failed` until it is re-initialised or stopped.
+backoff, kills the workers and spares that went silent (WORKER_SILENCE_S), and saves the table when it changed.
+A session whose worker keeps crashing (MAX_CRASHES within CRASH_WINDOW_S) stays `failed` until it is
+re-initialised or stopped.
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ CRASH_WINDOW_S = 60.0
 RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
 SPARE_RESPAWN_MIN_S = 2.0      # a spare that dies is replaced at most this often (no spawn storm)
-WORKER_SILENCE_S = 15.0        # a serving worker that sends nothing (not even health) this long is hung: kill it
+WORKER_SILENCE_S = 15.0        # a worker silent this long (no health; no "ready" or "idle" once started) is hung
 REINIT_WRITE_WAIT_S = 0.2      # a reinit is answered once its init is written to the worker, or after this long
 WRITER_JOIN_S = 1.0            # closing a worker's pipe waits this long for a write in progress (the worker is gone)
 
@@ -54,6 +55,7 @@ class WorkerHandle:
     process: multiprocessing.process.BaseProcess
     conn: multiprocessing.connection.Connection
     outbox: Outbox
+    started_at: float = field(default_factory=time.monotonic)
     idle: bool = False              # said "idle": warm and waiting for an assignment
     owner: "Session | None" = None
     recv_lock: threading.Lock = field(default_factory=threading.Lock)
@@ -90,7 +92,7 @@ class Session:
     conn: multiprocessing.connection.Connection | None = None
     worker: WorkerHandle | None = None
     worker_ready: bool = False          # the worker said "ready": it can take an init
-    heard_at: float = 0.0               # monotonic time of the worker's last message
+    heard_at: float = 0.0               # monotonic time of the worker's last message, or of its attachment
     init_pending: bool = False          # an init (init_box, init_seq) waits to be sent
     init_box: tuple | None = None
     init_frames: list = field(default_factory=list)   # frames pinned for the init: the init frame, then newer
@@ -393,6 +395,7 @@ class SessionManager:
             elif not gone:
                 session.worker = handle
                 session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
+                session.heard_at = time.monotonic()     # silent from now on, it is hung even before "ready"
                 session.restart_at = None
                 if session.state == "failed" and not session.gave_up:
                     session.state = "starting"
@@ -418,12 +421,17 @@ class SessionManager:
 
     def _replenish_spares(self) -> None:
         with self._lock:
+            now = time.monotonic()
+            for handle in self._spares:
+                if not handle.idle and now - handle.started_at > WORKER_SILENCE_S and handle.process.exitcode is None:
+                    log.warning("spare worker pid %d not warm %.0f s after it started: killing it", handle.process.pid,
+                                WORKER_SILENCE_S)
+                    handle.process.kill()       # replaced once its exit shows, like a spare that died
             dead = [w for w in self._spares if w.process.exitcode is not None]
             for handle in dead:
                 self._spares.remove(handle)
                 handle.close()
             missing = self._spare_target - len(self._spares)
-            now = time.monotonic()
             if missing <= 0 or self._closing.is_set() or (dead and now - self._spare_spawned_at < SPARE_RESPAWN_MIN_S):
                 return
             self._spare_spawned_at = now
@@ -535,7 +543,7 @@ class SessionManager:
             process = session.process
             if process is not None and process.exitcode is not None and not session.stopping:
                 self._on_worker_exit(session)
-            elif (process is not None and session.worker_ready and not session.stopping
+            elif (process is not None and not session.stopping
                   and time.monotonic() - session.heard_at > WORKER_SILENCE_S):
                 log.warning("session %s: worker pid %d silent for %.0f s: killing it", session.sid, process.pid,
                             WORKER_SILENCE_S)

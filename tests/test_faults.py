@@ -25,6 +25,7 @@ from tacf_clients.scene import Scene
 from tacf_schemas import (Frame, ReinitRequest, SessionInfo, StartRequest, StatusRequest, StopRequest, box_key,
                           decode, encode, health_key, service_liveliness_key)
 from tacf_schemas.images import encode_frame
+import tacf_service.manager as service_manager
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
 from tacf_service.control import CONTROL_THREADS
@@ -280,6 +281,42 @@ def test_a_worker_that_does_not_read_its_pipe_delays_no_control_reply(service, c
         deaf.close()
         for sid in ("deaf", "other"):
             call(client, NODE, "stop", StopRequest(sid=sid), timeout=10)
+
+
+def test_a_session_handed_a_wedged_spare_starts_on_another_worker(service, client, monkeypatch):
+    """A warm spare that wedges (stopped here) before it says "ready" to the session it is handed would leave that
+    session starting for ever: silent for WORKER_SILENCE_S, it is killed and the session restarts elsewhere."""
+    monkeypatch.setattr(service_manager, "WORKER_SILENCE_S", 3.0)
+    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    spare = next(w for w in service.manager._spares if w.idle)
+    os.kill(spare.process.pid, signal.SIGSTOP)
+    try:
+        call(client, NODE, "start", StartRequest(profile="kcc", sid="handed", image_key="faults/cam/handed",
+                                                 box=SCENE.box(1), frames=[encode_frame(SCENE.frame(1), 1, "jpeg")]),
+             timeout=10)
+        assert service.manager.worker_pids()["handed"] == spare.process.pid
+        assert wait_until(lambda: spare.process.exitcode == -signal.SIGKILL, 10), spare.process.exitcode
+        assert wait_until(lambda: status(client, "handed").state == "tracking", 30), status(client, "handed")
+        assert status(client, "handed").restarts == 1
+    finally:
+        if spare.process.exitcode is None:
+            os.kill(spare.process.pid, signal.SIGCONT)
+        call(client, NODE, "stop", StopRequest(sid="handed"), timeout=10)
+
+
+def test_a_spare_worker_that_never_gets_warm_is_replaced(monkeypatch):
+    """A spare worker that wedges before it is warm (here its tracker's module never finishes loading) would keep
+    its place in the pool for ever: silent for WORKER_SILENCE_S since it started, it is killed and replaced."""
+    monkeypatch.setattr(service_manager, "WORKER_SILENCE_S", 2.0)
+    options = ServiceOptions(node="wedged", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                             tracker_factory="wedged_tracker:wedged_tracker", spare_workers=1)
+    with TrackingService(options) as svc:
+        spares = svc.manager._spares
+        assert wait_until(lambda: spares, 30)
+        first = spares[0]
+        assert wait_until(lambda: first.process.exitcode == -signal.SIGKILL, 10), first.process.exitcode
+        assert wait_until(lambda: spares and spares[0] is not first, 10)
+        assert not first.idle
 
 
 # ---------------------------------------------------------------------------------------------- router
