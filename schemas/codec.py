@@ -43,7 +43,7 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
     if not isinstance(obj, dict):
         raise DecodeError("invalid", f"{model.__name__}: expected a map, got {type(obj).__name__}")
     try:
-        return model.model_validate(obj)
+        return model.from_wire(obj)
     except pydantic.ValidationError as exc:
         raise DecodeError("invalid", f"{model.__name__}: {_summarise(exc)}") from None
     except (TypeError, ValueError, RecursionError) as exc:  # e.g. unhashable keys deep inside

@@ -3,14 +3,16 @@
 Boxes are [x, y, w, h]: 0-based float pixels, top-left origin. Times are nanoseconds since the Unix epoch
 (`time.time_ns()`), so that ages can be computed across processes on synchronised hosts.
 
-Models forbid unknown fields: a misspelt field is an `invalid_request` error, never silently ignored.
+Models forbid unknown fields: a misspelt field is an `invalid_request` error, never silently ignored. A message
+received is validated by `WireModel.from_wire`, as strictly as its JSON Schema (schemas/json) states it.
 """
 from __future__ import annotations
 
-import math
 from typing import Annotated, Literal, Optional, Union
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from typing_extensions import Self
+
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, model_validator
 
 from .limits import (MAX_CARRIED_FRAMES, MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_WIDTH, MAX_ID_LENGTH,
                      MAX_IMAGE_KEY_LENGTH, MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
@@ -42,33 +44,56 @@ ErrorCode = Literal[
 ]
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__  # type: ignore[attr-defined]
 
+
+def _wire_number(value: object) -> object:
+    """A number as it arrives: msgpack from JavaScript carries every number as a float, so an integral float is
+    the int it stands for (as JSON Schema's "integer" takes 5.0); a boolean is no number (as in JSON Schema)."""
+    if isinstance(value, bool):
+        raise ValueError("a boolean is not a number")
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+def _wire_array(value: object) -> object:
+    """msgpack and JSON have arrays, not tuples: a box arrives as a list."""
+    return tuple(value) if isinstance(value, list) else value
+
+
+#: Applied outside an int's constraints (after the Field), so that the JSON Schema keeps them.
+WIRE_INT = BeforeValidator(_wire_number)
+
 Id = Annotated[str, Field(pattern=ID_PATTERN, min_length=1, max_length=MAX_ID_LENGTH)]
-Seq = Annotated[int, Field(ge=0, lt=2**63)]
-StampNs = Annotated[int, Field(ge=0, lt=2**63)]
+Seq = Annotated[int, Field(ge=0, lt=2**63), WIRE_INT]
+StampNs = Annotated[int, Field(ge=0, lt=2**63), WIRE_INT]
+Count = Annotated[int, Field(ge=0), WIRE_INT]
+Width = Annotated[int, Field(ge=1, le=MAX_FRAME_WIDTH), WIRE_INT]
+Height = Annotated[int, Field(ge=1, le=MAX_FRAME_HEIGHT), WIRE_INT]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-Count = Annotated[int, Field(ge=0)]
-
-
-def _positive_size(box: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
-    if not all(math.isfinite(c) for c in box):
-        raise ValueError("box coordinates must be finite")
-    if box[2] <= 0 or box[3] <= 0:
-        raise ValueError("box width and height must be > 0")
-    return box
-
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+#: A tracker config override (TrackerConfig.profile(profile, **overrides)): strict even where a Python caller
+#: builds the message, so that "0.5" or "true" typed into a form is refused, not sent as a number.
+Override = Union[StrictBool, StrictInt, StrictFloat]
 
 #: [x, y, w, h], any finite values (a tracker's output).
-Box = tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat]
+Box = Annotated[tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat], BeforeValidator(_wire_array)]
 #: [x, y, w, h] with w > 0 and h > 0 (a box a user asks for). Whether it lies inside the image is checked
 #: against the init frame by the service.
-InitBox = Annotated[Box, AfterValidator(_positive_size)]
+InitBox = Annotated[tuple[FiniteFloat, FiniteFloat, PositiveFloat, PositiveFloat], BeforeValidator(_wire_array)]
 
 
 class WireModel(BaseModel):
     """Base of every wire message: strict field set, schema version `v`."""
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    v: Literal[1] = SCHEMA_VERSION
+    v: Annotated[Literal[1], WIRE_INT] = SCHEMA_VERSION
+
+    @classmethod
+    def from_wire(cls, obj: object) -> Self:
+        """A message received (msgpack or JSON decoded), validated as its JSON Schema states it: pydantic's strict
+        mode (no "5" for a number, no true for an int, no text for a bool), with integral floats as ints
+        (_wire_number). Raises pydantic.ValidationError. Python code building a message uses the constructor."""
+        return cls.model_validate(obj, strict=True)
 
 
 # ---------------------------------------------------------------- frames (camera -> service)
@@ -79,8 +104,8 @@ class Frame(WireModel):
     seq: Seq
     stamp_ns: StampNs
     encoding: Encoding
-    width: Annotated[int, Field(ge=1, le=MAX_FRAME_WIDTH)]
-    height: Annotated[int, Field(ge=1, le=MAX_FRAME_HEIGHT)]
+    width: Width
+    height: Height
     data: Annotated[bytes, Field(max_length=MAX_FRAME_BYTES)]
 
 
@@ -133,7 +158,7 @@ class StartRequest(_InitOnFrame):
     image_key: Annotated[str, Field(min_length=1, max_length=MAX_IMAGE_KEY_LENGTH)]
     sid: Optional[Id] = None
     profile: Optional[Annotated[str, Field(max_length=32)]] = None
-    overrides: Annotated[dict[str, Union[bool, int, float]], Field(max_length=MAX_OVERRIDES)] = {}
+    overrides: Annotated[dict[str, Override], Field(max_length=MAX_OVERRIDES)] = {}
 
 
 class StopRequest(WireModel):
@@ -162,8 +187,8 @@ class BoxResult(WireModel):
     seq: Seq                    # the frame's seq
     stamp_ns: StampNs           # the frame's stamp_ns (as published by the camera)
     box: Box
-    width: Annotated[int, Field(ge=1, le=MAX_FRAME_WIDTH)]    # the frame's size, so that consumers can
-    height: Annotated[int, Field(ge=1, le=MAX_FRAME_HEIGHT)]  # normalise the box without knowing the camera
+    width: Width                # the frame's size, so that consumers can
+    height: Height              # normalise the box without knowing the camera
     ok: bool                    # False: the target is lost (PME under the tracker's threshold)
     pme: FiniteFloat
     score: FiniteFloat
@@ -199,7 +224,7 @@ class SessionInfo(WireModel):
     sid: Id
     image_key: str
     profile: str
-    overrides: dict[str, Union[bool, int, float]] = {}
+    overrides: dict[str, Override] = {}
     state: SessionState
     box: Box                                 # the last box (the initial box until the first result)
     init_seq: Optional[Seq] = None           # the frame the tracker was (last) initialised on, when known

@@ -86,6 +86,46 @@ def test_start_rejects_bad_boxes(box):
         decode(payload, StartRequest)
 
 
+def _frame_fields(**fields):
+    return {"seq": 1, "stamp_ns": 2, "encoding": "mono8", "width": 2, "height": 1, "data": b"\x00\xff", **fields}
+
+
+@pytest.mark.parametrize("model,fields", [
+    (Frame, _frame_fields(seq=True)), (Frame, _frame_fields(seq="5")), (Frame, _frame_fields(seq=5.5)),
+    (Frame, _frame_fields(width="2")), (Frame, _frame_fields(stamp_ns=False)), (Frame, _frame_fields(v=True)),
+    (Frame, _frame_fields(data="\x00\xff")), (Frame, _frame_fields(seq=2.0**63)),
+    (StartRequest, {"image_key": "cam", "box": ["1", 2, 3, 4]}),
+    (StartRequest, {"image_key": "cam", "box": [1, 2, True, 4]}),
+    (StartRequest, {"image_key": "cam", "box": [1, 2, 3, 4], "overrides": {"learning_rate": "0.02"}}),
+    (StartRequest, {"image_key": "cam", "box": [1, 2, 3, 4], "overrides": {"use_motion": "true"}}),
+    (StartRequest, {"image_key": "cam", "box": [1, 2, 3, 4], "profile": b"authors"}),
+    (BoxResult, {"node": "n", "sid": "s", "seq": 1, "stamp_ns": 1, "box": [1, 2, 3, 4], "width": 4, "height": 4,
+                 "ok": 1, "pme": 1, "score": 1, "scale": 1, "processing_ms": 1, "published_ns": 1}),
+])
+def test_decode_is_as_strict_as_the_json_schema(model, fields):
+    """pydantic's lax mode took true for an int, "5" for a number and 1 for a bool, which the schema refuses."""
+    with pytest.raises(DecodeError) as info:
+        decode(msgpack.packb(fields, use_bin_type=True), model)
+    assert info.value.code == "invalid"
+
+
+def test_integral_floats_are_ints_on_the_wire():
+    """msgpack from JavaScript sends every number as a float; JSON Schema's integer takes 5.0 too."""
+    frame = decode(msgpack.packb(_frame_fields(v=1.0, seq=5.0, width=2.0), use_bin_type=True), Frame)
+    assert (frame.seq, frame.width) == (5, 2) and type(frame.seq) is int and type(frame.width) is int
+    request = decode(msgpack.packb({"image_key": "cam", "box": [1, 2, 3, 4], "seq": 7.0,
+                                    "overrides": {"cell_size": 6, "learning_rate": 0.5, "use_motion": True}}),
+                     StartRequest)
+    assert request.seq == 7 and request.box == (1.0, 2.0, 3.0, 4.0)
+    assert request.overrides == {"cell_size": 6, "learning_rate": 0.5, "use_motion": True}
+
+
+def test_init_box_sizes_are_positive_in_the_json_schema():
+    for name in ("StartRequest", "ReinitRequest"):
+        items = MODELS[name].model_json_schema()["properties"]["box"]["prefixItems"]
+        assert [item.get("exclusiveMinimum") for item in items] == [None, None, 0, 0]
+
+
 @settings(max_examples=150, deadline=None)
 @given(st.binary(max_size=256))
 def test_decode_fuzz_never_raises_anything_else(payload):
