@@ -1,10 +1,12 @@
 """Wire schemas: models, msgpack codec, key layout, frame decoding, JSON Schema drift."""
 from __future__ import annotations
 
+import json
 import math
 import subprocess
 import sys
 
+import jsonschema
 import msgpack
 import numpy as np
 import pytest
@@ -17,9 +19,10 @@ from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Fr
                           parse_liveliness_key,
                           parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
                           validate_id, validate_image_key)
-from tacf_schemas.export import drift
+from tacf_schemas.export import JSON_DIR, drift
 from tacf_schemas.images import FrameError, decode_frame, encode_frame, jpeg_size, png_size
 from tacf_schemas.limits import MAX_FRAME_PIXELS
+from wire_cases import BEYOND_SCHEMA, CASES
 
 
 def test_json_schemas_match_models():
@@ -118,6 +121,48 @@ def test_integral_floats_are_ints_on_the_wire():
                      StartRequest)
     assert request.seq == 7 and request.box == (1.0, 2.0, 3.0, 4.0)
     assert request.overrides == {"cell_size": 6, "learning_rate": 0.5, "use_motion": True}
+
+
+def _schema_takes(model: str, message: dict) -> bool:
+    schema = json.loads((JSON_DIR / f"{model}.json").read_text())
+    validator = jsonschema.validators.validator_for(schema)(schema)
+    return validator.is_valid(_as_json(message))
+
+
+def _as_json(value):
+    """A message as JSON carries it: bytes (msgpack bin) are the schema's binary strings."""
+    if isinstance(value, bytes):
+        return value.decode("latin-1")
+    if isinstance(value, dict):
+        return {k: _as_json(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_as_json(v) for v in value]
+    return value
+
+
+def _decoder_takes(model: str, message: dict) -> bool:
+    try:
+        decode(msgpack.packb(message, use_bin_type=True), MODELS[model])
+    except DecodeError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize("case", CASES, ids=lambda case: f"{case.model}: {case.label}")
+def test_the_json_schema_and_the_decoder_agree(case):
+    """A publisher validating against schemas/json and the service decoding the same message must agree."""
+    assert _schema_takes(case.model, case.message) == case.valid, "the JSON schema"
+    assert _decoder_takes(case.model, case.message) == case.valid, "the decoder"
+
+
+def test_the_cases_cover_every_message_type():
+    assert {case.model for case in CASES if case.valid} == set(MODELS)
+    assert {case.model for case in CASES if not case.valid} == set(MODELS)
+
+
+@pytest.mark.parametrize("case", BEYOND_SCHEMA, ids=lambda case: f"{case.model}: {case.label}")
+def test_what_the_schema_cannot_state_the_decoder_refuses(case):
+    assert _schema_takes(case.model, case.message) and not _decoder_takes(case.model, case.message)
 
 
 def test_init_box_sizes_are_positive_in_the_json_schema():
