@@ -8,6 +8,9 @@ received is validated by `WireModel.from_wire`, as strictly as its JSON Schema (
 """
 from __future__ import annotations
 
+from bisect import bisect_left
+from collections.abc import Callable
+from operator import attrgetter
 from typing import Annotated, Literal, Optional, Union
 
 from typing_extensions import Self
@@ -137,17 +140,31 @@ class _InitOnFrame(WireModel):
         return self.frames[0].seq if self.frames else self.seq
 
 
-def catch_up_subset(frames: list, limit: int) -> list:
-    """The first frame (the one a box was drawn on), then at most `limit` newer ones evenly spaced, ending on the
-    newest: a tracker initialised on the first follows the target's motion through them without falling far
-    behind a live feed. (What a client carries with a start, and what the service sends its worker.)"""
+def catch_up_subset(frames: list, limit: int, seq: Callable[[object], int] = attrgetter("seq")) -> list:
+    """The first frame (the one a box was drawn on), then at most `limit` newer ones evenly spaced in seq, ending
+    on the newest: a tracker initialised on the first follows the target's motion through them without falling
+    far behind a live feed. (What a client carries with a start, and what the service sends its worker.)
+
+    Spaced by seq, not by place in the list: the list may have gaps (a client holds the frame it showed, then only
+    its last frames; the service appends live frames to carried ones), and spacing by place made the steps after
+    a gap as large as the gap. Frames whose seq goes back (a camera restarted) are spaced by place."""
     if limit <= 0:
         return list(frames[:1])
     if len(frames) <= limit + 1:
         return list(frames)
-    rest = frames[1:]
-    step = len(rest) / limit
-    return [frames[0]] + [rest[min(len(rest) - 1, round((i + 1) * step) - 1)] for i in range(limit)]
+    at = [seq(f) for f in frames]
+    if any(later <= earlier for earlier, later in zip(at, at[1:])):
+        at = list(range(len(frames)))
+    picked = [0]
+    for i in range(1, limit + 1):
+        target = at[0] + (at[-1] - at[0]) * i / limit
+        # the frame nearest `target` after the last pick, leaving one frame for each pick still to come
+        lo, hi = picked[-1] + 1, len(frames) - 1 - (limit - i)
+        j = min(max(bisect_left(at, target), lo), hi)
+        if j > lo and target - at[j - 1] < at[j] - target:
+            j -= 1
+        picked.append(j)
+    return [frames[j] for j in picked]
 
 
 class StartRequest(_InitOnFrame):

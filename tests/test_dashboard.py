@@ -173,7 +173,14 @@ def test_api_validates_and_reports_service_errors(stack):
 
 def test_a_box_drawn_on_a_shown_frame_starts_on_it_after_the_frame_is_gone(stack):
     """An operator draws for seconds on a frame of a feed no session follows yet, so the service never held that
-    frame: the dashboard sends it with the start (it keeps the frames it showed), and the session starts on it."""
+    frame: the dashboard sends it with the start (it keeps the frames it showed), and the session starts on it
+    and follows the target through the carried frames to the live feed.
+
+    The tracker's first box after the drawn frame is on a carried frame several frames later, where it lags
+    behind this scene's target (IoU 0.5-0.7 for a step of 6-10 frames, measured): it is the box on the live
+    feed that tells whether it followed. It failed under load when the frames to catch up through were spaced
+    by place in the list (catch_up_subset), not by seq: more live frames before the worker was ready made the
+    first step 17 frames, and the target was lost."""
     from tacf_service.loopback import FramePublisher
     from tacf_service.scene import MovingTargetScene
 
@@ -186,12 +193,14 @@ def test_a_box_drawn_on_a_shown_frame_starts_on_it_after_the_frame_is_gone(stack
         shown = int(headers["X-Seq"])
         time.sleep(4.0)              # the operator draws; the dashboard's last received frames move past it
         assert shown < feed.seq - 32
+        newest = feed.seq
         status, body = _post(base + "/api/start", {"image_key": key, "box": list(feed.truth[shown]), "seq": shown,
                                                    "sid": "late"})
         try:
             assert status == 200 and body["init_seq"] == shown, body
-            first = next(client.iter_boxes("late", timeout=40))
-            assert box_iou(tuple(first.box), feed.truth[first.seq]) > 0.5, (first, feed.truth[first.seq])
+            live = next((box for box in client.iter_boxes("late", timeout=40) if box.seq > newest), None)
+            assert live is not None, "boxes on the live feed"
+            assert box_iou(tuple(live.box), feed.truth[live.seq]) > 0.5, (live, feed.truth[live.seq])
         finally:
             client.stop("late")
 

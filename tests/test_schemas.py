@@ -361,7 +361,23 @@ def test_a_newer_service_s_error_keeps_its_code():
 
 def test_catch_up_subset_keeps_the_first_and_ends_on_the_newest():
     from tacf_schemas import catch_up_subset
-    assert catch_up_subset(list(range(20)), 6) == [0, 3, 6, 10, 13, 16, 19]
-    assert catch_up_subset(list(range(5)), 6) == [0, 1, 2, 3, 4]
-    assert catch_up_subset(list(range(5)), 0) == [0]
-    assert catch_up_subset([], 3) == []
+    assert catch_up_subset(list(range(20)), 6, seq=int) == [0, 3, 6, 10, 13, 16, 19]
+    assert catch_up_subset(list(range(5)), 6, seq=int) == [0, 1, 2, 3, 4]
+    assert catch_up_subset(list(range(5)), 0, seq=int) == [0]
+    assert catch_up_subset([], 3, seq=int) == []
+
+
+def test_catch_up_subset_spaces_the_frames_by_seq_across_gaps():
+    """A box drawn on frame 1 of a 10 fps feed 4 s ago: the dashboard holds that frame (shown), then only the last
+    32 received; the service appends the live frames that came before its worker was ready. Spaced by their place
+    in the list, the frames after such a gap were thinned so that the tracker's first step grew from 13 frames to
+    17 and more as more live frames came (under load), beyond its reach on a moving target."""
+    from tacf_schemas import catch_up_subset
+    carried = catch_up_subset([1] + list(range(10, 42)), 7, seq=int)
+    assert carried == [1, 10, 12, 18, 24, 30, 35, 41]
+    for live in range(21):
+        used = catch_up_subset(carried + list(range(42, 42 + live)), 6, seq=int)
+        steps = [b - a for a, b in zip(used, used[1:])]
+        assert used[0] == 1 and used[-1] == 41 + live and max(steps) <= 12, (live, used)
+    restarted = [90, 95, 99, 2, 3, 4, 5, 6, 7, 8]       # the camera restarted its seq: spaced by place
+    assert catch_up_subset(restarted, 3, seq=int) == [90, 2, 5, 8]
