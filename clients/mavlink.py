@@ -9,7 +9,12 @@ commands, sent as COMMAND_LONG or COMMAND_INT:
   converted with the size of the newest frame on the key and applied to that frame), or re-initialises the
   running one. ACCEPTED once the service has the session; TEMPORARILY_REJECTED while no frame has been seen on
   the key; DENIED for a rectangle that is not inside 0..1 or is empty; FAILED with the service's refusal.
-- MAV_CMD_CAMERA_STOP_TRACKING: stops it (ACCEPTED also when nothing runs).
+- MAV_CMD_CAMERA_STOP_TRACKING: stops it (ACCEPTED also when nothing runs), and clears a failed session.
+Calls to the service run on one thread of their own, in the order the commands came, so that the loop goes on
+answering (heartbeats, statuses, other commands) meanwhile: such a command is answered IN_PROGRESS at once and
+every second, then with its result, as MAVLink's command protocol has it. A command repeated while it is in
+progress (a ground station that got no answer in time retransmits it) is answered IN_PROGRESS again, not run
+twice; the same command with other parameters meanwhile is TEMPORARILY_REJECTED.
 - MAV_CMD_SET_MESSAGE_INTERVAL for CAMERA_TRACKING_IMAGE_STATUS: its rate (-1 off, 0 the default 10 Hz).
 - MAV_CMD_REQUEST_MESSAGE (and the older MAV_CMD_REQUEST_CAMERA_INFORMATION) for CAMERA_INFORMATION, whose
   flags say CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, or for one CAMERA_TRACKING_IMAGE_STATUS.
@@ -18,6 +23,8 @@ commands, sent as COMMAND_LONG or COMMAND_INT:
   answers those, and an UNSUPPORTED from the camera could reach the ground station before their ACCEPTED.
 While a session runs it streams CAMERA_TRACKING_IMAGE_STATUS with the newest box (rectangle and centre, target
 data IN_STATUS): ACTIVE, plus COASTING while the tracker reports the target lost; one IDLE status follows a stop.
+A session that could not start, or that failed on the service, stays `failed`: its status says ERROR, at the same
+rate, until a stop clears it or a new rectangle starts it again.
 Point tracking is not offered: a tracker needs the target's extent. The video itself stays the camera's own
 (QGroundControl shows its RTSP/UDP stream); only the box travels here.
 """
@@ -27,8 +34,12 @@ import hashlib
 import logging
 import math
 import os
+import queue
+import socket
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import zenoh
 
@@ -49,11 +60,15 @@ log = logging.getLogger(__name__)
 DEFAULT_STATUS_HZ = 10.0
 HEARTBEAT_S = 1.0
 SESSION_CHECK_S = 2.0       # how often a running session is asked whether it still runs
+PROGRESS_S = 1.0            # how often a command in progress is answered IN_PROGRESS again
+PROGRESS_UNKNOWN = 255      # COMMAND_ACK.progress when the percentage is not known
 LINK_RETRY_S = 1.0          # pause between reconnections to a TCP ground station that went away
 VENDOR, MODEL = b"tacf", b"TACF tracker"
 # A ground station may send any command in either message; the commands answered here read param1-4 only, which
 # both carry as floats (COMMAND_INT's x, y, z hold a position, which none of them has).
 COMMAND_MESSAGES = ["COMMAND_LONG", "COMMAND_INT"]
+# pymavlink's network links, each HOST:PORT after its prefix ("udp:" and no prefix at all: UDP as well)
+NETWORK_LINKS = ("tcp:", "tcpin:", "udpin:", "udpout:", "udpbcast:", "udp:")
 
 
 def signing_key_from_passphrase(passphrase: str) -> bytes:
@@ -69,6 +84,35 @@ def _ascii_field(text: bytes, size: int = 32) -> list[int]:
 
 def _message_id(param: float) -> int | None:
     return int(param) if math.isfinite(param) else None
+
+
+def check_link(link: str) -> None:
+    """Refuse a network link whose port is not one or whose host does not resolve (ValueError), before it is
+    opened: pymavlink's udpout sends to it in silence for ever, and a port over 65535 fails in the loop."""
+    prefix = next((p for p in NETWORK_LINKS if link.startswith(p)), None)
+    if prefix is None:
+        if ":" not in link or link.startswith("/"):
+            return                                   # a serial device
+        prefix = ""                                  # pymavlink takes HOST:PORT as UDP
+    host, _, port = link[len(prefix):].rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--link {link!r}: expected {prefix or 'udp:'}HOST:PORT with a port of 1 to 65535")
+    try:
+        socket.getaddrinfo(host, int(port))
+    except (socket.gaierror, UnicodeError) as exc:
+        reason = exc.strerror if isinstance(exc, socket.gaierror) else str(exc)
+        raise ValueError(f"--link {link!r}: cannot resolve host {host!r} ({reason})") from None
+
+
+@dataclass
+class _Call:
+    """A command run on the service thread: `run` returns its MAV_RESULT. `key` is (system, component, command)
+    of the ground station's command, None for the component's own session check (no ACK)."""
+    run: Callable[[], int]
+    key: tuple[int, int, int] | None = None
+    params: tuple[float, ...] = ()
+    result: int | None = None
+    next_progress: float = field(default_factory=lambda: time.monotonic() + PROGRESS_S)
 
 
 def _precedes(box: TrackedBox, frame: tuple[int, int]) -> bool:
@@ -93,7 +137,8 @@ class MavlinkCamera:
                  profile: str | None = None, system: int = 1, component: int = mav.MAV_COMP_ID_CAMERA,
                  baud: int = 57600, signing_key: bytes | None = None, timeout: float = 5.0):
         self.image_key = keys.validate_image_key(image_key)
-        self.sid = keys.validate_id(sid or "mavlink-" + keys.sanitise_id(image_key), "session id")
+        self.sid = keys.validate_id("mavlink-" + keys.sanitise_id(image_key) if sid is None else sid, "session id")
+        check_link(link)
         self.profile = profile
         self.component = component
         self.status_interval_s = 1.0 / DEFAULT_STATUS_HZ
@@ -111,12 +156,24 @@ class MavlinkCamera:
         except Exception:
             self.close()
             raise
-        self.tracking = False
+        self.state = "idle"                          # idle | tracking | failed
+        self._held = False                           # the service has a session of ours (to stop on a stop)
+        self._lock = threading.Lock()                # state, box and start frame: set by the service thread
+        self._calls: queue.Queue[_Call | None] = queue.Queue()
+        self._done: queue.Queue[_Call] = queue.Queue()
+        self._pending: dict[tuple[int, int, int], _Call] = {}    # commands in progress (the loop's alone)
+        self._checking = False                       # a session check is queued or runs
+        self._service_thread = threading.Thread(target=self._run_calls, name="tacf-mavlink-service", daemon=True)
+        self._service_thread.start()
         self._newest_frame: zenoh.Sample | None = None
         self._box: TrackedBox | None = None
         # (seq, stamp_ns) of the frame the session was last (re)started on, until a box of the new start arrives
         self._started_on: tuple[int, int] | None = None
         self._started = time.monotonic()
+
+    @property
+    def tracking(self) -> bool:
+        return self.state == "tracking"
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def serve(self, stop: threading.Event) -> None:
@@ -128,16 +185,19 @@ class MavlinkCamera:
                     self.mav.mav.heartbeat_send(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 0,
                                                 mav.MAV_STATE_ACTIVE)
                     next_heartbeat = now + HEARTBEAT_S
-                if self.tracking and now >= next_check:
-                    self._check_session()
+                if self.tracking and now >= next_check and not self._checking:
+                    self._checking = True
+                    self._calls.put(_Call(self._check_session))
                     next_check = now + SESSION_CHECK_S
+                self._answer_calls(now)
                 self._newest_frame = self._frames.try_recv() or self._newest_frame
                 while (box := self._boxes.get(timeout=0)) is not None:
-                    if self._started_on is None or not _precedes(box, self._started_on):
-                        # boxes arrive in order: once one is from after the (re)start, later ones are too, even
-                        # with the seq of a camera that restarted from 0
-                        self._box, self._started_on = box, None
-                if self.tracking and self.status_interval_s > 0 and now >= next_status:
+                    with self._lock:
+                        if self._started_on is None or not _precedes(box, self._started_on):
+                            # boxes arrive in order: once one is from after the (re)start, later ones are too,
+                            # even with the seq of a camera that restarted from 0
+                            self._box, self._started_on = box, None
+                if self.state != "idle" and self.status_interval_s > 0 and now >= next_status:
                     self._send_status()
                     next_status = now + self.status_interval_s
                 message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
@@ -148,11 +208,54 @@ class MavlinkCamera:
                 log.warning("MAVLink link %s is down: %s; reconnecting", self.mav.address, exc)
                 stop.wait(LINK_RETRY_S)
 
+    def _run_calls(self) -> None:
+        """The service thread: each call in turn, until close() puts None."""
+        for call in iter(self._calls.get, None):
+            try:
+                call.result = call.run()
+            except Exception:                        # a command never ends the component: FAILED, and on we go
+                log.exception("a call to the service failed")
+                call.result = mav.MAV_RESULT_FAILED
+            self._done.put(call)
+
+    def _answer_calls(self, now: float) -> None:
+        """Final ACKs of the calls done (and what follows them), IN_PROGRESS again for those still running."""
+        while True:
+            try:
+                call = self._done.get_nowait()
+            except queue.Empty:
+                break
+            if call.key is None:                     # the session check
+                self._checking = False
+                if call.result != mav.MAV_RESULT_ACCEPTED:
+                    self._send_status()              # it ended: IDLE or ERROR
+                continue
+            del self._pending[call.key]
+            self._ack(call.key, call.result)
+            if call.key[2] == mav.MAV_CMD_CAMERA_STOP_TRACKING and call.result == mav.MAV_RESULT_ACCEPTED:
+                self._send_status()                  # IDLE, so that the ground station clears its box
+        for call in self._pending.values():
+            if now >= call.next_progress:
+                self._ack(call.key, mav.MAV_RESULT_IN_PROGRESS)
+                call.next_progress = now + PROGRESS_S
+
+    def _ack(self, key: tuple[int, int, int], result: int) -> None:
+        system, component, command = key
+        progress = PROGRESS_UNKNOWN if result == mav.MAV_RESULT_IN_PROGRESS else 0
+        self.mav.mav.command_ack_send(command, result, progress, target_system=system, target_component=component)
+
     def _command(self, message) -> None:
         if message.target_system not in (0, self.mav.mav.srcSystem) or \
                 message.target_component not in (0, self.component):
             return                                   # for another system or component
         command, requested = message.command, None
+        key = (message.get_srcSystem(), message.get_srcComponent(), command)
+        params = (message.param1, message.param2, message.param3, message.param4)
+        if key in self._pending:
+            same = all(a == b or (math.isnan(a) and math.isnan(b)) for a, b in zip(params, self._pending[key].params))
+            # a retransmission is answered, not queued again; another command of the kind waits for the first
+            self._ack(key, mav.MAV_RESULT_IN_PROGRESS if same else mav.MAV_RESULT_TEMPORARILY_REJECTED)
+            return
         try:
             if command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
                 result = self._track_rectangle(message)
@@ -172,8 +275,12 @@ class MavlinkCamera:
             result = mav.MAV_RESULT_FAILED
         if result == mav.MAV_RESULT_UNSUPPORTED and message.target_component == 0:
             return                                   # a broadcast command for some other component
-        self.mav.mav.command_ack_send(command, result, target_system=message.get_srcSystem(),
-                                      target_component=message.get_srcComponent())
+        if isinstance(result, _Call):                # to be run on the service thread
+            result.key, result.params = key, params
+            self._pending[key] = result
+            self._calls.put(result)
+            result = mav.MAV_RESULT_IN_PROGRESS
+        self._ack(key, result)
         if result != mav.MAV_RESULT_ACCEPTED:
             return
         if requested == mav.MAVLINK_MSG_ID_CAMERA_INFORMATION:
@@ -181,8 +288,8 @@ class MavlinkCamera:
         elif requested is not None or command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
             self._send_status()                      # after a stop: IDLE, so that the ground station clears its box
 
-    # --- commands ------------------------------------------------------------------------------------------------
-    def _track_rectangle(self, message) -> int:
+    # --- commands (checked on the loop; what calls the service runs on the service thread) ---------------------
+    def _track_rectangle(self, message) -> int | _Call:
         corners = (message.param1, message.param2, message.param3, message.param4)
         x1, y1, x2, y2 = corners
         if not all(math.isfinite(c) and 0.0 <= c <= 1.0 for c in corners) or not (x1 < x2 and y1 < y2):
@@ -192,6 +299,9 @@ class MavlinkCamera:
         if frame is None:
             return mav.MAV_RESULT_TEMPORARILY_REJECTED
         box = (x1 * frame.width, y1 * frame.height, (x2 - x1) * frame.width, (y2 - y1) * frame.height)
+        return _Call(lambda: self._track(box, frame))
+
+    def _track(self, box: tuple[float, float, float, float], frame: Frame) -> int:
         try:
             if self.tracking:
                 self._reinit_or_start(box, frame.seq)
@@ -199,8 +309,12 @@ class MavlinkCamera:
                 self._start_or_take_over(box, frame.seq)
         except TacfError as exc:
             log.warning("TRACK_RECTANGLE: the service refused: %s", exc)
+            if not self.tracking:                    # a re-target refused leaves the session tracking as it was
+                self._held = False                   # nothing of ours runs: a stop clears the failure alone
+                self._set_state("failed")
             return mav.MAV_RESULT_FAILED
-        self.tracking, self._box, self._started_on = True, None, (frame.seq, frame.stamp_ns)
+        self._held = True
+        self._set_state("tracking", started_on=(frame.seq, frame.stamp_ns))
         log.info("tracking %s on %s from box %s (frame %d)", self.sid, self.image_key, box, frame.seq)
         return mav.MAV_RESULT_ACCEPTED
 
@@ -226,31 +340,44 @@ class MavlinkCamera:
             log.info("session %s was stopped elsewhere: starting it again", self.sid)
             self._start_or_take_over(box, seq)
 
-    def _stop_tracking(self) -> int:
-        if self.tracking:
+    def _stop_tracking(self) -> int | _Call:
+        if self.state == "idle" and not self._pending:
+            return mav.MAV_RESULT_ACCEPTED           # nothing runs, nor is about to
+        return _Call(self._stop)
+
+    def _stop(self) -> int:
+        if self._held:
             try:
                 self.client.stop(self.sid)
             except UnknownSession:
-                log.info("session %s was stopped elsewhere already", self.sid)
+                log.info("session %s is not on the service (stopped elsewhere, or it never started)", self.sid)
             except TacfError as exc:
                 log.warning("STOP_TRACKING: %s", exc)
                 return mav.MAV_RESULT_FAILED
-            self.tracking, self._box = False, None
+            self._held = False
+        self._set_state("idle")
         return mav.MAV_RESULT_ACCEPTED
 
-    def _check_session(self) -> None:
-        """A session stopped elsewhere (the dashboard, `tacf stop`) or failed ends the tracking here too."""
+    def _check_session(self) -> int:
+        """A session stopped elsewhere (the dashboard, `tacf stop`) ends the tracking here too, and one that failed
+        on the service is failed here. ACCEPTED while it still runs (or the service is out of reach for now)."""
         try:
             state = self.client.status(self.sid).state
         except UnknownSession:
             state = "stopped"
         except TacfError as exc:                     # the service out of reach for now: ask again later
             log.warning("status of %s: %s", self.sid, exc)
-            return
-        if state in ("stopped", "failed"):
-            log.info("session %s is %s: tracking ended", self.sid, state)
-            self.tracking, self._box = False, None
-            self._send_status()
+            return mav.MAV_RESULT_ACCEPTED
+        if state not in ("stopped", "failed") or not self.tracking:
+            return mav.MAV_RESULT_ACCEPTED           # still runs, or a command changed it meanwhile
+        log.info("session %s is %s: tracking ended", self.sid, state)
+        self._held = state == "failed"               # the service keeps a failed session until it is stopped
+        self._set_state("idle" if state == "stopped" else "failed")
+        return mav.MAV_RESULT_FAILED
+
+    def _set_state(self, state: str, started_on: tuple[int, int] | None = None) -> None:
+        with self._lock:
+            self.state, self._box, self._started_on = state, None, started_on
 
     def _set_interval(self, message) -> int:
         if _message_id(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:
@@ -275,9 +402,12 @@ class MavlinkCamera:
         nan = float("nan")
         status, mode, target_data = mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE, mav.CAMERA_TRACKING_MODE_NONE, 0
         point, corners = (nan, nan), (nan, nan, nan, nan)
-        if self.tracking:
+        with self._lock:
+            state, box = self.state, self._box
+        if state == "failed":
+            status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR, mav.CAMERA_TRACKING_MODE_RECTANGLE
+        elif state == "tracking":
             status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_RECTANGLE
-            box = self._box
             if box is not None:
                 target_data = mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS
                 point, corners = box.center_norm, box.corners_normalised
@@ -298,12 +428,16 @@ class MavlinkCamera:
     # --- lifetime ------------------------------------------------------------------------------------------------
     def close(self) -> None:
         """Stop the session this component started, and let go of everything."""
-        if getattr(self, "tracking", False):
+        service_thread = getattr(self, "_service_thread", None)
+        if service_thread is not None:
+            self._calls.put(None)                    # after the calls queued: a start still running ends first
+            service_thread.join(timeout=self.client.timeout * 3)
+        if getattr(self, "_held", False):
             try:
                 self.client.stop(self.sid)
             except TacfError as exc:
                 log.warning("could not stop %s: %s", self.sid, exc)
-            self.tracking = False
+            self._held, self.state = False, "idle"
         # a TCP link whose reconnection failed has no port, and pymavlink's close() would fail on it
         if getattr(self, "mav", None) is not None and self.mav.port is not None:
             self.mav.close()

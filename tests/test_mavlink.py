@@ -15,6 +15,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
+from tacf_service.loopback import wait_until
 from camera_rig import no_service_options, service_and_camera, tacf_command
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
@@ -64,10 +65,11 @@ def _receive(gcs, kind: str, timeout: float = 10.0, where=lambda m: True):
 
 
 def _command(gcs, command: int, *params: float, component: int = mav.MAV_COMP_ID_CAMERA, timeout: float = 20.0):
-    """Send COMMAND_LONG and return its COMMAND_ACK's result (None: no ACK)."""
+    """Send COMMAND_LONG and return its final COMMAND_ACK's result (None: no ACK), past any IN_PROGRESS."""
     params = list(params) + [0.0] * (7 - len(params))
     gcs.mav.command_long_send(1, component, command, 0, *params)
-    ack = _receive(gcs, "COMMAND_ACK", timeout, where=lambda m: m.command == command)
+    ack = _receive(gcs, "COMMAND_ACK", timeout,
+                   where=lambda m: m.command == command and m.result != mav.MAV_RESULT_IN_PROGRESS)
     return None if ack is None else ack.result
 
 
@@ -225,7 +227,8 @@ def test_commands_sent_as_command_int_are_answered_alike(rig):
     def command_int(command: int, *params: float):
         params = list(params) + [0.0] * (4 - len(params))
         gcs.mav.command_int_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_FRAME_GLOBAL, command, 0, 0, *params, 0, 0, 0.0)
-        ack = _receive(gcs, "COMMAND_ACK", 20, where=lambda m: m.command == command)
+        ack = _receive(gcs, "COMMAND_ACK", 20,
+                       where=lambda m: m.command == command and m.result != mav.MAV_RESULT_IN_PROGRESS)
         return None if ack is None else ack.result
 
     assert command_int(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION) == mav.MAV_RESULT_ACCEPTED
@@ -306,6 +309,19 @@ def test_a_session_left_running_by_a_killed_component_is_taken_over(rig):
         assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.05, 0.05, 0.2, 0.2) == mav.MAV_RESULT_FAILED
         assert not component.tracking
         assert box_iou(client.status(SID).box, theirs) > 0.9, "not re-targeted"
+        # the failed start is not forgotten: the ground station is shown it until it clears it
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                        where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR)
+        assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS) == \
+            mav.MAV_RESULT_ACCEPTED
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1).tracking_status == \
+            mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR
+        assert component.state == "failed"
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                        where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE)
+        assert component.state == "idle"
+        assert client.status(SID).image_key == elsewhere, "clearing the failure stops nothing of theirs"
     finally:
         client.stop(SID)
     camera.hold.clear()
@@ -353,6 +369,61 @@ def test_the_box_follows_the_target_after_the_camera_restarts():
                 gcs.close()
                 if restarted is not None:
                     restarted.close()
+
+
+def test_a_slow_start_is_answered_in_progress_while_the_loop_goes_on_and_a_retransmission_runs_once():
+    """The service waits up to --init-wait for the frame a start names; a start on a camera gone quiet takes that
+    long. It blocked the loop (no heartbeat, no answer to anything, the ground station retransmitting): now it
+    is answered IN_PROGRESS at once, the loop answers meanwhile, and the same command sent again is answered
+    IN_PROGRESS, not queued a second time."""
+    import zenoh
+
+    from tacf_clients.zconfig import make_config
+    from tacf_schemas.codec import encode
+    from tacf_schemas.images import encode_frame
+
+    key = "test/mavlink/quiet"
+    with LocalService(node=f"mavq{free_port()}", extra_args=("--init-wait", "4")) as service, \
+            zenoh.open(make_config(service.options)) as session:
+        service.wait_ready(session)
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        stop = threading.Event()
+        with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, session=session, sid="mavlink-quiet") as component:
+            loop = threading.Thread(target=component.serve, args=(stop,))
+            loop.start()
+            try:
+                assert _receive(gcs, "HEARTBEAT") is not None
+                session.put(key, encode(encode_frame(SCENE.frame(0), 7)))    # one frame, then the camera is quiet
+                assert wait_until(lambda: component._frame_header() is not None, 10)
+                rectangle = [*_normalised_corners(SCENE.box(0)), 0.0, 0.0, 0.0]
+                sent = time.monotonic()
+                acks = []
+
+                def track_ack(timeout):
+                    return _receive(gcs, "COMMAND_ACK", timeout, where=lambda m: m.command ==
+                                    mav.MAV_CMD_CAMERA_TRACK_RECTANGLE and acks.append((time.monotonic(), m)) is None)
+
+                gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0, *rectangle)
+                first = track_ack(1.0)
+                assert first is not None and first.result == mav.MAV_RESULT_IN_PROGRESS and first.progress == 255
+                gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 1, *rectangle)
+                assert track_ack(1.0).result == mav.MAV_RESULT_IN_PROGRESS, "the retransmission"
+                assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION,
+                                timeout=1.0) == mav.MAV_RESULT_ACCEPTED, "other commands are answered meanwhile"
+                assert _receive(gcs, "HEARTBEAT", timeout=1.5) is not None, "and the heartbeat goes on"
+                final = _receive(gcs, "COMMAND_ACK", 20, where=lambda m: m.command ==
+                                 mav.MAV_CMD_CAMERA_TRACK_RECTANGLE and m.result != mav.MAV_RESULT_IN_PROGRESS)
+                assert final is not None and final.result == mav.MAV_RESULT_ACCEPTED
+                assert time.monotonic() - sent > 3, "the start did wait for the frame"
+                assert _receive(gcs, "COMMAND_ACK", 3, where=lambda m: m.command ==
+                                mav.MAV_CMD_CAMERA_TRACK_RECTANGLE) is None, "one start, one final answer"
+                assert component.tracking
+            finally:
+                stop.set()
+                loop.join(timeout=10)
+                gcs.close()
 
 
 def test_no_frame_yet_is_a_temporary_refusal():
@@ -429,6 +500,24 @@ def test_tacf_mavlink_command_announces_itself_until_sigterm():
     done = subprocess.run([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, "--link", "udpout:x:1",
                            "--component", "0"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "--component must be 1 to 255" in done.stderr, done.stderr
+
+
+@pytest.mark.parametrize("args, says", [
+    (("--link", "udpout:no-such-host.invalid:14550"), "cannot resolve host 'no-such-host.invalid'"),
+    (("--link", "tcp:no-such-host.invalid:5760"), "cannot resolve host 'no-such-host.invalid'"),
+    (("--link", "udpout:127.0.0.1:99999"), "a port of 1 to 65535"),
+    (("--link", "udpout:127.0.0.1:14550", "--sid", ""), "invalid session id ''"),
+])
+def test_a_bad_endpoint_or_sid_is_a_one_line_error(args, says):
+    """An unresolvable udpout host ran for ever sending nothing (pymavlink swallows the error), a port over 65535
+    ended in a traceback from the loop, and --sid '' took the default sid."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "mavlink", "--key", KEY, *args,
+                           "--connect", f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.startswith("tacf mavlink: ") and says in done.stderr, done.stderr
 
 
 def test_a_serial_link_works_and_a_missing_device_is_a_one_line_error():
