@@ -233,6 +233,8 @@ class Worker:
         self._health_pub = session.declare_publisher(health_key(node, sid), encoding=encoding,
                                                      priority=getattr(zenoh.Priority, HEALTH_PRIORITY))
         frames = session.declare_subscriber(self.job.image_key, zenoh.handlers.RingChannel(1))
+        # The stall clock (STALL_S) runs from here, not from the process's start: a spare waited for no frames.
+        self._slot.last_put = time.monotonic()
         self._pump = threading.Thread(target=self._pump_frames, args=(frames.handler,), name="frames", daemon=True)
         self._pump.start()
         self._send(("ready",))

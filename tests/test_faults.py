@@ -31,6 +31,7 @@ from tacf_service.config import ZenohOptions
 from tacf_service.control import CONTROL_THREADS
 from tacf_service.loopback import SessionResults, peer_config, wait_until
 from tacf_service.probe import ControlError, call
+from tacf_service.worker import STALL_S
 
 pytestmark = pytest.mark.zenoh
 
@@ -317,6 +318,24 @@ def test_a_spare_worker_that_never_gets_warm_is_replaced(monkeypatch):
         assert wait_until(lambda: first.process.exitcode == -signal.SIGKILL, 10), first.process.exitcode
         assert wait_until(lambda: spares and spares[0] is not first, 10)
         assert not first.idle
+
+
+def test_a_spare_that_waited_long_reports_no_stall_when_its_session_starts(service, client):
+    """A worker's "waiting for frames" clock starts when it starts serving its session: a spare that had waited
+    longer than STALL_S reports no stall on its session's first health, then one once the feed is silent."""
+    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    spare = next(w for w in service.manager._spares if w.idle)
+    time.sleep(max(0.0, spare.started_at + STALL_S + 1.0 - time.monotonic()))
+    results = SessionResults(client, NODE, "quiet")
+    try:
+        start(service, client, image_key="faults/cam/quiet", box=SCENE.box(1), sid="quiet")    # no frame ever
+        assert service.manager.worker_pids()["quiet"] == spare.process.pid
+        assert wait_until(lambda: results.health, 10)
+        assert results.health[0].message is None, results.health[0]
+        assert wait_until(lambda: (results.last_health().message or "").startswith("waiting for frames"), 10)
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="quiet"))
 
 
 # ---------------------------------------------------------------------------------------------- router
