@@ -311,19 +311,19 @@ class FoxgloveBridge:
 
     def _start(self, fields: dict) -> bytes:
         node = fields.pop("node", None)
-        request = StartRequest.model_validate(fields)
+        request = StartRequest.from_wire(fields)
         info = self.board.start(request.image_key, request.box, request.seq, sid=request.sid,
                                 profile=request.profile, overrides=request.overrides, node=node)
         return info.model_dump_json().encode()
 
     def _reinit(self, fields: dict) -> bytes:
         node = fields.pop("node", None)
-        request = ReinitRequest.model_validate(fields)
+        request = ReinitRequest.from_wire(fields)
         return self.board.reinit(request.sid, request.box, request.seq, node=node).model_dump_json().encode()
 
     def _stop(self, fields: dict) -> bytes:
         node = fields.pop("node", None)
-        request = StopRequest.model_validate(fields)
+        request = StopRequest.from_wire(fields)
         return self.board.stop(request.sid, node=node).model_dump_json().encode()
 
     def _list(self, fields: dict) -> bytes:

@@ -388,6 +388,11 @@ def test_a_camera_sending_frames_that_are_no_images_holds_up_no_other(caplog):
     (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "overrides": {"no_such_field": 1}}).encode(),
      "no_such_field"),
     (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "overrides": {"cell_size": 0}}).encode(), "cell_size"),
+    # as strict as the JSON schema: text is no number, a bool no int (pydantic's lax mode took both)
+    (json.dumps({"image_key": KEY, "box": [1, 2, "30", 40]}).encode(), "box.2"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "seq": "7"}).encode(), "seq"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "seq": True}).encode(), "seq"),
+    (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "overrides": {"cell_size": "6"}}).encode(), "cell_size"),
 ])
 def test_a_bad_start_request_gets_a_clear_failure(client, request_bytes, expected):
     ok, message = client.call("/tacf/start", request_bytes)
