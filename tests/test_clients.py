@@ -13,7 +13,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.demo import HoldingPublisher
 from tacf_clients.errors import (ERRORS, AmbiguousNode, DuplicateSession, InvalidBox, InvalidConfig, InvalidId,
-                                 InvalidKey, NoService, RequestTimeout, ServiceError, UnknownSession)
+                                 InvalidKey, InvalidRequest, NoService, RequestTimeout, ServiceError, UnknownSession)
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config
@@ -143,6 +143,9 @@ def test_error_replies_raise_typed_exceptions(client, camera, service):
         client.start(camera.key, (10, 10, 0, 5))
     with pytest.raises(InvalidId):
         client.stop("not a valid id")
+    for text in ("0.02", "true"):                         # typed into a form: refused, not sent as a number
+        with pytest.raises(InvalidRequest, match="overrides"):
+            client.start(camera.key, SCENE.box(0), sid="textual", overrides={"learning_rate": text})
     with pytest.raises(InvalidConfig):                    # refused by the service
         client.start(camera.key, SCENE.box(0), profile="no-such-profile", sid="badprofile")
     with pytest.raises(InvalidBox):
