@@ -15,7 +15,8 @@ from typing import Annotated, Literal, Optional, Union
 
 from typing_extensions import Self
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, model_validator
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, TypeAdapter,
+                      model_validator)
 
 from .limits import (MAX_CARRIED_FRAMES, MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_WIDTH, MAX_ID_LENGTH,
                      MAX_IMAGE_KEY_LENGTH, MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
@@ -74,6 +75,8 @@ Width = Annotated[int, Field(ge=1, le=MAX_FRAME_WIDTH), WIRE_INT]
 Height = Annotated[int, Field(ge=1, le=MAX_FRAME_HEIGHT), WIRE_INT]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+#: A seq alone, validated as WireModel.from_wire does within a message (the worker peeks at a frame's seq).
+SEQ = TypeAdapter(Seq)
 #: A tracker config override (TrackerConfig.profile(profile, **overrides)): strict even where a Python caller
 #: builds the message, so that "0.5" or "true" typed into a form is refused, not sent as a number.
 Override = Union[StrictBool, StrictInt, StrictFloat]

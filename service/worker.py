@@ -476,8 +476,10 @@ def _is_stale(frame, last: tuple[int, int] | None) -> bool:
 
 
 def _peek_seq(payload: bytes) -> int | None:
-    """A Frame's seq without validating the whole message (None if there is no valid seq)."""
+    """A Frame's seq without validating the whole message (None if there is no valid seq): valid as the decoder
+    takes it (an integral float is the int, as from a JavaScript publisher), so gaps count for every feed."""
     import msgpack
+    from tacf_schemas.models import SEQ
     try:
         unpacker = msgpack.Unpacker(max_buffer_size=len(payload) + 1, max_bin_len=0, max_str_len=64,
                                     max_array_len=0, max_map_len=16)
@@ -486,11 +488,9 @@ def _peek_seq(payload: bytes) -> int | None:
         for _ in range(n):
             key = unpacker.unpack()
             if key == "seq":
-                value = unpacker.unpack()
-                valid = isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 2**63
-                return value if valid else None
+                return SEQ.validate_python(unpacker.unpack(), strict=True)
             unpacker.skip()
-    except Exception:
+    except Exception:    # msgpack's several error types, pydantic's ValidationError
         return None
     return None
 

@@ -442,6 +442,22 @@ def test_box_outside_image_and_duplicate_id(service, client, feed):
     assert call(client, NODE, "list").sessions == []
 
 
+@pytest.mark.parametrize("seq", [5, 5.0, 2**63 - 1, True, "5", -1, 1.5, 2**63, 2.0**63, None, [5]])
+def test_a_frame_s_seq_peeked_by_the_worker_is_the_decoder_s(seq):
+    """The worker counts frames lost in its ring from seq gaps it peeks at; its own check took no 5.0 (what a
+    JavaScript publisher sends), which the decoder takes, so such a feed never counted a gap."""
+    from tacf_schemas import DecodeError
+    from tacf_service.worker import _peek_seq
+
+    payload = msgpack.packb({"seq": seq, "stamp_ns": 1, "encoding": "mono8", "width": 1, "height": 1,
+                             "data": b"\x00"})
+    try:
+        expected = decode(payload, Frame).seq
+    except DecodeError:
+        expected = None
+    assert _peek_seq(payload) == expected and type(_peek_seq(payload)) is type(expected)
+
+
 def test_bad_frames_are_counted_and_harm_no_session(service, client, feed):
     """Garbage on one session's key is counted as rejected; that session and another one keep tracking."""
     key = "test/cam/hostile"
