@@ -18,8 +18,8 @@ from typing_extensions import Self
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, TypeAdapter,
                       model_validator)
 
-from .limits import (MAX_CARRIED_FRAMES, MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_WIDTH, MAX_ID_LENGTH,
-                     MAX_IMAGE_KEY_LENGTH, MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
+from .limits import (MAX_CARRIED_FRAMES, MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH,
+                     MAX_ID_LENGTH, MAX_IMAGE_KEY_LENGTH, MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
 
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 
@@ -104,14 +104,20 @@ class WireModel(BaseModel):
 
 # ---------------------------------------------------------------- frames (camera -> service)
 
+_FRAME_PIXELS = (f"Pixels; width * height must not exceed {MAX_FRAME_PIXELS} ({MAX_FRAME_PIXELS / 1e6:.1f} Mpx): "
+                 f"the service rejects a larger frame (Health.frames_rejected).")
+
+
 class Frame(WireModel):
     """One video frame on a user image key. `data` is the encoded image (jpeg/png) or raw pixels
     (bgr8: height*width*3 bytes, mono8: height*width bytes, row-major, no padding)."""
     seq: Seq
     stamp_ns: StampNs
     encoding: Encoding
-    width: Width
-    height: Height
+    # The pixel limit is the service's (a product of two fields, which JSON Schema cannot check): stated here so
+    # that publishers find it in schemas/json/Frame.json.
+    width: Annotated[Width, Field(description=_FRAME_PIXELS)]
+    height: Annotated[Height, Field(description=_FRAME_PIXELS)]
     data: Annotated[bytes, Field(max_length=MAX_FRAME_BYTES)]
 
 

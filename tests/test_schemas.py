@@ -314,6 +314,13 @@ def test_truncated_jpeg_body_is_corrupt_or_decodes(image):
             pass
 
 
+def test_the_frame_schema_states_the_pixel_limit():
+    """A publisher reading schemas/json/Frame.json learns that the service refuses frames over 16.8 Mpx."""
+    schema = json.loads((JSON_DIR / "Frame.json").read_text())
+    for field in ("width", "height"):
+        assert str(MAX_FRAME_PIXELS) in schema["properties"][field]["description"]
+
+
 def test_frame_model_caps_dimensions():
     for w, h in [(0, 0), (100000, 10), (10, 100000)]:
         with pytest.raises(DecodeError):
