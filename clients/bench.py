@@ -36,6 +36,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from tacf.argument_types import integer, positive_number, seconds
 from tacf.config import PROFILES      # plain data: checks --profile before a service starts
 from tacf.eval.cli import DEFAULT_DATA, report_file  # argparse-level: as `tacf bench tracker` has them
 
@@ -53,11 +54,11 @@ def register_bench(bench_subparsers) -> None:
                     "latency, drops, memory and CPU as JSON.")
     p.add_argument("root", metavar="ROOT", type=Path, nargs="?",
                    help=f"folder of annotated sequences (default {DEFAULT_DATA})")
-    p.add_argument("--feeds", type=int, nargs="+", default=[1], metavar="N",
+    p.add_argument("--feeds", type=integer(1), nargs="+", default=[1], metavar="N",
                    help="feed counts to run one after the other (default 1)")
-    p.add_argument("--fps", type=float, default=10.0, help="frames per second per feed (default 10)")
-    p.add_argument("--seconds", type=float, default=20.0, help="measured window per feed count (default 20)")
-    p.add_argument("--warmup", type=float, default=5.0,
+    p.add_argument("--fps", type=positive_number, default=10.0, help="frames per second per feed (default 10)")
+    p.add_argument("--seconds", type=positive_number, default=20.0, help="measured window per feed count (default 20)")
+    p.add_argument("--warmup", type=seconds, default=5.0,
                    help="seconds tracked after every session's first box, before measuring (default 5)")
     p.add_argument("--profile", choices=PROFILES,
                    help="tracker profile of the sessions (default: the service's default)")
@@ -302,12 +303,6 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
     root = args.root or DEFAULT_DATA
     if not root.is_dir():
         log.error("no sequences: %s does not exist (pass ROOT)", root)
-        return 2
-    if min(args.feeds) < 1 or args.fps <= 0 or args.seconds <= 0:
-        log.error("--feeds, --fps and --seconds must be positive")
-        return 2
-    if args.warmup < 0:
-        log.error("--warmup must be 0 or more seconds, got %g", args.warmup)
         return 2
     try:
         feeds = load_feeds(root, max(args.feeds))

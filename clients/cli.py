@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 import threading
 from contextlib import contextmanager
+
+from tacf.argument_types import box, integer, port, positive_number, quality, seconds
 
 ENCODING_CHOICES = ("jpeg", "png", "bgr8", "mono8")
 # The Zenoh mode a command opens without --mode or a config file, as its help states it (see _client and
@@ -31,22 +32,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("source", metavar="SOURCE")
     p.add_argument("--key", "-k", required=True, type=_image_key,
                    help="Zenoh key to publish on, e.g. uav1/camera/front")
-    p.add_argument("--fps", type=_positive_float, help="rate (default: the source's own, or 30)")
+    p.add_argument("--fps", type=positive_number, help="rate (default: the source's own, or 30)")
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg", help="frame encoding (default jpeg)")
-    p.add_argument("--quality", type=_quality, default=90, help="JPEG quality 1-100 (default 90)")
+    p.add_argument("--quality", type=quality, default=90, help="JPEG quality 1-100 (default 90)")
     p.add_argument("--loop", action="store_true", help="start over at the end of a file or folder")
     p.add_argument("--no-reconnect", dest="reconnect", action="store_false",
                    help="end when a camera or stream fails or ends (default: reopen it, pausing 0.5 s doubling to "
                         "5 s between attempts; a stream silent for 5 s counts as failed)")
-    p.add_argument("--frames", type=int, metavar="N", help="stop after N frames")
-    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
+    p.add_argument("--frames", type=integer(1), metavar="N", help="stop after N frames")
+    p.add_argument("--wait-subscriber", type=seconds, default=0.0, metavar="SECONDS",
                    help="wait up to SECONDS for a subscriber before the first frame (default: do not wait)")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_publish)
 
     p = subparsers.add_parser("start", help="start a tracking session")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key the frames are published on")
-    p.add_argument("--box", "-b", required=True, type=parse_box, help="initial box x,y,w,h in pixels")
+    p.add_argument("--box", "-b", required=True, type=box, help="initial box x,y,w,h in pixels")
     p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
     p.add_argument("--profile", help="tracker profile (service default if absent)")
     p.add_argument("--sid", help="session id (generated if absent)")
@@ -64,7 +65,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("reinit", help="re-initialise a session on a new box")
     p.add_argument("sid", metavar="SID")
-    p.add_argument("--box", "-b", required=True, type=parse_box, help="new box x,y,w,h in pixels")
+    p.add_argument("--box", "-b", required=True, type=box, help="new box x,y,w,h in pixels")
     p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_reinit)
@@ -88,15 +89,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "(a killed service within milliseconds) until Ctrl-C. No service on "
                                           "the network is an error: exit 1, with --json after printing [].")
     p.add_argument("--follow", "-f", action="store_true", help="print up/down events instead of a table")
-    p.add_argument("--duration", type=_positive_float, help="with --follow: exit after this many seconds")
+    p.add_argument("--duration", type=positive_number, help="with --follow: exit after this many seconds")
     _common(p, add_zenoh_arguments, node_help=argparse.SUPPRESS, mode_default="client; peer with --follow")
     p.set_defaults(func=cmd_nodes)
 
     p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal")
     p.add_argument("sid", metavar="SID", nargs="?", default="*", help="session id (default: all sessions)")
     p.add_argument("--node", help="only this service")
-    p.add_argument("--interval", type=_positive_float, default=0.5, help="refresh period in seconds")
-    p.add_argument("--duration", type=_positive_float, help="exit after this many seconds")
+    p.add_argument("--interval", type=positive_number, default=0.5, help="refresh period in seconds")
+    p.add_argument("--duration", type=positive_number, help="exit after this many seconds")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_watch)
 
@@ -106,14 +107,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "health, then stop everything cleanly.")
     p.add_argument("source", metavar="SOURCE", nargs="?", default="scene",
                    help="video file, image folder, camera index, URL or 'scene' (default)")
-    p.add_argument("--box", "-b", type=parse_box,
+    p.add_argument("--box", "-b", type=box,
                    help="initial box x,y,w,h (default: the scene's target, a sequence's groundtruth.txt, "
                         "or a centred box)")
-    p.add_argument("--seconds", type=_positive_float, default=10.0, help="how long to track (default 10)")
-    p.add_argument("--fps", type=_positive_float, default=None, help="publishing rate (default: the source's, or 20)")
+    p.add_argument("--seconds", type=positive_number, default=10.0, help="how long to track (default 10)")
+    p.add_argument("--fps", type=positive_number, default=None, help="publishing rate (default: the source's, or 20)")
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg")
     p.add_argument("--profile", help="tracker profile")
-    p.add_argument("--every", type=int, default=None, metavar="N",
+    p.add_argument("--every", type=integer(1), default=None, metavar="N",
                    help="print every Nth box (default: about 3 lines a second)")
     p.set_defaults(func=cmd_demo)
 
@@ -148,10 +149,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; on any other the services are off unless "
                         "--control: the protocol has no authentication)")
-    p.add_argument("--port", type=_port, default=8765, help="WebSocket port (default 8765, Foxglove's; 0 = any free)")
+    p.add_argument("--port", type=port, default=8765, help="WebSocket port (default 8765, Foxglove's; 0 = any free)")
     p.add_argument("--control", action=argparse.BooleanOptionalAction, default=None,
                    help="offer the start/stop/reinit/list services (default: on loopback only)")
-    p.add_argument("--image-hz", type=_positive_float, default=10.0, metavar="HZ",
+    p.add_argument("--image-hz", type=positive_number, default=10.0, metavar="HZ",
                    help="images per second and image key at most (default 10: viewers keep what they get)")
     p.add_argument("--record", metavar="FILE.mcap",
                    help="also write everything (images at --image-hz) to this MCAP file, for replay in Foxglove")
@@ -171,7 +172,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "session. Also /metrics (Prometheus) and /healthz.")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; any other address asks for a token)")
-    p.add_argument("--port", type=_port, default=8080, help="HTTP port (default 8080; 0 = any free port)")
+    p.add_argument("--port", type=port, default=8080, help="HTTP port (default 8080; 0 = any free port)")
     p.add_argument("--token-file", metavar="FILE",
                    help="the access token, from this file (default: $TACF_DASHBOARD_TOKEN; on an address that is "
                         "not loopback a new one is made up; the printed address carries it)")
@@ -185,7 +186,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="image key to show from the start, repeatable (the keys of running sessions are added "
                         "by themselves, and more can be added on the page)")
     p.add_argument("--node", help="only this service (default: every service on the network)")
-    p.add_argument("--history", type=_positive_float, default=5.0, metavar="MINUTES",
+    p.add_argument("--history", type=positive_number, default=5.0, metavar="MINUTES",
                    help="minutes of chart history per session (default 5)")
     add_zenoh_arguments(p, VIEWER_MODE)
     p.set_defaults(func=cmd_dashboard)
@@ -195,24 +196,12 @@ def _common(p: argparse.ArgumentParser, add_zenoh_arguments,
             node_help: str = "service (node id) to address; default: whichever holds the session",
             mode_default: str = ONE_SHOT_MODE) -> None:
     p.add_argument("--node", help=node_help)
-    p.add_argument("--timeout", type=_positive_float, default=5.0, help="reply timeout in seconds (default 5)")
+    p.add_argument("--timeout", type=positive_number, default=5.0, help="reply timeout in seconds (default 5)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     add_zenoh_arguments(p, mode_default)
 
 
 # ------------------------------------------------------------------------------------------------ argument types
-
-def parse_box(text: str) -> tuple[float, float, float, float]:
-    """'x,y,w,h' (commas or spaces) -> 4 floats with w, h > 0."""
-    parts = text.replace(",", " ").split()
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"box {text!r}: expected four numbers x,y,w,h") from None
-    if len(values) != 4 or values[2] <= 0 or values[3] <= 0:
-        raise argparse.ArgumentTypeError(f"box {text!r}: expected x,y,w,h with w and h > 0")
-    return values  # type: ignore[return-value]
-
 
 def _image_key(text: str) -> str:
     """An image key as the service will take it: a bad one is a usage error here, not a traceback later."""
@@ -222,28 +211,6 @@ def _image_key(text: str) -> str:
         return validate_image_key(text)
     except InvalidKeyError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def _positive_float(text: str) -> float:
-    """A time or rate: finite (an infinity overflows Zenoh's timeouts and Python's waits) and > 0."""
-    value = float(text)
-    if not 0 < value < math.inf:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
-    return value
-
-
-def _port(text: str) -> int:
-    value = int(text)
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a port number 0-65535")
-    return value
-
-
-def _quality(text: str) -> int:
-    value = int(text)
-    if not 1 <= value <= 100:
-        raise argparse.ArgumentTypeError("quality must be 1-100")
-    return value
 
 
 def _setting(text: str) -> tuple[str, bool | int | float]:

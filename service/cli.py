@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
+
+from tacf.argument_types import integer, seconds
 
 
 def register(subparsers) -> None:
@@ -22,12 +23,12 @@ def register(subparsers) -> None:
                         help="Zenoh mode (default peer, or the --zenoh-config file's)")
     parser.add_argument("--node", metavar="ID", help="service id, [A-Za-z0-9_-]{1,64} (default: the hostname "
                                                     "sanitised, or 'edge')")
-    parser.add_argument("--max-sessions", type=_count(1), default=8, metavar="N", help="session limit (default 8)")
+    parser.add_argument("--max-sessions", type=integer(1), default=8, metavar="N", help="session limit (default 8)")
     parser.add_argument("--state", metavar="FILE", help="persist sessions in FILE and restore them on start (one "
                                                        "service per file: a second one refuses to start)")
-    parser.add_argument("--init-wait", type=_seconds, default=1.0, metavar="S",
+    parser.add_argument("--init-wait", type=seconds, default=1.0, metavar="S",
                         help="how long start waits for a first frame to check the box against (default 1 s)")
-    parser.add_argument("--spare-workers", type=_count(0), default=1, metavar="N",
+    parser.add_argument("--spare-workers", type=integer(0), default=1, metavar="N",
                         help="worker processes kept warm so that a start tracks within milliseconds (default 1)")
     parser.add_argument("--tracker-factory", default=None, metavar="MODULE:FUNCTION", help=argparse.SUPPRESS)
     parser.set_defaults(func=run)
@@ -54,26 +55,3 @@ def run(args: argparse.Namespace) -> int:
                              log_level=logging.getLogger().getEffectiveLevel())
     return serve(options)
 
-
-def _count(minimum: int):
-    """An argparse type: an integer >= minimum."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected an integer") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected an integer >= {minimum}")
-        return value
-    return parse
-
-
-def _seconds(text: str) -> float:
-    """A duration: finite and >= 0 (a start waits this long for a frame: NaN or infinity would wait for ever)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a number of seconds") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number of seconds >= 0")
-    return value

@@ -380,8 +380,10 @@ def test_track_image_folder_and_video(tmp_path):
     assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=4)
 
 
-def test_track_bad_arguments(tmp_path):
-    assert main(["track", str(tmp_path), "--box", "1,2,3", "--tracker", "opencv-kcf"]) == 2
+def test_track_bad_arguments(tmp_path, capsys):
+    with pytest.raises(SystemExit) as refused:      # a usage error, as for every command taking a box
+        main(["track", str(tmp_path), "--box", "1,2,3", "--tracker", "opencv-kcf"])
+    assert refused.value.code == 2 and "argument --box: '1,2,3': expected x,y,w,h" in capsys.readouterr().err
     assert main(["track", str(tmp_path / "missing.mp4"), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2
     assert main(["track", str(tmp_path), "--box", "1,2,3,4", "--tracker", "opencv-kcf"]) == 2   # empty folder
 
@@ -478,9 +480,13 @@ def test_bench_tracker_on_a_root_without_uav_names_says_how_to_choose_its_sequen
 @needs_data
 @pytest.mark.parametrize("frames", ["0", "-5"])
 def test_bench_tracker_refuses_max_frames_under_one(frames, capsys):
-    assert main(["bench", "tracker", str(SEQUENCES), "--sequences", "OTB100/Football1", "--trackers", "identity",
-                 "--max-frames", frames]) == 2
-    assert capsys.readouterr().out == ""                 # no report of 69 (= 74 - 5) frames at a negative fps
+    with pytest.raises(SystemExit) as refused:
+        main(["bench", "tracker", str(SEQUENCES), "--sequences", "OTB100/Football1", "--trackers", "identity",
+              "--max-frames", frames])
+    assert refused.value.code == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""                            # no report of 69 (= 74 - 5) frames at a negative fps
+    assert f"argument --max-frames: '{frames}': expected an integer >= 1" in captured.err
 
 
 @needs_data

@@ -12,6 +12,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from tacf.argument_types import box, integer
+
 log = logging.getLogger(__name__)
 
 DEFAULT_TRACKERS = "tacf,tacf-authors,kcc,opencv-csrt,opencv-kcf,opencv-mosse,opencv-mil"
@@ -48,7 +50,7 @@ def register(subparsers) -> None:
                    help=f"tracker names, comma or space separated (default {DEFAULT_TRACKERS}; none with --results)")
     p.add_argument("--sequences", metavar="GLOB", help="only sequences whose name matches (comma-separated globs)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help="output folder (default %(default)s)")
-    p.add_argument("--workers", type=int, default=1, metavar="N", help="processes (default %(default)s)")
+    p.add_argument("--workers", type=integer(1), default=1, metavar="N", help="processes (default %(default)s)")
     p.add_argument("--force", action="store_true",
                    help="rerun pairs that already have a result file (one of another length than the sequence, from "
                         "other --max-frames, always runs again)")
@@ -57,7 +59,7 @@ def register(subparsers) -> None:
                         "over kcc (ignores --trackers)")
     p.add_argument("--ranges", type=Path, metavar="FILE",
                    help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
-    p.add_argument("--max-frames", type=int, metavar="N",
+    p.add_argument("--max-frames", type=integer(1), metavar="N",
                    help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
     p.add_argument("--shifts", type=int, default=0, metavar="PX",
                    help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
@@ -86,7 +88,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("track", help="track one target through a video file or an image folder",
                               description="Write one box line per frame and, with --video, an annotated mp4.")
     p.add_argument("source", metavar="SOURCE", type=Path, help="video file or image folder")
-    p.add_argument("--box", required=True, metavar="X,Y,W,H", help="initial box, 0-based pixels, top-left x,y")
+    p.add_argument("--box", required=True, type=box, metavar="X,Y,W,H",
+                   help="initial box, 0-based pixels, top-left x,y")
     p.add_argument("--out", type=Path, metavar="FILE", help="box file (default: standard output)")
     p.add_argument("--video", type=Path, metavar="FILE", help="annotated video to write (mp4v)")
     p.add_argument("--profile", metavar="P", help="TACF profile: paper, authors, kcc (default: the default profile)")
@@ -104,7 +107,7 @@ def register_bench(bench_subparsers) -> None:
                    help="sequence globs (default: the UAV sequences, UAV123*/UAVDT*/DTB70*)")
     p.add_argument("--trackers", nargs="+", metavar="NAME",
                    help="trackers to time; the first is the subject (default tacf); opencv-csrt always runs")
-    p.add_argument("--max-frames", type=int, metavar="N", help="at most N frames per sequence")
+    p.add_argument("--max-frames", type=integer(1), metavar="N", help="at most N frames per sequence")
     p.set_defaults(func=cmd_bench)
 
 
@@ -115,8 +118,6 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
     kwargs = {"ranges": ranges} if ranges is not None and layout == "uav123" else {}
     seqs = load_sequences(root, pattern, layout=layout, **kwargs)
     if max_frames is not None:
-        if max_frames < 1:
-            raise ValueError(f"--max-frames must be >= 1, got {max_frames}")
         seqs = [replace(s, frames=s.frames[:max_frames], gt=s.gt[:max_frames]) for s in seqs]
     log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
     return seqs
@@ -261,10 +262,9 @@ def _write_videos(folder: Path, seqs, reports, progress: bool) -> Path:
 
 def cmd_track(args: argparse.Namespace) -> int:
     from .trackers import check_name, make_tracker
-    from .video import parse_box, track_source
+    from .video import track_source
 
     try:
-        box = parse_box(args.box)
         if args.tracker and args.profile:
             raise ValueError("give --profile or --tracker, not both")
         name = check_name(args.tracker or (f"tacf-{args.profile}" if args.profile else "tacf"))
@@ -273,7 +273,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return 2
     try:
-        n = track_source(tracker, args.source, box, args.out, args.video)
+        n = track_source(tracker, args.source, args.box, args.out, args.video)
     except (ValueError, FileNotFoundError, OSError) as exc:
         log.error("%s", exc)
         return 2

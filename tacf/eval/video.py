@@ -54,17 +54,6 @@ def open_source(source: Path) -> tuple[Iterator[np.ndarray], float]:
     return frames(), fps if fps > 0 else 10.0
 
 
-def parse_box(text: str) -> tuple[float, float, float, float]:
-    """'x,y,w,h' -> floats, with w, h > 0."""
-    try:
-        box = tuple(float(v) for v in text.replace(" ", "").split(","))
-    except ValueError:
-        raise ValueError(f"--box must be x,y,w,h numbers, got {text!r}") from None
-    if len(box) != 4 or not all(math.isfinite(v) for v in box) or box[2] <= 0 or box[3] <= 0:
-        raise ValueError(f"--box must be four finite numbers x,y,w,h with w, h > 0, got {text!r}")
-    return box
-
-
 def draw(frame: np.ndarray, box, ok: bool, pme: float, index: int) -> np.ndarray:
     """The frame with the box (green tracked, red lost) and its PME written above it."""
     import cv2

@@ -1,0 +1,82 @@
+"""argparse `type=` callables shared by every `tacf` command, so that a bad value is a usage error (exit 2, one
+line naming the option) when the command line is parsed, not a traceback or a silent oddity later.
+
+Numbers that are times, rates or sizes must be finite: float() takes 'nan' and 'inf', and NaN passes any
+`value <= 0` check (every comparison with it is false), then waits for ever or overflows a timeout.
+
+Only argparse at import time: `tacf --help` loads every command's arguments.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable
+
+Box = tuple[float, float, float, float]
+
+
+def _number(text: str, expected: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
+    return value
+
+
+def positive_number(text: str) -> float:
+    """A rate, a timeout, a duration that must pass: finite and > 0."""
+    value = _number(text, "a finite number > 0")
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
+    return value
+
+
+def seconds(text: str) -> float:
+    """A wait that may be none: a finite number of seconds >= 0."""
+    value = _number(text, "a finite number of seconds >= 0")
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number of seconds >= 0")
+    return value
+
+
+def integer(minimum: int | None = None, maximum: int | None = None,
+            what: str = "an integer") -> Callable[[str], int]:
+    """An integer within [minimum, maximum] (either bound may be left open); `what` names it in the message."""
+    if minimum is not None and maximum is not None:
+        expected = f"{what} {minimum}-{maximum}"
+    elif minimum is not None:
+        expected = f"{what} >= {minimum}"
+    elif maximum is not None:
+        expected = f"{what} <= {maximum}"
+    else:
+        expected = what
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
+        if (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
+        return value
+
+    return parse
+
+
+port = integer(0, 65535, "a port number")       # 0: any free port
+quality = integer(1, 100, "a JPEG quality")
+
+
+def box(text: str) -> Box:
+    """'x,y,w,h' (commas and/or spaces) in pixels: four finite numbers with w and h > 0."""
+    expected = "x,y,w,h: four finite numbers with w and h > 0"
+    parts = text.replace(",", " ").split()
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
+    if len(values) != 4 or not all(map(math.isfinite, values)) or values[2] <= 0 or values[3] <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
+    return values  # type: ignore[return-value]

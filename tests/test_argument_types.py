@@ -1,0 +1,74 @@
+"""tacf.argument_types: the argparse types every `tacf` command shares, and that the commands use them (a NaN rate
+passed `tacf bench service`'s `<= 0` check and ran)."""
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from tacf import argument_types as types
+
+
+@pytest.mark.parametrize("parse, text, value", [
+    (types.positive_number, "2.5", 2.5), (types.positive_number, "1e-3", 1e-3),
+    (types.seconds, "0", 0.0), (types.seconds, "1.5", 1.5),
+    (types.integer(1), "3", 3), (types.integer(), "-7", -7), (types.integer(0, 2), "2", 2),
+    (types.port, "0", 0), (types.port, "65535", 65535), (types.quality, "1", 1),
+    (types.box, "1,2,3,4", (1.0, 2.0, 3.0, 4.0)), (types.box, " 1 2, 3.5 4 ", (1.0, 2.0, 3.5, 4.0)),
+    (types.box, "-5,-5,1,1", (-5.0, -5.0, 1.0, 1.0)),
+])
+def test_good_values_are_taken(parse, text, value):
+    assert parse(text) == value
+
+
+@pytest.mark.parametrize("parse, text, expected", [
+    (types.positive_number, "nan", "expected a finite number > 0"),
+    (types.positive_number, "inf", "expected a finite number > 0"),
+    (types.positive_number, "-Infinity", "expected a finite number > 0"),
+    (types.positive_number, "0", "expected a finite number > 0"),
+    (types.positive_number, "-1", "expected a finite number > 0"),
+    (types.positive_number, "fast", "expected a finite number > 0"),
+    (types.seconds, "nan", "expected a finite number of seconds >= 0"),
+    (types.seconds, "inf", "expected a finite number of seconds >= 0"),
+    (types.seconds, "-0.1", "expected a finite number of seconds >= 0"),
+    (types.integer(1), "0", "expected an integer >= 1"),
+    (types.integer(1), "2.5", "expected an integer >= 1"),
+    (types.integer(maximum=3), "4", "expected an integer <= 3"),
+    (types.integer(), "x", "expected an integer"),
+    (types.port, "70000", "expected a port number 0-65535"),
+    (types.port, "-1", "expected a port number 0-65535"),
+    (types.quality, "0", "expected a JPEG quality 1-100"),
+    (types.quality, "101", "expected a JPEG quality 1-100"),
+    (types.box, "1,2,3", "expected x,y,w,h: four finite numbers with w and h > 0"),
+    (types.box, "1,2,3,0", "expected x,y,w,h"),
+    (types.box, "1,2,-3,4", "expected x,y,w,h"),
+    (types.box, "nan,2,3,4", "expected x,y,w,h"),
+    (types.box, "1,2,inf,4", "expected x,y,w,h"),
+    (types.box, "a,b,c,d", "expected x,y,w,h"),
+])
+def test_bad_values_are_refused_with_the_value_and_what_was_expected(parse, text, expected):
+    with pytest.raises(argparse.ArgumentTypeError) as refused:
+        parse(text)
+    assert str(refused.value).startswith(f"{text!r}: {expected}"), str(refused.value)
+
+
+@pytest.mark.parametrize("argv", [
+    ["bench", "service", "--fps", "nan"], ["bench", "service", "--seconds", "inf"],
+    ["bench", "service", "--warmup", "-1"], ["bench", "service", "--feeds", "0"],
+    ["demo", "--seconds", "nan"], ["demo", "--box", "1,2,nan,4"], ["demo", "--every", "0"],
+    ["publish", "scene", "--key", "cam/a", "--wait-subscriber", "nan"],
+    ["publish", "scene", "--key", "cam/a", "--frames", "-1"],
+    ["publish", "scene", "--key", "cam/a", "--quality", "0"],
+    ["start", "--key", "cam/a", "--box", "1,2,0,4"], ["reinit", "abc", "--box", "1,2,3"],
+    ["dashboard", "--history", "nan"], ["foxglove", "--image-hz", "0"],
+    ["serve", "--init-wait", "nan"], ["serve", "--max-sessions", "0"],
+    ["track", "clip.mp4", "--box", "1,2,3,inf"], ["eval", "root", "--workers", "0"],
+    ["eval", "root", "--max-frames", "0"], ["bench", "tracker", "--max-frames", "-5"],
+])
+def test_every_command_refuses_a_meaningless_number_as_a_usage_error(argv, capsys):
+    from tacf.cli import main
+
+    with pytest.raises(SystemExit) as refused:
+        main(argv)
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and f"error: argument {argv[-2]}" in err and "Traceback" not in err, err
