@@ -369,10 +369,14 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def cmd_list(args: argparse.Namespace) -> int:
     from tacf_clients.client import node_load
+    from tacf_clients.errors import NoService
     from tacf_clients.watch import session_table
 
     with _client(args) as client:
-        listings = client.services()
+        try:
+            listings = client.services()
+        except NoService:           # the --node named did not answer: as no service at all, [] with --json
+            listings = []
     if args.json:
         print(json.dumps([json.loads(listing.model_dump_json()) for listing in listings]))
     elif listings:
@@ -382,7 +386,8 @@ def cmd_list(args: argparse.Namespace) -> int:
         print(f"services: {nodes}")
         print(session_table(sessions) if sessions else "no sessions")
     if not listings:        # unlike a service without sessions, no service at all is an error, for scripts too
-        print(f"tacf {args.command}: no tracking service answered", file=sys.stderr)
+        named = f" (node {args.node!r})" if args.node else ""
+        print(f"tacf {args.command}: no tracking service answered{named}", file=sys.stderr)
         return 1
     return 0
 

@@ -3,6 +3,7 @@ timeouts, and the wildcard list across two services."""
 from __future__ import annotations
 
 import functools
+import json
 import threading
 import time
 
@@ -400,3 +401,20 @@ def test_command_line_start_list_status_stop(service, camera, capsys):
         main(["stop", "cli1", *zenoh_args])
     assert exc.value.code == 1
     assert "UnknownSession" in capsys.readouterr().err
+
+
+def test_command_line_list_of_a_service_that_does_not_answer_prints_an_empty_json_list(service, capsys):
+    """`tacf list --json --node N` for a node that does not answer printed nothing at all, though the command
+    promises [] with --json whenever no service answers (a script parsing its output then failed on '')."""
+    from tacf.cli import main
+
+    zenoh_args = ["--connect", service.endpoint, "--timeout", "1"]
+    assert main(["list", "--json", "--node", "nobody", *zenoh_args]) == 1
+    captured = capsys.readouterr()
+    assert captured.out.strip() == "[]"
+    assert captured.err.strip() == "tacf list: no tracking service answered (node 'nobody')", captured.err
+    assert main(["list", "--node", "nobody", *zenoh_args]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.strip() == "tacf list: no tracking service answered (node 'nobody')"
+    assert main(["list", "--json", "--node", service.node, *zenoh_args]) == 0       # no sessions: a valid answer
+    assert [row["node"] for row in json.loads(capsys.readouterr().out)] == [service.node]
