@@ -17,6 +17,7 @@ and `watch_nodes()` reports services appearing and disappearing through their li
 from __future__ import annotations
 
 import logging
+import numbers
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -392,13 +393,14 @@ def _build(model: type[WireModel], **fields) -> WireModel:
 
 
 def _box(box: BoxLike) -> tuple[float, float, float, float]:
+    # Numbers only (numpy's included): float() would also take "12" or True, which the wire refuses.
     try:
-        values = tuple(float(v) for v in box)
-    except (TypeError, ValueError):
-        raise InvalidBox(f"box must be 4 numbers (x, y, w, h), got {box!r}") from None
-    if len(values) != 4:
-        raise InvalidBox(f"box must be 4 numbers (x, y, w, h), got {len(values)}")
-    return values  # type: ignore[return-value]
+        values = tuple(box)
+    except TypeError:
+        values = ()
+    if len(values) != 4 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in values):
+        raise InvalidBox(f"box must be 4 numbers (x, y, w, h), got {box!r}")
+    return tuple(float(v) for v in values)  # type: ignore[return-value]
 
 
 def _image_key(key: str) -> str:

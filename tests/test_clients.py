@@ -142,6 +142,9 @@ def test_error_replies_raise_typed_exceptions(client, camera, service):
         client.start("bad/*/key", (1, 2, 3, 4))
     with pytest.raises(InvalidBox):
         client.start(camera.key, (10, 10, 0, 5))
+    for box in (("10", "10", "20", "20"), (10, 10, True, 20), (10, 10, 20), "abcd"):    # no numbers: not sent
+        with pytest.raises(InvalidBox, match="4 numbers"):
+            client.start(camera.key, box)
     with pytest.raises(InvalidId):
         client.stop("not a valid id")
     for text in ("0.02", "true"):                         # typed into a form: refused, not sent as a number
