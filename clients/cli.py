@@ -479,7 +479,7 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
             camera = MavlinkCamera(args.link, args.key, options=options_from_args(args), sid=args.sid,
                                    node=args.node, profile=args.profile, system=args.system,
                                    component=args.component, baud=args.baud, signing_key=key)
-        except (OSError, ValueError, OverflowError) as exc:     # OverflowError: a --link port over 65535
+        except (OSError, ValueError) as exc:
             print(f"tacf mavlink: {exc}", file=sys.stderr)
             return 2
         with camera:
