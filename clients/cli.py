@@ -311,11 +311,14 @@ def _client(args: argparse.Namespace, one_shot: bool = True):
 @contextmanager
 def _reported(command: str):
     """A client-side error (a bad id, no service answering, no Zenoh node reachable...) as one line on stderr
-    and exit code 1, instead of a traceback."""
-    from tacf_clients.errors import TacfError
+    and exit code 1, instead of a traceback; Zenoh settings it refused as a usage error, exit code 2."""
+    from tacf_clients.errors import TacfError, ZenohSettingsError
 
     try:
         yield
+    except ZenohSettingsError as exc:
+        print(f"tacf {command}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     except TacfError as exc:
         print(f"tacf {command}: {type(exc).__name__}: {exc}", file=sys.stderr)
         raise SystemExit(1) from None

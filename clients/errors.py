@@ -102,10 +102,16 @@ class NoService(TacfError):
 
 
 class ZenohUnavailable(TacfError):
-    """The Zenoh session could not open: as a Zenoh client, no node is reachable at the connect endpoints (or an
-    endpoint is malformed, or a listen endpoint is taken)."""
+    """The Zenoh session could not open: as a Zenoh client, no node is reachable at the connect endpoints."""
 
     code = "zenoh_unavailable"
+
+
+class ZenohSettingsError(ZenohUnavailable):
+    """Zenoh refused its settings: a malformed endpoint, a config file missing or malformed, a listen endpoint
+    taken. An error of the command line (or the caller), not of the network."""
+
+    code = "zenoh_settings"
 
 
 class AmbiguousNode(TacfError):

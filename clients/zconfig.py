@@ -14,12 +14,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from tacf.zenoh_options import ZenohOptions, base_config
-from tacf_clients.errors import ZenohUnavailable
+from tacf.zenoh_options import ZenohOptions, base_config, zenoh_error_text
+from tacf_clients.errors import ZenohSettingsError, ZenohUnavailable
 
 if TYPE_CHECKING:
     import zenoh
@@ -28,14 +27,12 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
 LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
 # A late listener costs at most ~1 s with this backoff instead of up to 4 s (ZENOH.md §2.4).
 FAST_RETRY = {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}
-# Zenoh's errors end with the Rust source line that raised them ("... at /root/.cargo/.../unicast.rs:338."): noise.
-_RUST_LOCATION = re.compile(r"\s*at \S+\.rs:\d+\.?")
 
 
 def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
     """Build a `zenoh.Config` from `options` (None: loopback defaults).
 
-    ZenohUnavailable if Zenoh refuses the config file (missing, malformed) or an endpoint."""
+    ZenohSettingsError if Zenoh refuses the config file (missing, malformed) or an endpoint."""
     import zenoh
 
     options = options or ZenohOptions()
@@ -43,8 +40,7 @@ def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
         return _config(options)
     except zenoh.ZError as exc:
         where = f" ({options.config_file})" if options.config_file else ""
-        reason = " ".join(_RUST_LOCATION.sub("", str(exc)).split())      # a JSON5 syntax error spans lines
-        raise ZenohUnavailable(f"bad Zenoh configuration{where}: {reason}") from exc
+        raise ZenohSettingsError(f"bad Zenoh configuration{where}: {zenoh_error_text(exc)}") from exc
 
 
 def _config(options: ZenohOptions) -> "zenoh.Config":
@@ -100,14 +96,16 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, mode_default: str = "pe
 def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh.Session":
     """Open a Zenoh session; use it as a context manager so it is always closed (ZENOH.md §8).
 
-    ZenohUnavailable if it cannot open, as a client with no node reachable does at once (ZENOH.md §1)."""
+    ZenohUnavailable if it cannot open, as a client with no node reachable does at once (ZENOH.md §1);
+    ZenohSettingsError if Zenoh refuses the settings (a listen endpoint taken, say)."""
     import zenoh
 
     conf = options if isinstance(options, zenoh.Config) else make_config(options)
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
-        reason = _RUST_LOCATION.sub("", str(exc))
-        what = "no Zenoh node reachable" if reason.startswith("Unable to connect") else "cannot open a Zenoh session"
-        raise ZenohUnavailable(f"{what}: {reason}") from exc
+        reason = zenoh_error_text(exc)
+        if reason.startswith("Unable to connect"):
+            raise ZenohUnavailable(f"no Zenoh node reachable: {reason}") from exc
+        raise ZenohSettingsError(f"cannot open a Zenoh session: {reason}") from exc
 

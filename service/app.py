@@ -15,6 +15,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from tacf.zenoh_options import zenoh_error_text
 from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
 
 from .config import ZenohOptions, service_config, worker_endpoints
@@ -127,8 +128,14 @@ def serve(options: ServiceOptions) -> int:
     """Run until one of STOP_SIGNALS; return the exit code."""
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
+    import zenoh
+
     try:
         service = TrackingService(options).open()
+    except zenoh.ZError as exc:     # settings Zenoh refused (a malformed endpoint, a port taken): a usage error
+        where = f" ({options.zenoh.config_file})" if options.zenoh.config_file else ""
+        log.error("cannot start the service: Zenoh%s: %s", where, zenoh_error_text(exc))
+        return 2
     except Exception as exc:
         log.error("cannot start the service: %s", exc)
         return 1

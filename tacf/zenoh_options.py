@@ -9,12 +9,18 @@ imported only when a config is built.
 from __future__ import annotations
 
 import argparse
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     import zenoh
+
+# Zenoh's errors end with the Rust source line that raised them ("... at /root/.cargo/.../unicast.rs:338."): noise.
+_RUST_LOCATION = re.compile(r"\s*at \S+\.rs:\d+\.?")
+# A value Zenoh refuses comes wrapped: Json5Err(Message { msg: "...", location: Some(...) }); the msg says it all.
+_JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*)".*', re.DOTALL)
 
 
 @dataclass(frozen=True)
@@ -64,3 +70,12 @@ def base_config(config_file: str | Path | None) -> "zenoh.Config":
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
+
+
+def zenoh_error_text(exc: BaseException) -> str:
+    """A zenoh.ZError as one line for a person: without the Rust source locations, the JSON5 wrapper and the line
+    breaks (a JSON5 syntax error spans lines)."""
+    text = _RUST_LOCATION.sub("", str(exc))
+    if match := _JSON5_MESSAGE.search(text):
+        text = text[:match.start()] + match.group("msg")
+    return " ".join(text.split())

@@ -339,22 +339,37 @@ def test_two_services_with_one_node_id_are_named_as_such(service, camera, capsys
         assert [row["node"] for row in json.loads(capsys.readouterr().out)] == [service.node] * 2
 
 
-def test_command_line_bad_zenoh_settings_are_one_line_errors(capsys, tmp_path):
-    """A malformed endpoint, a missing or malformed --zenoh-config file: Zenoh refuses them while the config is
-    built, before the session opens, and that used to escape as a zenoh.ZError traceback."""
+def test_command_line_bad_zenoh_settings_are_one_line_usage_errors(capsys, tmp_path):
+    """A malformed endpoint, a missing or malformed --zenoh-config file, a --listen port in use: Zenoh refuses them,
+    which used to escape as a zenoh.ZError traceback, then read 'ZenohUnavailable: bad Zenoh configuration:
+    Json5Err(Message { msg: ..., location: ... })' with exit 1, as if the network were down. They are errors of
+    the command line: one plain line, exit 2."""
+    import socket
+
     from tacf.cli import main
 
     broken = tmp_path / "broken.json5"
     broken.write_text("{ mode: ")
-    for argv, reason in ((["list", "--connect", "foo"], "Endpoints must be of the form"),
-                         (["watch", "--listen", "tcp-127.0.0.1"], "Endpoints must be of the form"),
-                         (["list", "--zenoh-config", str(tmp_path / "missing.json5")], "No such file"),
-                         (["publish", "scene", "--key", "cam/a", "--zenoh-config", str(broken)], "")):
-        err = _cli_error(main, argv, capsys)
-        assert err.startswith(f"tacf {argv[0]}: ZenohUnavailable: bad Zenoh configuration"), err
-        assert reason in err and ".rs:" not in err, err
-        if "--zenoh-config" in argv:
-            assert argv[-1] in err, "the message names the file"
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        taken = f"tcp/127.0.0.1:{busy.getsockname()[1]}"
+        for argv, reason in (
+                (["list", "--connect", "foo"], "bad Zenoh configuration: Endpoints must be of the form "
+                                               "<protocol>/<address>[?<metadata>][#<config>]: foo"),
+                (["watch", "--listen", "tcp-127.0.0.1"], "bad Zenoh configuration: Endpoints must be of the form"),
+                (["list", "--zenoh-config", str(tmp_path / "missing.json5")],
+                 f"bad Zenoh configuration ({tmp_path / 'missing.json5'}): No such file"),
+                (["publish", "scene", "--key", "cam/a", "--zenoh-config", str(broken)],
+                 f"bad Zenoh configuration ({broken}): "),
+                (["publish", "scene", "--key", "cam/a", "--listen", taken],
+                 f"cannot open a Zenoh session: Can not create a new TCP listener bound to {taken}")):
+            with pytest.raises(SystemExit) as exc:
+                main(argv)
+            err = capsys.readouterr().err
+            assert exc.value.code == 2 and len(err.splitlines()) == 1, err
+            assert err.startswith(f"tacf {argv[0]}: {reason}"), err
+            assert "Json5Err" not in err and ".rs:" not in err, err
 
 
 def test_list_across_two_services(service, client, camera):

@@ -416,8 +416,23 @@ def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
         endpoint = f"tcp/127.0.0.1:{busy.getsockname()[1]}"
         out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE],
                              capture_output=True, text=True, timeout=30)
-    assert out.returncode == 1 and "cannot start the service" in out.stderr
+    assert out.returncode == 2, out.stderr
+    assert f"cannot start the service: Zenoh: Can not create a new TCP listener bound to {endpoint}" in out.stderr
     assert "stopped" not in out.stderr, out.stderr          # it never started
+
+
+@pytest.mark.parametrize("argv, reason", [
+    (["--connect", "bogus"], "Zenoh: Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: "
+                             "bogus"),
+    (["--zenoh-config", "/nonexistent/zenoh.json5"], "Zenoh (/nonexistent/zenoh.json5): No such file or directory")])
+def test_serve_refuses_bad_zenoh_settings_in_one_line(argv, reason):
+    """`tacf serve --connect bogus` logged Zenoh's Json5Err(Message { msg: ..., location: ... }) with two Rust
+    source paths in it, and exited 1 as for a failure at run time: it is a usage error."""
+    out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--node", NODE, *argv],
+                         capture_output=True, text=True, timeout=30)
+    assert out.returncode == 2 and len(out.stderr.splitlines()) == 1, out.stderr
+    assert f"cannot start the service: {reason}" in out.stderr, out.stderr
+    assert "Json5Err" not in out.stderr and ".rs:" not in out.stderr, out.stderr
 
 
 def test_serve_refuses_a_node_id_already_live_where_it_connects():
