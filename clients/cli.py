@@ -111,7 +111,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="initial box x,y,w,h (default: the scene's target, a sequence's groundtruth.txt, "
                         "or a centred box)")
     p.add_argument("--seconds", type=positive_number, default=10.0, help="how long to track (default 10)")
-    p.add_argument("--fps", type=positive_number, default=None, help="publishing rate (default: the source's, or 20)")
+    p.add_argument("--fps", type=positive_number, default=None,
+                   help="frames per second to publish: a video file or folder is replayed at this rate, a camera or "
+                        "URL thinned to it (default: a video file's own rate, else 20)")
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg")
     p.add_argument("--profile", help="tracker profile")
     p.add_argument("--every", type=integer(1), default=None, metavar="N",
@@ -455,9 +457,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from tacf_clients.demo import DemoOptions, run_demo
 
     with stop_on_signals() as stop:
-        report = run_demo(DemoOptions(source=args.source, box=args.box, seconds=args.seconds, fps=args.fps,
-                                      encoding=args.encoding, profile=args.profile, every=args.every),
-                          stop=stop)
+        try:
+            report = run_demo(DemoOptions(source=args.source, box=args.box, seconds=args.seconds, fps=args.fps,
+                                          encoding=args.encoding, profile=args.profile, every=args.every),
+                              stop=stop)
+        except (ValueError, FileNotFoundError) as exc:     # the source cannot be opened or has no frames
+            print(f"tacf demo: {exc}", file=sys.stderr)
+            return 2
+    if report.interrupted:
+        return 130                  # 128 + SIGINT, as tacf.cli answers a Ctrl-C
     return 0 if report.ok else 1
 
 

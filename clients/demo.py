@@ -25,7 +25,8 @@ from tacf_clients.errors import TacfError
 from tacf_clients.local_service import LocalService, LocalServiceError
 from tacf_clients.publisher import FramePublisher
 from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.sources import FrameSource, ImageFolderSource, Pacer, SourceFrame, Thinner, open_source
+from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, Pacer, SourceFrame, Thinner,
+                                  open_source)
 from tacf_clients.zconfig import open_session
 from tacf_schemas.models import BoxResult, Health
 
@@ -62,6 +63,7 @@ class DemoReport:
     last_health: Health | None = None
     service_exit: int | None = None
     error: str | None = None
+    interrupted: bool = False             # `stop` was set (Ctrl-C): not an error
 
     @property
     def box_fps(self) -> float:
@@ -182,13 +184,14 @@ class HoldingPublisher:
 
 
 class Printer:
-    """The demo's console output (it is CLI output, hence print to `out` rather than logging)."""
+    """The demo's console output (it is CLI output, hence print rather than logging): progress to `out`,
+    errors to `err`."""
 
-    def __init__(self, out: TextIO, every: int):
-        self.out, self.every, self.t0 = out, max(1, every), time.monotonic()
+    def __init__(self, out: TextIO, err: TextIO, every: int):
+        self.out, self.err, self.every, self.t0 = out, err, max(1, every), time.monotonic()
 
-    def line(self, text: str) -> None:
-        print(f"[{time.monotonic() - self.t0:5.1f}s] {text}", file=self.out, flush=True)
+    def line(self, text: str, error: bool = False) -> None:
+        print(f"[{time.monotonic() - self.t0:5.1f}s] {text}", file=self.err if error else self.out, flush=True)
 
     def box(self, result: BoxResult, count: int, overlap: float | None) -> None:
         if count % self.every != 1 and self.every > 1:
@@ -221,25 +224,21 @@ def initial_box(options: DemoOptions, source: FrameSource, truth: GroundTruth | 
 
 
 def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = None,
-             out: TextIO | None = None) -> DemoReport:
-    options, stop, out = options or DemoOptions(), stop or threading.Event(), out or sys.stdout
+             out: TextIO | None = None, err: TextIO | None = None) -> DemoReport:
+    """Run the demo until done or `stop` is set; progress on `out`, errors on `err` (default stdout, stderr).
+
+    A source that cannot be opened or has no frames raises ValueError or FileNotFoundError before anything
+    starts: an error of the caller's, not of the demo."""
+    options, stop = options or DemoOptions(), stop or threading.Event()
     report = DemoReport()
-    printer = Printer(out, options.every or 10)
-    try:
-        source = open_source(options.source)
-    except (ValueError, FileNotFoundError) as exc:
-        report.error = str(exc)
-        print(f"tacf demo: {exc}", file=out)
-        return report
+    printer = Printer(out or sys.stdout, err or sys.stderr, options.every or 10)
+    source = open_source(options.source)
     with source:
         truth = GroundTruth.for_source(source)
-        try:
-            box, origin = initial_box(options, source, truth)
-        except ValueError as exc:
-            report.error = str(exc)
-            print(f"tacf demo: {exc}", file=out)
-            return report
-        if not isinstance(source, SceneSource):   # a fresh iterator for the publisher (the probe read frame 0)
+        box, origin = initial_box(options, source, truth)
+        if isinstance(source, CaptureSource) and not source.live:
+            # A video file starts again at frame 0, which the box is on; a camera or stream is not opened twice
+            # (one may take a single client), folders and the scene start again by themselves.
             source.close()
             source = open_source(options.source)
         fps = options.fps or (None if source.live or isinstance(source, SceneSource) else source.fps) or DEMO_FPS
@@ -253,10 +252,11 @@ def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = 
                 printer.line("stopping the service")
         except LocalServiceError as exc:
             report.error = str(exc)
-            printer.line(f"the service failed: {exc}")
+            printer.line(f"the service failed: {exc}", error=True)
         finally:
             source.close()
         report.service_exit = service.returncode
+    report.interrupted = stop.is_set()
     _summary(printer, report, truth is not None)
     return report
 
@@ -267,7 +267,6 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
     with open_session(service.options) as session:
         started = time.monotonic()
         if not service.wait_ready(session, cancel=stop):
-            report.error = "interrupted"
             return
         printer.line(f"service ready in {time.monotonic() - started:.1f} s")
         client = TrackingClient(session=session, node=options.node, timeout=10.0)
@@ -290,7 +289,7 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
             report.ok = report.boxes > 0 and publisher.error is None
         except (TacfError, TimeoutError) as exc:
             report.error = f"{type(exc).__name__}: {exc}"
-            printer.line(f"error: {report.error}")
+            printer.line(f"error: {report.error}", error=True)
         finally:
             publisher.close()
             if publisher.error is not None and report.error is None:
@@ -346,4 +345,9 @@ def _summary(printer: Printer, report: DemoReport, has_truth: bool) -> None:
         printer.line(text)
     if report.service_exit is not None:
         printer.line(f"service exited with code {report.service_exit}")
-    printer.line("done" if report.ok else f"demo failed: {report.error or 'no boxes received'}")
+    if report.interrupted:
+        printer.line("interrupted")
+    elif report.ok:
+        printer.line("done")
+    else:
+        printer.line(f"demo failed: {report.error or 'no boxes received'}", error=True)

@@ -67,8 +67,10 @@ class LocalService:
         env = dict(os.environ if self.env is None else self.env)
         env.setdefault("PYTHONUNBUFFERED", "1")
         with open(self.log_path, "wb") as log_file:
+            # A process group of its own: a Ctrl-C in the terminal reaches the command that started it, which
+            # stops it in order (after its sessions), not the service under that command's feet.
             self.process = subprocess.Popen(self.command, stdin=subprocess.DEVNULL, stdout=log_file,
-                                            stderr=subprocess.STDOUT, env=env)
+                                            stderr=subprocess.STDOUT, env=env, start_new_session=True)
         return self
 
     def wait_ready(self, client_session, cancel: threading.Event | None = None) -> bool:

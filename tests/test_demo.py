@@ -3,6 +3,8 @@ the target's ground truth."""
 from __future__ import annotations
 
 import io
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -17,6 +19,8 @@ from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
 from tacf_clients.sources import FrameSource, SourceFrame, open_source
 from tacf_clients.zconfig import ZenohOptions, make_config
+
+from mjpeg_camera import MjpegCamera
 
 pytestmark = pytest.mark.zenoh
 
@@ -128,3 +132,51 @@ def test_a_local_service_leaves_its_log_only_when_it_failed():
     broken.stop()
     assert broken.returncode == 2 and broken.log_path.exists() and str(broken.log_path) in str(failed.value)
     broken.log_path.unlink()
+
+
+def _demo(*argv: str) -> list[str]:
+    return [sys.executable, "-m", "tacf.cli", "demo", *argv]
+
+
+@pytest.mark.parametrize("source, reason", [("/nonexistent/clip.mp4", "is neither a file, a folder"),
+                                            ("http://127.0.0.1:9/none.mjpg", "cannot open video source")])
+def test_demo_on_a_bad_source_is_a_usage_error_on_stderr(source, reason):
+    """A source that does not exist was reported on standard output, with exit code 1 as for a demo that ran and
+    failed: it is one line on stderr and exit code 2, before any service starts."""
+    done = subprocess.run(_demo(source), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and done.stdout == "", done.stdout + done.stderr
+    last = done.stderr.splitlines()[-1]         # (FFmpeg says first, on its own, why it could not connect)
+    assert last.startswith("tacf demo: ") and reason in last and "Traceback" not in done.stderr, done.stderr
+
+
+def test_ctrl_c_ends_the_demo_quietly_with_130():
+    """Ctrl-C ended the demo with 'demo failed: no boxes received' and exit code 1, as an error would. A terminal
+    sends SIGINT to the whole foreground process group: the service the demo started must not take it for itself
+    (it stopped under the demo, whose stop of the session then failed), the demo stops it in order."""
+    proc = subprocess.Popen(_demo("--seconds", "60"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)         # a process group of its own, as a shell gives it
+    try:
+        for line in proc.stdout:
+            if "waiting for the first box" in line:            # the session is starting
+                break
+        os.killpg(proc.pid, signal.SIGINT)                     # Ctrl-C in its terminal
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, out + err
+    assert "Traceback" not in err and "failed" not in out + err, out + err
+    assert "interrupted" in out and "service exited with code 0" in out, out
+
+
+def test_a_stream_url_is_opened_once():
+    """The demo read the first frame of the source for the centred box, then closed the source and opened it
+    again for the publisher: a camera or stream was connected to twice (an RTSP camera that takes one client
+    refused the second). A live source is opened once; a file still starts again from its first frame."""
+    camera = MjpegCamera(frames_per_connection=10_000)
+    try:
+        out = io.StringIO()
+        report = run_demo(DemoOptions(source=camera.url, seconds=1.0, node="demourl"), out=out)
+    finally:
+        camera.close()
+    assert report.ok, out.getvalue()
+    assert camera.connections == 1, out.getvalue()

@@ -3,7 +3,6 @@ from a real HTTP MJPEG camera on loopback (the format of IP cameras and phone ca
 FFmpeg: a stream that ends, stalls or goes away is reopened, and the publisher's seq runs on across reconnections."""
 from __future__ import annotations
 
-import http.server
 import signal
 import subprocess
 import sys
@@ -28,6 +27,8 @@ from tacf_schemas.codec import decode
 from tacf_schemas.images import FrameError, decode_frame, encode_frame
 from tacf_schemas.models import Frame
 from tacf_service.loopback import wait_until
+
+from mjpeg_camera import MjpegCamera
 
 KEY = "test/camera/front"
 
@@ -336,72 +337,6 @@ def test_ctrl_c_ends_the_wait_for_a_subscriber_without_publishing():
 
 
 # ----------------------------------------------------------------------------------------------- live streams
-
-
-class MjpegCamera:
-    """An HTTP camera serving multipart/x-mixed-replace JPEGs at 20 fps. Each connection sends
-    `frames_per_connection` frames, then closes (or, with `stall`, goes silent while keeping the connection);
-    `down()` closes the port (connection refused), `up()` reopens it. Frame i of connection k shows a white bar at
-    x = 8 i on a background of grey level 40 k, so a frame tells which connection delivered it."""
-
-    def __init__(self, frames_per_connection: int = 5, stall: bool = False):
-        self.frames_per_connection, self.stall = frames_per_connection, stall
-        self.connections = 0
-        self._lock = threading.Lock()
-        self.port = free_port()  # stays this camera's across down() / up()
-        self.url = f"http://127.0.0.1:{self.port}/video.mjpg"
-        self._server: http.server.ThreadingHTTPServer | None = None
-        self.up()
-
-    def _handler(self):
-        camera = self
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def do_GET(self):
-                with camera._lock:
-                    camera.connections += 1
-                    connection = camera.connections
-                self.send_response(200)
-                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
-                self.end_headers()
-                for i in range(camera.frames_per_connection):
-                    jpeg = cv2.imencode(".jpg", camera.frame(connection, i))[1].tobytes()
-                    try:
-                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n%b\r\n"
-                                         % (len(jpeg), jpeg))
-                        self.wfile.flush()
-                    except OSError:
-                        return
-                    time.sleep(0.05)
-                if camera.stall:
-                    time.sleep(30)  # the link is dead but the connection lives: only a read timeout notices
-
-            def log_message(self, *args):
-                pass
-
-        return Handler
-
-    @staticmethod
-    def frame(connection: int, index: int) -> np.ndarray:
-        image = np.full((96, 128, 3), min(40 * connection, 240), np.uint8)
-        image[40:60, 8 * index:8 * index + 8] = 255
-        return image
-
-    @staticmethod
-    def connection_of(image: np.ndarray) -> int:
-        return int(round(float(np.median(image[:30])) / 40))
-
-    def up(self) -> None:
-        self._server = http.server.ThreadingHTTPServer(("127.0.0.1", self.port), self._handler())
-        self._server.daemon_threads = True
-        threading.Thread(target=self._server.serve_forever, daemon=True).start()
-
-    def down(self) -> None:
-        self._server.shutdown()
-        self._server.server_close()
-
-    def close(self) -> None:
-        self.down()
 
 
 @pytest.fixture
