@@ -63,7 +63,8 @@ def test_bad_values_are_refused_with_the_value_and_what_was_expected(parse, text
     ["dashboard", "--history", "nan"], ["foxglove", "--image-hz", "0"],
     ["serve", "--init-wait", "nan"], ["serve", "--max-sessions", "0"],
     ["track", "clip.mp4", "--box", "1,2,3,inf"], ["eval", "root", "--workers", "0"],
-    ["eval", "root", "--max-frames", "0"], ["bench", "tracker", "--max-frames", "-5"],
+    ["eval", "root", "--max-frames", "0"], ["eval", "root", "--shifts", "-1"],
+    ["bench", "tracker", "--max-frames", "-5"],
 ])
 def test_every_command_refuses_a_meaningless_number_as_a_usage_error(argv, capsys):
     from tacf.cli import main

@@ -673,7 +673,9 @@ def test_eval_shifts_command(tmp_path, capsys):
     out = tmp_path / "out"
     args = ["eval", str(write_synthetic_dataset(tmp_path, 6)), "--trackers", "identity,opencv-mosse",
             "--out", str(out), "--no-progress"]
-    assert main(args + ["--shifts", "-1"]) == 2
+    with pytest.raises(SystemExit) as refused:          # a usage error, before the sequences are loaded
+        main(args + ["--shifts", "-1"])
+    assert refused.value.code == 2 and "argument --shifts: '-1': expected an integer >= 0" in capsys.readouterr().err
     assert main(args + ["--shifts", "2"]) == 0
     first_lines = {start.name: (start / "identity" / "synthetic" / "drift.txt").read_text().splitlines()[0]
                    for start in (out / "shifted").iterdir()}

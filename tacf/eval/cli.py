@@ -61,7 +61,7 @@ def register(subparsers) -> None:
                    help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
     p.add_argument("--max-frames", type=integer(1), metavar="N",
                    help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
-    p.add_argument("--shifts", type=int, default=0, metavar="PX",
+    p.add_argument("--shifts", type=integer(0), default=0, metavar="PX",
                    help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
                         "each AUC moves and whether the trackers' differences stand out of that")
     p.add_argument("--tre", type=int, default=0, metavar="K",
@@ -181,9 +181,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return 2
     if not seqs:
         log.error("no sequences in %s%s", args.root, f" matching {args.sequences!r}" if args.sequences else "")
-        return 2
-    if args.shifts < 0:
-        log.error("--shifts must be >= 0 pixels, got %d", args.shifts)
         return 2
     if args.tre < 0 or args.tre == 1:
         log.error("--tre must be 0 (off) or at least 2 segments, got %d", args.tre)
