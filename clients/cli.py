@@ -15,6 +15,9 @@ from contextlib import contextmanager
 
 from tacf.argument_types import box, integer, port, positive_number, quality, seconds
 
+mavlink_id = integer(1, 255, "a MAVLink id")
+frame_seq = integer(0, what="a frame seq")
+
 ENCODING_CHOICES = ("jpeg", "png", "bgr8", "mono8")
 # The Zenoh mode a command opens without --mode or a config file, as its help states it (see _client and
 # zconfig.viewer_options).
@@ -48,7 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("start", help="start a tracking session")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key the frames are published on")
     p.add_argument("--box", "-b", required=True, type=box, help="initial box x,y,w,h in pixels")
-    p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
+    p.add_argument("--seq", type=frame_seq, help="seq of the frame the box was drawn on")
     p.add_argument("--profile", help="tracker profile (service default if absent)")
     p.add_argument("--sid", help="session id (generated if absent)")
     p.add_argument("--set", dest="overrides", action="append", default=[], type=_setting, metavar="NAME=VALUE",
@@ -66,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("reinit", help="re-initialise a session on a new box")
     p.add_argument("sid", metavar="SID")
     p.add_argument("--box", "-b", required=True, type=box, help="new box x,y,w,h in pixels")
-    p.add_argument("--seq", type=int, help="seq of the frame the box was drawn on")
+    p.add_argument("--seq", type=frame_seq, help="seq of the frame the box was drawn on")
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_reinit)
 
@@ -130,9 +133,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--link", required=True,
                    help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT or a "
                         "serial device")
-    p.add_argument("--baud", type=int, default=57600, help="serial baud rate (default 57600)")
-    p.add_argument("--system", type=int, default=1, help="MAVLink system id (default 1: the vehicle's)")
-    p.add_argument("--component", type=int, default=100, help="MAVLink component id (default 100, camera 1)")
+    p.add_argument("--baud", type=integer(1), default=57600, help="serial baud rate (default 57600)")
+    p.add_argument("--system", type=mavlink_id, default=1, help="MAVLink system id (default 1: the vehicle's)")
+    p.add_argument("--component", type=mavlink_id, default=100, help="MAVLink component id (default 100, camera 1)")
     p.add_argument("--sid", help="session id (default mavlink-<image key>)")
     p.add_argument("--profile", help="tracker profile")
     p.add_argument("--node", help="service (node id) to run the session on")
@@ -478,10 +481,6 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"tacf mavlink: {exc}; install it with: pip install 'tacf[mavlink]'", file=sys.stderr)
         return 2
-    for name, value in (("--system", args.system), ("--component", args.component)):
-        if not 1 <= value <= 255:
-            print(f"tacf mavlink: {name} must be 1 to 255, got {value}", file=sys.stderr)
-            return 2
     with stop_on_signals() as stop, _reported("mavlink"):
         try:
             key = None
