@@ -12,8 +12,9 @@ thread, so a slow browser cannot slow the service.
 
 A poller lists the sessions of every service once a second (a Zenoh query): that gives each session's image
 key, state and node, and drops sessions that a service no longer lists, and the frames of a key that no session
-uses any more (unless it was asked for). The dashboard never imports the tracker: it only talks to services
-through TrackingClient.
+uses any more (unless it was asked for). A service whose liveliness token goes (killed, or hung past the Zenoh
+lease) has its sessions dropped at once, without waiting for the list to say so. The dashboard never imports the
+tracker: it only talks to services through TrackingClient.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import zenoh
 
-from tacf_clients.client import TrackingClient
+from tacf_clients.client import NodeWatch, TrackingClient
 from tacf_clients.errors import TacfError
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
@@ -40,8 +41,10 @@ log = logging.getLogger(__name__)
 
 LIST_PERIOD_S = 1.0          # how often the session list is refreshed
 LIST_TIMEOUT_S = 2.0         # reply timeout of that list query
-SILENT_DROP_S = 30.0         # a session of a node that stopped answering is dropped after this long without news
-TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here are ignored for this long
+SILENT_DROP_S = 30.0         # a session of a node that stopped answering (its token still up) is dropped after this
+                             # long without news
+TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here or whose service's token went are
+                             # ignored for this long (or until that service's token is back)
 MAX_IMAGE_KEYS = 32          # watched image keys (each one is a subscriber + a thread)
 KEEP = 32                    # the last frames received, for a box to be drawn on its own frame; a 4K bgr8
 KEEP_BYTES = 64 * 2**20      # frame is 25 MB, so the bytes are capped too
@@ -293,6 +296,7 @@ class Dashboard:
                 self.watch(key)
             self._stream = self.client.subscribe(on_box=self._on_result, on_health=self._on_result,
                                                  latest_only=True)
+            self._node_watch = self.client.watch_nodes(self._on_node)
         except Exception:
             self.close()
             raise
@@ -306,6 +310,9 @@ class Dashboard:
         self.closed.set()
         with self._changed:
             self._changed.notify_all()
+        node_watch: NodeWatch | None = getattr(self, "_node_watch", None)
+        if node_watch is not None:
+            node_watch.close()         # before the session closes: a callback subscriber can hang exit (ZENOH.md 8)
         stream: ResultStream | None = getattr(self, "_stream", None)
         if stream is not None:
             stream.close()
@@ -397,6 +404,23 @@ class Dashboard:
                     view.points.popleft()
             view.version += 1
             view.seen = time.monotonic()
+            self._changed.notify_all()
+
+    # --- services' liveliness tokens (NodeWatch callback thread) -----------------------------------------------
+    def _on_node(self, node: str, alive: bool) -> None:
+        """A service's token went: its sessions go now (a killed service says no goodbye, and the list alone would
+        keep them SILENT_DROP_S), tombstoned so that a box, health or list reply still in flight does not bring
+        them back. Its token back: the tombstones go, so that a service restarted with its --state file shows its
+        restored sessions again as soon as it lists them or publishes for them."""
+        with self._changed:
+            if alive:
+                self._tombstones = {k: t for k, t in self._tombstones.items() if not k.startswith(f"{node}/")}
+                return
+            now = time.monotonic()
+            for sid_id in [k for k, view in self._sessions.items() if view.node == node]:
+                del self._sessions[sid_id]
+                self._tombstones[sid_id] = now
+            self._nodes.pop(node, None)
             self._changed.notify_all()
 
     # --- session list (poller thread) ------------------------------------------------------------------------

@@ -37,6 +37,7 @@ from tacf_clients.scene import Scene
 from tacf_clients.zconfig import ZenohOptions, make_config, viewer_options
 from tacf_schemas.codec import encode
 from tacf_schemas.images import encode_frame
+from tacf_schemas.keys import health_key
 from tacf_service.loopback import wait_until
 from camera_rig import no_service_options, service_and_camera, tacf_command
 
@@ -286,6 +287,47 @@ def test_healthz_without_any_service():
         assert status == 503 and body["error"] == "no_service", body
         status, _, text = _get(base + "/metrics")
         assert status == 200 and "tacf_dashboard_up 1" in text.decode()
+
+
+def test_a_killed_service_s_sessions_go_at_once_and_come_back_with_it(tmp_path):
+    """A service killed without a goodbye kept its sessions on the page for SILENT_DROP_S (30 s): its liveliness
+    token goes within milliseconds, and with it its sessions; a health still in flight does not bring one back,
+    and the service restarted from its --state file shows its restored session again."""
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    from tacf_clients.local_service import LocalService
+
+    options = no_service_options()
+    key = "test/dashboard/killed"
+    node = f"killed{free_port()}"
+    args = ("--connect", options.listen[0], "--state", str(tmp_path / "sessions.json"))
+
+    def listed() -> list[dict]:
+        return [s for s in json.loads(_get(app.url + "api/state")[2])["sessions"] if s["id"] == f"{node}/gone"]
+
+    with DashboardApp(options, port=0) as app, \
+            FramePublisher(app.dashboard.session, key, MovingTargetScene(320, 240, target=48), fps=10):
+        with LocalService(node=node, extra_args=args) as service:
+            service.wait_ready(app.dashboard.session)
+            status, body = _post(app.url + "api/start", {"image_key": key, "box": [20, 20, 40, 40], "sid": "gone"})
+            assert status == 200, body
+            assert _wait(lambda: (s := listed()) and s[0]["health"] is not None, timeout=30), listed()
+            last_health = app.dashboard.client.status("gone").health
+            service.process.kill()
+            killed = time.monotonic()
+            assert _wait(lambda: not listed(), timeout=10), listed()
+            assert time.monotonic() - killed < 2.0, f"gone after {time.monotonic() - killed:.1f} s"
+            # a health of the dead service that was still on its way is not taken for a live session
+            received = app.dashboard.messages
+            app.dashboard.session.put(health_key(node, "gone"),
+                                      encode(last_health.model_copy(update={"stamp_ns": time.time_ns()})))
+            assert _wait(lambda: app.dashboard.messages > received), "the late health arrived"
+            time.sleep(dashboard.LIST_PERIOD_S + 0.5)  # and a list round passed
+            assert not listed()
+        with LocalService(node=node, extra_args=args) as service:
+            assert _wait(lambda: listed(), timeout=60), "the restored session is shown again"
+            assert _wait(lambda: (s := listed()) and s[0]["health"] is not None, timeout=30), listed()
 
 
 def test_frames_kept_are_capped_in_bytes(monkeypatch):
@@ -888,7 +930,8 @@ def test_a_reinit_on_a_still_camera_shows_its_box_on_that_frame(stack, browser):
 
 def test_the_page_follows_services_coming_and_going(browser):
     """The page took the list of services only from session updates, so a service started after it loaded was
-    never shown; and it ignored the age of health reports, so a dead service's sessions stayed "tracking"."""
+    never shown; and it ignored the age of health reports, so a silent service's sessions stayed "tracking". A
+    killed service's sessions leave the page at once (its liveliness token goes)."""
     from tacf_service.loopback import FramePublisher
     from tacf_service.scene import MovingTargetScene
 
@@ -907,13 +950,18 @@ def test_the_page_follows_services_coming_and_going(browser):
             assert shown, f"a service started after the page: {browser.execute_script(services)}"
             status, body = _post(app.url + "api/start", {"image_key": key, "box": [20, 20, 40, 40], "sid": "goes"})
             assert status == 200, body
-            def badge() -> str:         # the row appears with the next update: not found is "" meanwhile
-                return browser.execute_script("const b = document.querySelector('tr[data-sid=\"goes\"] .badge');"
-                                              "return b ? b.textContent.trim() : '';")
+            def badge(sid: str = "goes") -> str:     # the row appears with the next update: not found is ""
+                return browser.execute_script("const b = document.querySelector(`tr[data-sid=\"${arguments[0]}\"]"
+                                              " .badge`); return b ? b.textContent.trim() : '';", sid)
             assert _wait(lambda: badge() in ("tracking", "lost"), timeout=30), badge()
+            # one health, then silence, from a service whose token never goes: the dashboard keeps its session
+            health = app.dashboard.client.status("goes").health
+            app.dashboard.session.put(health_key("silent", "quiet"), encode(health.model_copy(
+                update={"node": "silent", "sid": "quiet", "stamp_ns": time.time_ns()})))
+            stale = _wait(lambda: re.fullmatch(r"no news for \d+ s", badge("quiet")), timeout=15)
+            assert stale, badge("quiet")
             service.process.kill()
-            stale = _wait(lambda: re.fullmatch(r"no news for \d+ s", badge()), timeout=15)
-            assert stale, badge()
+            assert _wait(lambda: badge() == "", timeout=5), f"a killed service's session is still shown: {badge()}"
             assert _wait(lambda: browser.execute_script(services) == "no service answered", timeout=10)
 
 

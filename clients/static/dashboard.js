@@ -383,8 +383,9 @@ function renderTable() {
     : "no service answered";
 }
 
-// The service's state for the session, unless the session's health stopped coming (its service gone, the link
-// lost: the dashboard keeps such a session for a while) or says the camera stopped (a still frame looks tracked).
+// The service's state for the session, unless the session's health stopped coming (its service hung or silent:
+// the dashboard keeps such a session until its service's token goes) or says the camera stopped (a still frame
+// looks tracked).
 function setBadge(el, s) {
   const h = s.health || {};
   const silentS = s.healthAt === null ? 0 : Math.round((Date.now() - s.healthAt) / 1000);
