@@ -37,11 +37,14 @@ from importlib import resources
 from pathlib import Path
 from urllib.parse import parse_qs, unquote, urlencode, urlsplit
 
+import pydantic
+
 from tacf_clients import dashboard_metrics
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.dashboard_access import DashboardAccess
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, DuplicateSession, InvalidRequest, NoService,
                                  RequestTimeout, ServiceUnavailable, TacfError, TooManySessions, UnknownSession)
+from tacf_schemas.models import SEQ
 
 log = logging.getLogger(__name__)
 
@@ -465,9 +468,10 @@ def _seq(body: dict) -> int | None:
     seq = body.get("seq")
     if seq is None:
         return None
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
-        raise ValueError("'seq': expected a frame seq (integer >= 0)")
-    return seq
+    try:
+        return SEQ.validate_python(seq, strict=True)      # as the wire takes it: 5.0 is 5, true is no seq
+    except pydantic.ValidationError:
+        raise ValueError("'seq': expected a frame seq (integer >= 0 and < 2**63)") from None
 
 
 # --- running it ----------------------------------------------------------------------------------------------------

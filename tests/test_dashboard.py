@@ -285,6 +285,9 @@ def test_healthz_without_any_service():
         assert health["services"] == [] and health["status"] == "ok"
         status, body = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]})
         assert status == 503 and body["error"] == "no_service", body
+        for seq, status in ((5.0, 503), (2**63, 400), (-1, 400), (True, 400), ("5", 400)):  # the wire's Seq
+            reply = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40], "seq": seq})
+            assert reply[0] == status and (status == 503 or "'seq'" in reply[1]["message"]), (seq, reply)
         status, _, text = _get(base + "/metrics")
         assert status == 200 and "tacf_dashboard_up 1" in text.decode()
 
