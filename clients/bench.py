@@ -63,6 +63,7 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--profile", choices=PROFILES,
                    help="tracker profile of the sessions (default: the service's default)")
     p.add_argument("--json", type=report_file, metavar="OUT", help="write the report here (default: standard output)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_bench_service)
 
 
@@ -213,7 +214,8 @@ def _percentile(values: list[float], q: float) -> float | None:
     return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))], 1)
 
 
-def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, profile: str | None) -> dict:
+def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, profile: str | None,
+              progress: bool = True) -> dict:
     """One benchmark run with len(feeds) feeds; the JSON-ready report."""
     from tqdm import tqdm
 
@@ -257,7 +259,8 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         cpu_before, wall_before = sum(map(_cpu_seconds, processes)), time.monotonic()
         first_seq = [len(s) for s in publisher.sent]
         over_time = {"seconds": [], "rss_mb": [], "pss_mb": [], "open_fds": []}
-        with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False) as bar:
+        with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False,
+                  disable=not progress) as bar:
             while (elapsed := time.monotonic() - wall_before) < seconds:
                 if elapsed >= len(over_time["seconds"]) * seconds / 20:
                     over_time["seconds"].append(round(elapsed, 1))
@@ -311,7 +314,8 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
         return 2
     reports = []
     for count in args.feeds:
-        reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile))
+        reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile,
+                                 progress=not args.no_progress))
         log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
                  reports[-1]["dropped"], reports[-1]["frames_sent"])
     text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"

@@ -13,10 +13,11 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"benchmark sequences not found at {DATA}")
 
 
-def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path):
+def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
     out = tmp_path / "bench.json"
     assert main(["bench", "service", str(DATA), "--feeds", "2", "--fps", "5", "--seconds", "4", "--warmup", "1",
-                 "--json", str(out)]) == 0
+                 "--json", str(out), "--no-progress"]) == 0
+    assert "2 feeds:" not in capsys.readouterr().err
     report = json.loads(out.read_text())
     assert report["feeds"] == 2 and report["fps_in"] == 5.0
     assert 2 * 5 * 4 * 0.7 <= report["frames_sent"] <= 2 * 5 * 4 * 1.3   # paced, not flooded

@@ -490,11 +490,14 @@ def test_bench_tracker_refuses_max_frames_under_one(frames, capsys):
 
 
 @needs_data
-def test_bench_tracker_json(tmp_path):
+def test_bench_tracker_json(tmp_path, capsys):
     out = tmp_path / "bench.json"
     rc = main(["bench", "tracker", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7",
                "--trackers", "opencv-kcf", "--max-frames", "10", "--json", str(out)])
-    assert rc == 0
+    assert rc == 0 and "bench: 100%" in capsys.readouterr().err
+    assert main(["bench", "tracker", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7",
+                 "--trackers", "opencv-kcf", "--max-frames", "10", "--json", str(out), "--no-progress"]) == 0
+    assert "bench:" not in capsys.readouterr().err
     r = json.loads(out.read_text())
     assert r["tracker"] == "opencv-kcf" and r["fps"] > 0 and r["frames"] == 10
     assert set(r["ms_per_frame"]) >= {"p50", "p95"} and r["ms_per_frame"]["p95"] >= r["ms_per_frame"]["p50"]

@@ -37,7 +37,8 @@ def _stats(times: np.ndarray) -> dict:
             "frames": int(len(times)), "seconds": total}
 
 
-def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None = None) -> dict:
+def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None = None,
+          progress: bool = True) -> dict:
     """JSON-ready speed report; trackers[0] is the subject, the others (and opencv-csrt) its peers."""
     import cv2
     from tqdm import tqdm
@@ -49,7 +50,7 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     if sequences:
         for name in names:
             warm_up(name, sequences[0])
-    for seq in tqdm(sequences, desc="bench", unit="seq"):
+    for seq in tqdm(sequences, desc="bench", unit="seq", disable=not progress):
         n = len(seq) if max_frames is None else min(len(seq), max_frames)
         frames = [read_frame(p) for p in seq.frames[:n]]
         for name in names:

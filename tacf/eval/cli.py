@@ -108,6 +108,7 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--trackers", nargs="+", metavar="NAME",
                    help="trackers to time; the first is the subject (default tacf); opencv-csrt always runs")
     p.add_argument("--max-frames", type=integer(1), metavar="N", help="at most N frames per sequence")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_bench)
 
 
@@ -306,7 +307,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         log.error("no sequences to benchmark in %s", root)
         return 2
     try:
-        result = {**bench(trackers, seqs), "run": provenance(args)}
+        result = {**bench(trackers, seqs, progress=not args.no_progress), "run": provenance(args)}
     except FileNotFoundError as exc:  # an image that cannot be read
         log.error("%s", exc)
         return 2
