@@ -18,7 +18,10 @@ class TacfError(Exception):
         self.message, self.node = message, node
 
     def __str__(self) -> str:
-        return f"{self.message} (node {self.node})" if self.node else self.message
+        # the service's own messages mostly name their node already ("no session 'x' on node 'edge'")
+        if not self.node or repr(self.node) in self.message:
+            return self.message
+        return f"{self.message} (node {self.node})"
 
 
 # ------------------------------------------------------------------ errors replied by a service

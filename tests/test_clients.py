@@ -135,7 +135,8 @@ def test_results_iterator_latest_only(client, camera):
 def test_error_replies_raise_typed_exceptions(client, camera, service):
     with pytest.raises(UnknownSession) as exc:
         client.stop("no-such-session")
-    assert exc.value.code == "unknown_session"
+    assert exc.value.code == "unknown_session" and exc.value.node == service.node
+    assert str(exc.value) == f"no session 'no-such-session' on node {service.node!r}"      # the node named once
     with pytest.raises(UnknownSession):
         client.status("no-such-session", node=service.node)
     with pytest.raises(InvalidKey):                       # refused before it is sent
