@@ -1,13 +1,18 @@
 """The control queryable tacf/<node>/control/<op>.
 
-One queryable on tacf/<node>/control/* (so `tacf/*/control/list` reaches every service) feeds a FIFO channel;
-a few threads take queries from it and answer each inside `with query:`. Replies go out on the concrete key
-tacf/<node>/control/<op> as the op's reply model; every failure is reply_err(Error) with a code, never an
-exception escaping into Zenoh.
+One queryable on tacf/<node>/control/* (so `tacf/*/control/list` reaches every service). Its callback only admits
+a query into one of two bounded lanes, never blocking: a full Zenoh FIFO handler would stall Zenoh's RX task for
+the query's link (ZENOH.md §3.4), and over a router that link carries every client, frames and liveliness alike.
+start/stop/reinit (up to seconds each) go to a lane served by CONTROL_THREADS threads, status/list and anything
+else to a lane of their own, so that a flood of slow queries delays no status. A query that finds its lane full
+is answered at once with Error "unavailable" (busy; retry). Each query is answered inside `with query:`. Replies
+go out on the concrete key tacf/<node>/control/<op> as the op's reply model; every failure is reply_err(Error)
+with a code, never an exception escaping into Zenoh.
 """
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 
@@ -19,8 +24,10 @@ from .manager import SessionManager
 
 log = logging.getLogger(__name__)
 
-CONTROL_THREADS = 4
-QUERY_QUEUE = 64
+CONTROL_THREADS = 4        # serve the slow lane
+QUICK_THREADS = 1          # serve the quick lane
+QUERY_QUEUE = 64           # queries waiting in one lane; more are refused as busy
+SLOW_OPS = frozenset({"start", "stop", "reinit"})
 _EMPTY_MAP = b"\x80"        # msgpack {}: a query without payload is a request with default fields
 
 
@@ -30,30 +37,48 @@ class ControlServer:
         self.node = node
         self._manager = manager
         self._encoding = zenoh.Encoding(MSGPACK_ENCODING)
-        self._queryable = zenoh_session.declare_queryable(control_key(node, "*"),
-                                                          zenoh.handlers.FifoChannel(QUERY_QUEUE))
-        self._threads = [threading.Thread(target=self._serve, name=f"control-{i}") for i in range(threads)]
-        for thread in self._threads:
+        # Unbounded queues: _admit alone bounds them (it runs on the queryable's one callback thread), so that
+        # close() can always queue the end marker.
+        self._slow: queue.Queue = queue.Queue()
+        self._quick: queue.Queue = queue.Queue()
+        lanes = [(self._slow, f"control-{i}") for i in range(threads)]
+        lanes += [(self._quick, f"control-quick-{i}") for i in range(QUICK_THREADS)]
+        self._threads = [(lane, threading.Thread(target=self._serve, args=(lane,), name=name)) for lane, name in lanes]
+        for _, thread in self._threads:
             thread.start()
+        self._queryable = zenoh_session.declare_queryable(control_key(node, "*"), self._admit)
 
     def close(self, timeout: float = 1.0) -> None:
-        """Undeclare the queryable (ends the serving loops) and join the threads within `timeout` in total."""
+        """Undeclare the queryable, let the threads answer what is queued and end, joining them within `timeout`
+        in total."""
         try:
             self._queryable.undeclare()
         except Exception:
             pass
+        for lane, _ in self._threads:
+            lane.put(None)
         deadline = time.monotonic() + timeout
-        for thread in self._threads:
+        for _, thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
 
-    def _serve(self) -> None:
-        import zenoh
-        channel = self._queryable.handler      # recv() on the queryable itself cannot run in several threads
+    def _admit(self, query) -> None:
+        """On Zenoh's callback thread: queue the query in its lane, or refuse it at once when the lane is full."""
+        op = str(query.key_expr).rsplit("/", 1)[-1]
+        lane = self._slow if op in SLOW_OPS else self._quick
+        waiting = lane.qsize()
+        if waiting < QUERY_QUEUE:
+            lane.put(query)
+            return
+        with query:
+            self._reply_err(query, Error(code="unavailable", node=self.node,
+                                         message=f"node {self.node!r} is busy, {waiting} control queries waiting; "
+                                                 f"retry"))
+
+    def _serve(self, lane: queue.Queue) -> None:
         while True:
-            try:
-                query = channel.recv()
-            except zenoh.ZError:
-                return                  # undeclared or session closed
+            query = lane.get()
+            if query is None:
+                return                  # closed
             with query:
                 try:
                     self._answer(query)

@@ -22,15 +22,16 @@ zenoh = pytest.importorskip("zenoh")
 from tacf_clients.local_service import free_port
 from tacf_clients.local_service import LocalService
 from tacf_clients.scene import Scene
-from tacf_schemas import (Frame, ReinitRequest, SessionInfo, StartRequest, StatusRequest, StopRequest, box_key,
-                          decode, encode, health_key, service_liveliness_key)
+from tacf_schemas import (MSGPACK_ENCODING, Error, Frame, ReinitRequest, SessionInfo, StartRequest, StatusRequest,
+                          StopRequest, box_key, control_key, decode, encode, health_key, service_liveliness_key)
 from tacf_schemas.images import encode_frame
 import tacf_service.manager as service_manager
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
-from tacf_service.control import CONTROL_THREADS
-from tacf_service.loopback import SessionResults, peer_config, wait_until
+from tacf_service.control import CONTROL_THREADS, QUERY_QUEUE
+from tacf_service.loopback import FramePublisher, SessionResults, peer_config, wait_until
 from tacf_service.probe import ControlError, call
+from tacf_service.scene import MovingTargetScene
 from tacf_service.worker import STALL_S
 
 pytestmark = pytest.mark.zenoh
@@ -336,6 +337,50 @@ def test_a_spare_that_waited_long_reports_no_stall_when_its_session_starts(servi
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="quiet"))
+
+
+# ---------------------------------------------------------------------------------------------- control floods
+
+def test_a_flood_of_slow_control_queries_delays_no_other_client(tmp_path):
+    """While a session tracks a feed, one client fires 200 starts on that feed at once, each refused only after
+    waiting init_wait (1 s) for a frame that never comes: 50 s of work for the control threads. Another client's
+    status and the service's liveliness are answered at once meanwhile, and what the service cannot queue is
+    refused at once as busy, not left to stall Zenoh."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    svc = TrackingService(ServiceOptions(node="flooded", zenoh=ZenohOptions(listen=(endpoint,)))).open()
+    flooder, other = (zenoh.open(peer_config(connect=[endpoint])) for _ in range(2))
+    try:
+        with FramePublisher(flooder, "faults/cam/flood", MovingTargetScene(320, 240), fps=10) as feed:
+            assert wait_until(lambda: feed.seq >= 2 and svc.manager.idle_spares() >= 1, 60)
+            call(other, "flooded", "start", StartRequest(image_key=feed.key, box=feed.truth[feed.seq],
+                                                         seq=feed.seq, sid="tracked", profile="kcc"), timeout=10)
+            requests = [StartRequest(image_key=feed.key, box=(5000.0, 5000.0, 10.0, 10.0), seq=10**9 + i,
+                                     profile="kcc") for i in range(200)]
+            pending = [flooder.get(control_key("flooded", "start"), payload=encode(r), timeout=60,
+                                   encoding=zenoh.Encoding(MSGPACK_ENCODING)) for r in requests]
+            took = []
+            for _ in range(4):
+                time.sleep(0.5)
+                asked = time.monotonic()
+                try:
+                    call(other, "flooded", "status", StatusRequest(sid="tracked"), timeout=5)
+                    took.append(time.monotonic() - asked)
+                except ControlError as exc:
+                    took.append(exc.code)
+            alive = other.liveliness().get(service_liveliness_key("flooded"), timeout=2)
+            assert [r for r in alive if r.ok is not None], "the service's liveliness went missing"
+            assert all(isinstance(t, float) and t < 2.0 for t in took), took
+            busy = 0
+            for replies in pending[CONTROL_THREADS + QUERY_QUEUE + 10:]:      # beyond what the lane holds
+                reply = next(iter(replies), None)
+                assert reply is not None and reply.err is not None
+                error = decode(reply.err.payload.to_bytes(), Error)
+                busy += error.code == "unavailable" and "busy" in error.message
+            assert busy == len(pending) - CONTROL_THREADS - QUERY_QUEUE - 10, busy
+    finally:
+        svc.close()
+        for session in (flooder, other):
+            session.close()
 
 
 # ---------------------------------------------------------------------------------------------- router
