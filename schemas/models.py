@@ -43,7 +43,7 @@ ErrorCode = Literal[
     "duplicate_session",
     "too_many_sessions",
     "frame_rejected",      # the init frame could not be decoded
-    "unavailable",         # the service is shutting down
+    "unavailable",         # the service is shutting down, or busy (too many control queries waiting): retry
     "internal",            # a bug: reported, never raised across the wire
 ]
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__  # type: ignore[attr-defined]

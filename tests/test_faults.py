@@ -370,13 +370,12 @@ def test_a_flood_of_slow_control_queries_delays_no_other_client(tmp_path):
             alive = other.liveliness().get(service_liveliness_key("flooded"), timeout=2)
             assert [r for r in alive if r.ok is not None], "the service's liveliness went missing"
             assert all(isinstance(t, float) and t < 2.0 for t in took), took
-            busy = 0
-            for replies in pending[CONTROL_THREADS + QUERY_QUEUE + 10:]:      # beyond what the lane holds
+            assert CONTROL_THREADS + QUERY_QUEUE < 100
+            for replies in pending[100:]:          # well beyond what the threads and the lane hold
                 reply = next(iter(replies), None)
                 assert reply is not None and reply.err is not None
                 error = decode(reply.err.payload.to_bytes(), Error)
-                busy += error.code == "unavailable" and "busy" in error.message
-            assert busy == len(pending) - CONTROL_THREADS - QUERY_QUEUE - 10, busy
+                assert error.code == "unavailable" and "busy" in error.message, error
     finally:
         svc.close()
         for session in (flooder, other):
