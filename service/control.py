@@ -37,16 +37,18 @@ class ControlServer:
         self.node = node
         self._manager = manager
         self._encoding = zenoh.Encoding(MSGPACK_ENCODING)
-        # Unbounded queues: _admit alone bounds them (it runs on the queryable's one callback thread), so that
-        # close() can always queue the end marker.
+        # Unbounded queues: _admit bounds them (within a query or two when callbacks of several links race), so
+        # that close() can always queue the end markers.
         self._slow: queue.Queue = queue.Queue()
         self._quick: queue.Queue = queue.Queue()
+        # Declared before the threads start (queries admitted meanwhile wait in their lane): a declaration that
+        # fails leaves no thread behind to keep the process alive.
+        self._queryable = zenoh_session.declare_queryable(control_key(node, "*"), self._admit)
         lanes = [(self._slow, f"control-{i}") for i in range(threads)]
         lanes += [(self._quick, f"control-quick-{i}") for i in range(QUICK_THREADS)]
         self._threads = [(lane, threading.Thread(target=self._serve, args=(lane,), name=name)) for lane, name in lanes]
         for _, thread in self._threads:
             thread.start()
-        self._queryable = zenoh_session.declare_queryable(control_key(node, "*"), self._admit)
 
     def close(self, timeout: float = 1.0) -> None:
         """Undeclare the queryable, let the threads answer what is queued and end, joining them within `timeout`
