@@ -43,6 +43,8 @@ RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
 SPARE_RESPAWN_MIN_S = 2.0      # a spare that dies is replaced at most this often (no spawn storm)
 WORKER_SILENCE_S = 15.0        # a worker silent this long (no health; no "ready" or "idle" once started) is hung
+SPARE_SILENCE_S = 5.0          # a warm spare repeats "idle" every second (worker.IDLE_HEARTBEAT_S): silent this
+                               # long, it is hung: handed no session, killed and replaced
 REINIT_WRITE_WAIT_S = 0.2      # a reinit is answered once its init is written to the worker, or after this long
 WRITER_JOIN_S = 1.0            # closing a worker's pipe waits this long for a write in progress (the worker is gone)
 
@@ -57,8 +59,13 @@ class WorkerHandle:
     outbox: Outbox
     started_at: float = field(default_factory=time.monotonic)
     idle: bool = False              # said "idle": warm and waiting for an assignment
+    idle_at: float = 0.0            # monotonic time of its last "idle" (the heartbeat of a spare)
     owner: "Session | None" = None
     recv_lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def is_warm(self, now: float) -> bool:
+        """A spare that can take a session: alive, said "idle", and said it again lately."""
+        return self.idle and self.process.exitcode is None and now - self.idle_at <= SPARE_SILENCE_S
 
     def close(self) -> None:
         """End the writer thread, then close the pipe, never under the reader nor under a write. A write still in
@@ -321,7 +328,8 @@ class SessionManager:
         """How many warm workers wait for a session (tests wait for one before timing a start)."""
         self._drain_spares()
         with self._lock:
-            return sum(1 for w in self._spares if w.idle and w.process.exitcode is None)
+            now = time.monotonic()
+            return sum(1 for w in self._spares if w.is_warm(now))
 
     def worker_pids(self) -> dict[str, int]:
         """Worker process ids by session id (for tests and diagnostics)."""
@@ -379,7 +387,8 @@ class SessionManager:
         with self._lock:
             if self._is_gone(session):
                 raise _stopped_meanwhile(session, self.node)
-            idle = [w for w in self._spares if w.idle and w.process.exitcode is None]
+            now = time.monotonic()
+            idle = [w for w in self._spares if w.is_warm(now)]
             handle = idle[0] if idle else None
             if handle is not None:
                 self._spares.remove(handle)
@@ -423,10 +432,16 @@ class SessionManager:
         with self._lock:
             now = time.monotonic()
             for handle in self._spares:
-                if not handle.idle and now - handle.started_at > WORKER_SILENCE_S and handle.process.exitcode is None:
+                if handle.process.exitcode is not None:
+                    continue
+                if not handle.idle and now - handle.started_at > WORKER_SILENCE_S:
                     log.warning("spare worker pid %d not warm %.0f s after it started: killing it", handle.process.pid,
                                 WORKER_SILENCE_S)
                     handle.process.kill()       # replaced once its exit shows, like a spare that died
+                elif handle.idle and now - handle.idle_at > SPARE_SILENCE_S:
+                    log.warning("spare worker pid %d silent for %.0f s: killing it", handle.process.pid,
+                                now - handle.idle_at)
+                    handle.process.kill()
             dead = [w for w in self._spares if w.process.exitcode is not None]
             for handle in dead:
                 self._spares.remove(handle)
@@ -461,7 +476,7 @@ class SessionManager:
                     if handle.owner is not None:
                         self._on_message(handle.owner, message)
                     elif message[0] == "idle":
-                        handle.idle = True
+                        handle.idle, handle.idle_at = True, time.monotonic()
             except (EOFError, OSError):
                 pass
 

@@ -17,7 +17,9 @@ ready), so a start request gets a tracking worker in milliseconds; a worker star
 0.3 s when forked from the fork server, 1.5-3 s when spawned.
 
 Parent <-> worker protocol over a multiprocessing Pipe (tuples):
-    worker -> parent   ("idle",)                           warm and waiting for an assignment
+    worker -> parent   ("idle",)                           warm and waiting for an assignment; repeated every
+                                                           IDLE_HEARTBEAT_S until assigned, so that the service
+                                                           can tell a wedged spare from a waiting one
                        ("ready",)                          assigned, subscribed, tracker built: send the init
                        ("result", seq, box, ok, pme)       per processed frame (the parent keeps the last box)
                        ("health", health_msgpack)          about 1 Hz
@@ -45,6 +47,7 @@ from .trackers import DEFAULT_FACTORY
 log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 1.0
+IDLE_HEARTBEAT_S = 1.0      # a spare repeats "idle" this often (manager.SPARE_SILENCE_S: silent longer, it is hung)
 STALL_S = 2.0               # no frame for this long: health says the session is waiting for frames
 STALE_WINDOW = 64           # a frame up to this many seqs behind the last one used, and not newer, is stale
 MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogus seq, not frames lost in the ring
@@ -202,8 +205,11 @@ class Worker:
                 # between bytecodes, and zenoh.open blocks up to connect/timeout_ms (5 s) when the service is gone.
                 self._connected = True
                 signal.signal(signal.SIGTERM, self.on_sigterm)
-                self._send(("idle",))
-                if self._assigned.wait_until(self._stop):
+                assigned = False
+                while not assigned and not self._stop.is_set():
+                    self._send(("idle",))
+                    assigned = self._assigned.wait_until(self._stop, IDLE_HEARTBEAT_S)
+                if assigned:
                     try:
                         self._tracker = load_factory(self.spec.tracker_factory)(self.job.profile,
                                                                                 self.job.overrides)
@@ -504,9 +510,11 @@ class _Flag:
     def set(self) -> None:
         self._event.set()
 
-    def wait_until(self, stop: threading.Event) -> bool:
-        while not stop.is_set():
-            if self._event.wait(0.1):
+    def wait_until(self, stop: threading.Event, timeout: float) -> bool:
+        """True once set; False when `stop` is set or `timeout` seconds passed first."""
+        deadline = time.monotonic() + timeout
+        while not stop.is_set() and time.monotonic() < deadline:
+            if self._event.wait(min(0.1, max(0.0, deadline - time.monotonic()))):
                 return True
         return False
 

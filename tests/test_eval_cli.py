@@ -697,7 +697,9 @@ def test_eval_tre_command(tmp_path, capsys):
     out = tmp_path / "out"
     args = ["eval", str(write_synthetic_dataset(tmp_path, 8)), "--trackers", "identity,opencv-mosse",
             "--out", str(out), "--no-progress"]
-    assert main(args + ["--tre", "1"]) == 2
+    with pytest.raises(SystemExit) as refused:          # a usage error: one segment is the one-pass run
+        main(args + ["--tre", "1"])
+    assert refused.value.code == 2
     assert main(args + ["--tre", "4", "--shifts", "1"]) == 0
     # segment i of 4 starts at frame 2 i, from the ground-truth box there: 31 + 2 * 2 i, 41 + 2 i
     for i in (1, 2, 3):

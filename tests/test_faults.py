@@ -306,6 +306,27 @@ def test_a_session_handed_a_wedged_spare_starts_on_another_worker(service, clien
         call(client, NODE, "stop", StopRequest(sid="handed"), timeout=10)
 
 
+def test_a_warm_spare_that_wedges_is_replaced_before_a_session_is_handed_it(service, client, monkeypatch):
+    """A warm spare that wedges while it waits (stopped here) no longer repeats "idle": silent for SPARE_SILENCE_S,
+    it is killed and replaced, and the next start gets the new spare and tracks at once, not 15 s late."""
+    monkeypatch.setattr(service_manager, "SPARE_SILENCE_S", 2.0)
+    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    spare = next(w for w in service.manager._spares if w.idle)
+    os.kill(spare.process.pid, signal.SIGSTOP)
+    try:
+        assert wait_until(lambda: service.manager.idle_spares() == 0, 5), "a silent spare still counts as warm"
+        assert wait_until(lambda: spare.process.exitcode == -signal.SIGKILL, 10), spare.process.exitcode
+        start(service, client, sid="fresh", image_key="faults/cam/fresh", box=SCENE.box(1),
+              frames=[encode_frame(SCENE.frame(1), 1, "jpeg")])
+        assert service.manager.worker_pids()["fresh"] != spare.process.pid
+        assert wait_until(lambda: status(client, "fresh").state == "tracking", 10), status(client, "fresh")
+        assert status(client, "fresh").restarts == 0
+    finally:
+        if spare.process.exitcode is None:
+            os.kill(spare.process.pid, signal.SIGCONT)
+        call(client, NODE, "stop", StopRequest(sid="fresh"), timeout=10)
+
+
 def test_a_spare_worker_that_never_gets_warm_is_replaced(monkeypatch):
     """A spare worker that wedges before it is warm (here its tracker's module never finishes loading) would keep
     its place in the pool for ever: silent for WORKER_SILENCE_S since it started, it is killed and replaced."""

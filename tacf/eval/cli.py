@@ -30,6 +30,14 @@ def report_file(text: str) -> Path:
     return path
 
 
+def _segment_count(text: str) -> int:
+    """`--tre K`: 0 (off) or K >= 2 segments; one segment is the one-pass run itself."""
+    value = integer(0, what="a segment count")(text)
+    if value == 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 0 (off) or at least 2 segments")
+    return value
+
+
 def _names(values: list[str] | None, default: str) -> list[str]:
     """Tracker names from `--trackers a,b c`: comma- or space-separated, duplicates dropped, each checked."""
     from .trackers import check_name
@@ -64,7 +72,7 @@ def register(subparsers) -> None:
     p.add_argument("--shifts", type=integer(0), default=0, metavar="PX",
                    help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
                         "each AUC moves and whether the trackers' differences stand out of that")
-    p.add_argument("--tre", type=int, default=0, metavar="K",
+    p.add_argument("--tre", type=_segment_count, default=0, metavar="K",
                    help="also start every pair at frames N/K, 2N/K, ... of each sequence (the starts of OTB's "
                         "temporal robustness, TRE; K = 10 is 5.5 times the one-pass work), report the mean over these "
                         "starts as --shifts does, and beside it OTB's TRE, which pools each sequence's frames")
@@ -182,9 +190,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return 2
     if not seqs:
         log.error("no sequences in %s%s", args.root, f" matching {args.sequences!r}" if args.sequences else "")
-        return 2
-    if args.tre < 0 or args.tre == 1:
-        log.error("--tre must be 0 (off) or at least 2 segments, got %d", args.tre)
         return 2
     try:  # before any pair runs: every one would fail to record, and the report after them
         args.out.mkdir(parents=True, exist_ok=True)
