@@ -25,8 +25,8 @@ from tacf_clients.errors import TacfError
 from tacf_clients.local_service import LocalService, LocalServiceError
 from tacf_clients.publisher import FramePublisher
 from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, Pacer, SourceFrame, Thinner,
-                                  open_source)
+from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, SourceFrame, open_source,
+                                  paced_frames)
 from tacf_clients.zconfig import open_session
 from tacf_schemas.models import BoxResult, Health
 
@@ -122,8 +122,9 @@ def _read_groundtruth(path: Path) -> list[Box]:
 
 
 class HoldingPublisher:
-    """Publishes a source on a thread; while `hold` is set it republishes the first frame (new seq each time).
-    Remembers which source frame each recent seq carried, for the ground-truth comparison."""
+    """Publishes a source on a thread, paced as publish() paces it; while `hold` is set it republishes the first
+    frame (new seq each time). Remembers which source frame each recent seq carried, for the ground-truth
+    comparison."""
 
     def __init__(self, session, source: FrameSource, key: str, fps: float, encoding: str):
         self.source, self.fps = source, fps
@@ -154,22 +155,9 @@ class HoldingPublisher:
                 self._index_of_seq.popitem(last=False)
 
     def _run(self) -> None:
-        # As publish() does: a replayed source is paced at fps and stands still while held; a live one is read as
-        # fast as it delivers, thinned to fps, and drained while its first frame is held (its buffers would
-        # otherwise hand out ever older frames).
-        live = self.source.live
-        pacer, thinner = Pacer(None if live else self.fps), Thinner(self.fps if live else None)
         try:
-            frames = self.source.frames(should_stop=self.stop.is_set)
-            first = current = next(frames, None)
-            while current is not None and not self.stop.is_set():
-                if thinner.admit():
-                    pacer.wait(should_stop=self.stop.is_set)
-                    if self.stop.is_set():
-                        break
-                    self._put(first if self.hold.is_set() else current)
-                if live or not self.hold.is_set():
-                    current = next(frames, None)
+            for frame in paced_frames(self.source, self.fps, self.stop, hold=self.hold):
+                self._put(frame)
         except BaseException as exc:  # reported by the demo, never lost on this thread
             self.error = exc
             log.exception("demo publisher failed")

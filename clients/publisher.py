@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import zenoh
 
-from tacf_clients.sources import DEFAULT_FPS, FrameSource, Pacer, SourceFrame, Thinner
+from tacf_clients.sources import FrameSource, SourceFrame, paced_frames, paced_rate
 from tacf_schemas.codec import MSGPACK_ENCODING, encode
 from tacf_schemas.images import encode_frame
 from tacf_schemas.keys import validate_image_key
@@ -108,29 +108,23 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
             encoding: str = "jpeg", quality: int = 90, max_frames: int | None = None,
             stop: threading.Event | None = None,
             on_frame: Callable[[Frame, SourceFrame], None] | None = None) -> PublishStats:
-    """Publish `source` on `key` until it ends, `max_frames` were sent or `stop` is set.
+    """Publish `source` on `key` until it ends, `max_frames` (>= 1) were sent or `stop` is set.
 
     Replayable sources (files, folders, the scene) are paced at `fps`, else at their own rate, else 30 fps;
     live sources (camera, URL) run at the device's rate, thinned to `fps` when given, and go on through their
     reconnections with the same seq count. `on_frame(frame, src)` is called after each put (keep it quick).
     """
+    if max_frames is not None and max_frames < 1:
+        raise ValueError(f"max_frames must be at least 1, got {max_frames}")
     stop = stop or threading.Event()
-    pacer = Pacer(None if source.live else (fps or source.fps or DEFAULT_FPS))
-    thinner = Thinner(fps if source.live else None)
     frames = nbytes = 0
     last_seq = None
     started = time.monotonic()
+    rate = paced_rate(source, fps)
     log.info("publishing %s on %r as %s at %s fps", source.name, key, encoding,
-             "device" if source.live and not fps else f"{1 / pacer.period if pacer.period else fps:.3g}")
+             "device" if rate is None else f"{rate:.3g}")
     with FramePublisher(session, key, encoding, quality) as publisher:
-        for src in source.frames(should_stop=stop.is_set):
-            if stop.is_set() or (max_frames is not None and frames >= max_frames):
-                break
-            if not thinner.admit():
-                continue
-            pacer.wait(should_stop=stop.is_set)
-            if stop.is_set():
-                break
+        for src in paced_frames(source, fps, stop):
             # Live sources: the time the device delivered the frame; replayed ones: now, their "capture" time.
             frame = publisher.put(src.image, src.stamp_ns if source.live else None)
             frames, nbytes, last_seq = frames + 1, nbytes + len(frame.data), frame.seq
@@ -138,6 +132,8 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
                 on_frame(frame, src)
             if frames == 1:
                 log.info("first frame: %dx%d, %d bytes", frame.width, frame.height, len(frame.data))
+            if frames == max_frames:
+                break
     stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq)
     log.info("published %d frames (%.1f fps, %.1f MB)", stats.frames, stats.fps, stats.bytes / 1e6)
     return stats

@@ -1,14 +1,15 @@
 """Frame sources for the publisher: video file, image folder, camera index, stream URL or the generated scene.
 
 Every source yields `SourceFrame`s (BGR uint8 image, position in the source, capture time) and is a context
-manager. `open_source(spec)` picks the kind from the spec string. Pacing (`Pacer`) is separate: file-like sources
-are replayed at their own rate or a given one; live sources (camera, URL) run at the device's rate and are only
-thinned when a lower rate is asked for. A live source that fails (a radio link drops, a camera is unplugged, a
+manager. `open_source(spec)` picks the kind from the spec string. Pacing (`paced_frames`) is separate: file-like
+sources are replayed at their own rate or a given one; live sources (camera, URL) run at the device's rate and are
+only thinned when a lower rate is asked for. A live source that fails (a radio link drops, a camera is unplugged, a
 stream stalls) is reopened with growing pauses until it delivers again or the caller stops.
 """
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -250,3 +251,29 @@ class Thinner:
         self._next = now + self.period if self._next is None or now - self._next > self.period else \
             self._next + self.period
         return True
+
+
+def paced_rate(source: FrameSource, fps: float | None) -> float | None:
+    """The rate `paced_frames` sends `source` at: a replayed one at `fps`, else its own, else DEFAULT_FPS; a live
+    one at `fps` when given, else None (the device's rate)."""
+    return fps if source.live else (fps or source.fps or DEFAULT_FPS)
+
+
+def paced_frames(source: FrameSource, fps: float | None, stop: threading.Event,
+                 hold: threading.Event | None = None) -> Iterator[SourceFrame]:
+    """The frames of `source` to send, each yielded when it is due (paced_rate), until the source ends or `stop` is
+    set. While `hold` is set the first frame is yielded in place of the others: a replayed source stands still; a
+    live one is read on and its frames dropped, since its buffers would otherwise hand out ever older frames."""
+    hold = hold or threading.Event()
+    rate = paced_rate(source, fps)
+    pacer, thinner = Pacer(None if source.live else rate), Thinner(rate if source.live else None)
+    frames = source.frames(should_stop=stop.is_set)
+    first = current = next(frames, None)
+    while current is not None and not stop.is_set():
+        if thinner.admit():
+            pacer.wait(should_stop=stop.is_set)
+            if stop.is_set():
+                return
+            yield first if hold.is_set() else current
+        if source.live or not hold.is_set():
+            current = next(frames, None)

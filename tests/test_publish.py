@@ -20,8 +20,8 @@ from tacf_clients.local_service import free_port
 from tacf_clients.publisher import FramePublisher, publish
 from tacf_clients.scene import Scene, SceneSource
 import tacf_clients.sources as sources
-from tacf_clients.sources import (CaptureSource, ImageFolderSource, Pacer, SourceError, SourceFrame, Thinner,
-                                   never_stop, open_source)
+from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, Pacer, SourceError, SourceFrame,
+                                   Thinner, never_stop, open_source, paced_frames)
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.codec import decode
 from tacf_schemas.images import FrameError, decode_frame, encode_frame
@@ -222,6 +222,43 @@ def test_thinner_keeps_every_third_frame_of_a_30fps_camera():
     assert expected - 2 <= sum(admitted) <= expected + 1.5
     assert sum(admitted) < 20
     assert all(Thinner(None).admit() for _ in range(5))
+
+
+class CountingLiveSource(FrameSource):
+    """A live source that delivers frame after frame as fast as it is read; each frame's index is its count."""
+    live = True
+
+    def __init__(self, image: np.ndarray):
+        self.image, self.read = image, 0
+
+    def frames(self, should_stop=never_stop):
+        while not should_stop():
+            self.read += 1
+            yield SourceFrame(self.read - 1, self.image, time.time_ns())
+
+
+def test_paced_frames_hold_the_first_frame_then_go_on(tmp_path):
+    """While held, a replayed source stands still (it goes on from its second frame once released), and a live
+    one is read on and dropped (released, it goes on from its newest frame, not from a stale buffer)."""
+    for i, image in enumerate(_frames(5)):
+        cv2.imwrite(str(tmp_path / f"{i:04d}.png"), image)
+    stop, hold = threading.Event(), threading.Event()
+    hold.set()
+    replayed = paced_frames(ImageFolderSource(tmp_path), 200.0, stop, hold)
+    indices = [next(replayed).index for _ in range(4)]
+    hold.clear()
+    indices += [frame.index for frame in replayed]
+    assert indices == [0, 0, 0, 0, 1, 2, 3, 4]
+
+    hold.set()
+    source = CountingLiveSource(_frames(1)[0])
+    live = paced_frames(source, 50.0, stop, hold)       # thinned to 50 fps from a source that never waits
+    assert [next(live).index for _ in range(3)] == [0, 0, 0]
+    hold.clear()
+    released = next(live).index
+    assert released > 3 and released == source.read - 1, (released, source.read)
+    stop.set()
+    assert list(live) == []
 
 
 # ----------------------------------------------------------------------------------------------- publisher
