@@ -5,6 +5,7 @@ Modules, one concept each:
     app         TrackingService: opens the session, wires everything, clean shutdown; serve() for the CLI
     control     the control queryable tacf/<node>/control/<op>: decode, dispatch, reply / reply_err
     manager     SessionManager: the session table, limits, worker supervision and restarts
+    pool        WorkerPool: starts worker processes, keeps the warm spares, kills and replaces the hung ones
     frames      FrameHistory: the last few frames of each image key, for init on the frame a box was drawn on
     worker      the worker process: its own Zenoh session, latest-only frames, the tracker, box and health
     health      HealthStats: counters and timing windows behind the Health message

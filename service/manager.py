@@ -2,7 +2,8 @@
 
 Control operations (start, stop, reinit, list, status) run on the control threads; a supervisor thread reads
 every worker's pipe, notices dead workers (process sentinels) and restarts them from their last box with a
-backoff, kills the workers and spares that went silent (WORKER_SILENCE_S), and saves the table when it changed.
+backoff, kills the workers that went silent (pool.WORKER_SILENCE_S), keeps the pool of warm spares filled
+(pool.WorkerPool: a session takes its worker from there) and saves the table when it changed.
 A session whose worker keeps crashing (MAX_CRASHES within CRASH_WINDOW_S) stays `failed` until it is
 re-initialised or stopped.
 """
@@ -24,13 +25,14 @@ from tacf_schemas import Health as HealthModel
 from tacf_schemas.images import FrameError, check_frame
 from tacf_schemas.keys import InvalidKeyError, validate_image_key
 
+from . import pool as worker_pool
 from .config import ZenohOptions
 from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
-from .outbox import Outbox
+from .pool import WorkerHandle, WorkerPool
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
-from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, run_worker, worker_context
+from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, worker_context
 
 log = logging.getLogger(__name__)
 
@@ -41,41 +43,7 @@ MAX_CRASHES = 5
 CRASH_WINDOW_S = 60.0
 RESTART_BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 CATCHUP_FRAMES = 6             # after the init frame, at most this many newer frames (evenly spaced) to catch up
-SPARE_RESPAWN_MIN_S = 2.0      # a spare that dies is replaced at most this often (no spawn storm)
-WORKER_SILENCE_S = 15.0        # a worker silent this long (no health; no "ready" or "idle" once started) is hung
-SPARE_SILENCE_S = 5.0          # a warm spare repeats "idle" every second (worker.IDLE_HEARTBEAT_S): silent this
-                               # long, it is hung: handed no session, killed and replaced
 REINIT_WRITE_WAIT_S = 0.2      # a reinit is answered once its init is written to the worker, or after this long
-WRITER_JOIN_S = 1.0            # closing a worker's pipe waits this long for a write in progress (the worker is gone)
-
-
-@dataclass
-class WorkerHandle:
-    """A worker process and the parent's end of its pipe. Only _drain_worker reads the pipe, under recv_lock,
-    and routes each message to the owning session (none while the worker is a spare); only the outbox's thread
-    writes to it."""
-    process: multiprocessing.process.BaseProcess
-    conn: multiprocessing.connection.Connection
-    outbox: Outbox
-    started_at: float = field(default_factory=time.monotonic)
-    idle: bool = False              # said "idle": warm and waiting for an assignment
-    idle_at: float = 0.0            # monotonic time of its last "idle" (the heartbeat of a spare)
-    owner: "Session | None" = None
-    recv_lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def is_warm(self, now: float) -> bool:
-        """A spare that can take a session: alive, said "idle", and said it again lately."""
-        return self.idle and self.process.exitcode is None and now - self.idle_at <= SPARE_SILENCE_S
-
-    def close(self) -> None:
-        """End the writer thread, then close the pipe, never under the reader nor under a write. A write still in
-        progress (to a worker alive and not reading) keeps the pipe, closed when that write ends and it is freed."""
-        if not self.outbox.close(WRITER_JOIN_S):
-            log.warning("worker pid %s: a write to its pipe is still in progress; the pipe is closed once it ends",
-                        self.process.pid)
-            return
-        with self.recv_lock:
-            _quiet_close(self.conn)
 
 
 @dataclass
@@ -139,15 +107,13 @@ class SessionManager:
         self._tracker_factory = tracker_factory
         self._init_wait_s = init_wait_s
         self._log_level = log_level
-        self._mp = worker_context()
-        self._worker_spec = WorkerSpec(node=node, zenoh=zenoh_options, endpoints=tuple(endpoints),
-                                       tracker_factory=tracker_factory, log_level=log_level)
-        self._spare_target = spare_workers
-        self._spares: list[WorkerHandle] = []
-        self._spare_spawned_at = 0.0
         self._lock = threading.RLock()
         self._sessions: dict[str, Session] = {}
         self._closing = threading.Event()
+        worker_spec = WorkerSpec(node=node, zenoh=zenoh_options, endpoints=tuple(endpoints),
+                                 tracker_factory=tracker_factory, log_level=log_level)
+        self.pool = WorkerPool(worker_context(), worker_spec, spare_workers, lock=self._lock, closing=self._closing,
+                               deliver=self._on_message)
         self._dirty = False
         self._save_failing = False          # the last save failed (logged once until one works again)
         self._supervisor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
@@ -216,13 +182,10 @@ class SessionManager:
             sessions = list(self._sessions.values())
         if self._supervisor.is_alive():
             self._supervisor.join(timeout=SUPERVISE_PERIOD_S * 2)
-        with self._lock:
-            spares, self._spares = self._spares, []
         for session in sessions:
             session.stopping = True
             self._send(session, ("stop",))
-        for spare in spares:
-            spare.process.terminate()           # a spare serves nothing: no need for a graceful stop
+        spares = self.pool.retire()
         _reap([s.process for s in sessions if s.process] + [w.process for w in spares], deadline)
         self._save(force=True)
         for session in sessions:
@@ -326,10 +289,7 @@ class SessionManager:
 
     def idle_spares(self) -> int:
         """How many warm workers wait for a session (tests wait for one before timing a start)."""
-        self._drain_spares()
-        with self._lock:
-            now = time.monotonic()
-            return sum(1 for w in self._spares if w.is_warm(now))
+        return self.pool.warm_count()
 
     def worker_pids(self) -> dict[str, int]:
         """Worker process ids by session id (for tests and diagnostics)."""
@@ -387,20 +347,17 @@ class SessionManager:
         with self._lock:
             if self._is_gone(session):
                 raise _stopped_meanwhile(session, self.node)
-            now = time.monotonic()
-            idle = [w for w in self._spares if w.is_warm(now)]
-            handle = idle[0] if idle else None
-            if handle is not None:
-                self._spares.remove(handle)
+            handle = self.pool.take_warm()
+        warm = handle is not None
         if handle is None:
-            handle = self._new_worker()
+            handle = self.pool.new_worker()
         with self._lock:
             # shutdown() stops the workers and spares it found: one attached or put back after that would outlive it
             closing = self._closing.is_set()
             gone = closing or self._is_gone(session)
-            returned = gone and idle and not closing
+            returned = gone and warm and not closing
             if returned:
-                self._spares.append(handle)     # still a warm, unassigned spare
+                self.pool.put_back(handle)      # still a warm, unassigned spare
             elif not gone:
                 session.worker = handle
                 session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
@@ -410,75 +367,14 @@ class SessionManager:
                     session.state = "starting"
         if gone:
             if not returned:
-                handle.process.terminate()
-                handle.close()
+                handle.discard()
             self._check_open()
             raise _stopped_meanwhile(session, self.node)
         with handle.recv_lock:
             handle.owner = session
         self._send(session, ("assign", assignment))
         log.debug("worker pid %d serves session %s%s", handle.process.pid, session.sid,
-                  " (warm spare)" if idle else "")
-
-    def _new_worker(self) -> WorkerHandle:
-        parent_conn, child_conn = self._mp.Pipe(duplex=True)
-        process = self._mp.Process(target=run_worker, args=(self._worker_spec, child_conn), name="tacf-worker",
-                                   daemon=True)
-        process.start()
-        child_conn.close()
-        return WorkerHandle(process, parent_conn, Outbox(parent_conn, f"outbox-{process.pid}"))
-
-    def _replenish_spares(self) -> None:
-        with self._lock:
-            now = time.monotonic()
-            for handle in self._spares:
-                if handle.process.exitcode is not None:
-                    continue
-                if not handle.idle and now - handle.started_at > WORKER_SILENCE_S:
-                    log.warning("spare worker pid %d not warm %.0f s after it started: killing it", handle.process.pid,
-                                WORKER_SILENCE_S)
-                    handle.process.kill()       # replaced once its exit shows, like a spare that died
-                elif handle.idle and now - handle.idle_at > SPARE_SILENCE_S:
-                    log.warning("spare worker pid %d silent for %.0f s: killing it", handle.process.pid,
-                                now - handle.idle_at)
-                    handle.process.kill()
-            dead = [w for w in self._spares if w.process.exitcode is not None]
-            for handle in dead:
-                self._spares.remove(handle)
-                handle.close()
-            missing = self._spare_target - len(self._spares)
-            if missing <= 0 or self._closing.is_set() or (dead and now - self._spare_spawned_at < SPARE_RESPAWN_MIN_S):
-                return
-            self._spare_spawned_at = now
-        for _ in range(missing):
-            handle = self._new_worker()
-            with self._lock:
-                if not self._closing.is_set():
-                    self._spares.append(handle)
-                    continue
-            # shutdown() began while the worker started (the first can wait ~1 s for the fork server) and has
-            # already taken the spares it stops: this one is stopped here.
-            handle.process.terminate()
-            handle.close()
-
-    def _drain_spares(self) -> None:
-        with self._lock:
-            spares = list(self._spares)
-        for handle in spares:
-            self._drain_worker(handle)
-
-    def _drain_worker(self, handle: WorkerHandle) -> None:
-        """Read every pending message of a worker and route it: to its session, or (a spare) note "idle"."""
-        with handle.recv_lock:
-            try:
-                while handle.conn.poll():
-                    message = handle.conn.recv()
-                    if handle.owner is not None:
-                        self._on_message(handle.owner, message)
-                    elif message[0] == "idle":
-                        handle.idle, handle.idle_at = True, time.monotonic()
-            except (EOFError, OSError):
-                pass
+                  " (warm spare)" if warm else "")
 
     def _init_frames(self, key: str, seq: int | None, carried: Sequence[StoredFrame]) -> list[StoredFrame]:
         """The frames to initialise on: frame `seq` and the newer ones kept; else the carried frames (the one the
@@ -541,11 +437,11 @@ class SessionManager:
     def _supervise_once(self) -> None:
         # Spares start here, not in open(): the first worker waits for the fork server to load the tracker, and
         # the service answers in the meantime.
-        self._replenish_spares()
+        self.pool.replenish()
         with self._lock:
             sessions = [s for s in self._sessions.values() if s.process is not None]
         waitables = [s.conn for s in sessions if s.conn is not None] + [s.process.sentinel for s in sessions]
-        waitables += [w.conn for w in self._spares if not w.idle]
+        waitables += self.pool.waitables()
         try:
             if waitables:
                 multiprocessing.connection.wait(waitables, timeout=SUPERVISE_PERIOD_S)
@@ -559,9 +455,9 @@ class SessionManager:
             if process is not None and process.exitcode is not None and not session.stopping:
                 self._on_worker_exit(session)
             elif (process is not None and not session.stopping
-                  and time.monotonic() - session.heard_at > WORKER_SILENCE_S):
+                  and time.monotonic() - session.heard_at > worker_pool.WORKER_SILENCE_S):
                 log.warning("session %s: worker pid %d silent for %.0f s: killing it", session.sid, process.pid,
-                            WORKER_SILENCE_S)
+                            worker_pool.WORKER_SILENCE_S)
                 process.kill()          # the exit is handled (failed, restart) on the next round
                 session.heard_at = time.monotonic()
         now = time.monotonic()
@@ -571,13 +467,13 @@ class SessionManager:
         for session in due:
             if not self._closing.is_set():
                 self._restart(session)
-        self._drain_spares()
+        self.pool.drain()
         self._save()
 
     def _drain(self, session: Session) -> None:
         worker = session.worker
         if worker is not None:
-            self._drain_worker(worker)
+            worker.drain(self._on_message)
 
     def _on_message(self, session: Session, message: tuple) -> None:
         kind = message[0]
@@ -763,13 +659,6 @@ def _reap(processes: list, deadline: float, kill_after: float = 0.3) -> None:
         if process.exitcode is None:
             process.kill()
             process.join(timeout=0.5)
-
-
-def _quiet_close(conn) -> None:
-    try:
-        conn.close()
-    except OSError:
-        pass
 
 
 def _close_conn(session: Session) -> None:

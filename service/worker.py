@@ -12,9 +12,9 @@ fills while Python is busy, and frames come out seconds late). A small pump thre
 a one-slot LatestFrame that the tracking loop waits on together with commands. Frames lost in the ring are
 counted from seq gaps, frames overwritten in the slot directly. The tracker never runs in a Zenoh callback.
 
-Workers are started ahead of need (warm spares: the process, the tracker's modules and the Zenoh session are
-ready), so a start request gets a tracking worker in milliseconds; a worker started on demand tracks within about
-0.3 s when forked from the fork server, 1.5-3 s when spawned.
+Workers are started ahead of need (warm spares, pool.WorkerPool: the process, the tracker's modules and the Zenoh
+session are ready), so a start request gets a tracking worker in milliseconds; a worker started on demand tracks
+within about 0.3 s when forked from the fork server, 1.5-3 s when spawned.
 
 Parent <-> worker protocol over a multiprocessing Pipe (tuples):
     worker -> parent   ("idle",)                           warm and waiting for an assignment; repeated every
@@ -47,7 +47,7 @@ from .trackers import DEFAULT_FACTORY
 log = logging.getLogger(__name__)
 
 HEALTH_PERIOD_S = 1.0
-IDLE_HEARTBEAT_S = 1.0      # a spare repeats "idle" this often (manager.SPARE_SILENCE_S: silent longer, it is hung)
+IDLE_HEARTBEAT_S = 1.0      # a spare repeats "idle" this often (pool.SPARE_SILENCE_S: silent longer, it is hung)
 STALL_S = 2.0               # no frame for this long: health says the session is waiting for frames
 STALE_WINDOW = 64           # a frame up to this many seqs behind the last one used, and not newer, is stale
 MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogus seq, not frames lost in the ring

@@ -25,7 +25,7 @@ from tacf_clients.scene import Scene
 from tacf_schemas import (MSGPACK_ENCODING, Error, Frame, ReinitRequest, SessionInfo, StartRequest, StatusRequest,
                           StopRequest, box_key, control_key, decode, encode, health_key, service_liveliness_key)
 from tacf_schemas.images import encode_frame
-import tacf_service.manager as service_manager
+import tacf_service.pool as service_pool
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
 from tacf_service.control import CONTROL_THREADS, QUERY_QUEUE
@@ -288,9 +288,9 @@ def test_a_worker_that_does_not_read_its_pipe_delays_no_control_reply(service, c
 def test_a_session_handed_a_wedged_spare_starts_on_another_worker(service, client, monkeypatch):
     """A warm spare that wedges (stopped here) before it says "ready" to the session it is handed would leave that
     session starting for ever: silent for WORKER_SILENCE_S, it is killed and the session restarts elsewhere."""
-    monkeypatch.setattr(service_manager, "WORKER_SILENCE_S", 3.0)
+    monkeypatch.setattr(service_pool, "WORKER_SILENCE_S", 3.0)
     assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
-    spare = next(w for w in service.manager._spares if w.idle)
+    spare = next(w for w in service.manager.pool.spares() if w.idle)
     os.kill(spare.process.pid, signal.SIGSTOP)
     try:
         call(client, NODE, "start", StartRequest(profile="kcc", sid="handed", image_key="faults/cam/handed",
@@ -309,9 +309,9 @@ def test_a_session_handed_a_wedged_spare_starts_on_another_worker(service, clien
 def test_a_warm_spare_that_wedges_is_replaced_before_a_session_is_handed_it(service, client, monkeypatch):
     """A warm spare that wedges while it waits (stopped here) no longer repeats "idle": silent for SPARE_SILENCE_S,
     it is killed and replaced, and the next start gets the new spare and tracks at once, not 15 s late."""
-    monkeypatch.setattr(service_manager, "SPARE_SILENCE_S", 2.0)
+    monkeypatch.setattr(service_pool, "SPARE_SILENCE_S", 2.0)
     assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
-    spare = next(w for w in service.manager._spares if w.idle)
+    spare = next(w for w in service.manager.pool.spares() if w.idle)
     os.kill(spare.process.pid, signal.SIGSTOP)
     try:
         assert wait_until(lambda: service.manager.idle_spares() == 0, 5), "a silent spare still counts as warm"
@@ -330,15 +330,15 @@ def test_a_warm_spare_that_wedges_is_replaced_before_a_session_is_handed_it(serv
 def test_a_spare_worker_that_never_gets_warm_is_replaced(monkeypatch):
     """A spare worker that wedges before it is warm (here its tracker's module never finishes loading) would keep
     its place in the pool for ever: silent for WORKER_SILENCE_S since it started, it is killed and replaced."""
-    monkeypatch.setattr(service_manager, "WORKER_SILENCE_S", 2.0)
+    monkeypatch.setattr(service_pool, "WORKER_SILENCE_S", 2.0)
     options = ServiceOptions(node="wedged", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
                              tracker_factory="wedged_tracker:wedged_tracker", spare_workers=1)
     with TrackingService(options) as svc:
-        spares = svc.manager._spares
-        assert wait_until(lambda: spares, 30)
-        first = spares[0]
+        spares = svc.manager.pool.spares
+        assert wait_until(spares, 30)
+        first = spares()[0]
         assert wait_until(lambda: first.process.exitcode == -signal.SIGKILL, 10), first.process.exitcode
-        assert wait_until(lambda: spares and spares[0] is not first, 10)
+        assert wait_until(lambda: spares() and spares()[0] is not first, 10)
         assert not first.idle
 
 
@@ -346,7 +346,7 @@ def test_a_spare_that_waited_long_reports_no_stall_when_its_session_starts(servi
     """A worker's "waiting for frames" clock starts when it starts serving its session: a spare that had waited
     longer than STALL_S reports no stall on its session's first health, then one once the feed is silent."""
     assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
-    spare = next(w for w in service.manager._spares if w.idle)
+    spare = next(w for w in service.manager.pool.spares() if w.idle)
     time.sleep(max(0.0, spare.started_at + STALL_S + 1.0 - time.monotonic()))
     results = SessionResults(client, NODE, "quiet")
     try:
