@@ -364,11 +364,13 @@ def test_a_spare_that_waited_long_reports_no_stall_when_its_session_starts(servi
 
 def test_a_flood_of_slow_control_queries_delays_no_other_client(tmp_path):
     """While a session tracks a feed, one client fires 200 starts on that feed at once, each refused only after
-    waiting init_wait (1 s) for a frame that never comes: 50 s of work for the control threads. Another client's
-    status and the service's liveliness are answered at once meanwhile, and what the service cannot queue is
-    refused at once as busy, not left to stall Zenoh."""
+    waiting init_wait for a frame that never comes. Another client's status and the service's liveliness are
+    answered at once meanwhile, and what the service cannot queue is refused at once as busy, not left to stall
+    Zenoh. init_wait is 10 s here so that no start ends, freeing its place, while the flood arrives (with 1 s, on a
+    loaded machine, one of the last 100 was admitted once and refused later as invalid_box)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    svc = TrackingService(ServiceOptions(node="flooded", zenoh=ZenohOptions(listen=(endpoint,)))).open()
+    svc = TrackingService(ServiceOptions(node="flooded", zenoh=ZenohOptions(listen=(endpoint,)),
+                                         init_wait_s=10.0)).open()
     flooder, other = (zenoh.open(peer_config(connect=[endpoint])) for _ in range(2))
     try:
         with FramePublisher(flooder, "faults/cam/flood", MovingTargetScene(320, 240), fps=10) as feed:
