@@ -364,10 +364,11 @@ def test_a_spare_that_waited_long_reports_no_stall_when_its_session_starts(servi
 
 def test_a_flood_of_slow_control_queries_delays_no_other_client(tmp_path):
     """While a session tracks a feed, one client fires 200 starts on that feed at once, each refused only after
-    waiting init_wait for a frame that never comes. Another client's status and the service's liveliness are
-    answered at once meanwhile, and what the service cannot queue is refused at once as busy, not left to stall
-    Zenoh. init_wait is 10 s here so that no start ends, freeing its place, while the flood arrives (with 1 s, on a
-    loaded machine, one of the last 100 was admitted once and refused later as invalid_box)."""
+    waiting init_wait (10 s here: none ends during the test) for a frame that never comes. Another client's status
+    and the service's liveliness are answered at once meanwhile, and what the service cannot queue is refused at
+    once as busy, not left to stall Zenoh: at most CONTROL_THREADS + QUERY_QUEUE starts are admitted. Which ones is
+    not fixed: a control thread still busy when the flood begins takes its first query late, and frees a place
+    for a later one (the test used to expect the first 68 admitted, and failed under load)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     svc = TrackingService(ServiceOptions(node="flooded", zenoh=ZenohOptions(listen=(endpoint,)),
                                          init_wait_s=10.0)).open()
@@ -393,12 +394,12 @@ def test_a_flood_of_slow_control_queries_delays_no_other_client(tmp_path):
             alive = other.liveliness().get(service_liveliness_key("flooded"), timeout=2)
             assert [r for r in alive if r.ok is not None], "the service's liveliness went missing"
             assert all(isinstance(t, float) and t < 2.0 for t in took), took
-            assert CONTROL_THREADS + QUERY_QUEUE < 100
-            for replies in pending[100:]:          # well beyond what the threads and the lane hold
-                reply = next(iter(replies), None)
-                assert reply is not None and reply.err is not None
-                error = decode(reply.err.payload.to_bytes(), Error)
-                assert error.code == "unavailable" and "busy" in error.message, error
+            answered = [reply for reply in (replies.try_recv() for replies in pending) if reply is not None]
+            assert all(reply.err is not None for reply in answered)
+            errors = [decode(reply.err.payload.to_bytes(), Error) for reply in answered]
+            assert all(e.code == "unavailable" and "busy" in e.message for e in errors), errors
+            admitted = len(pending) - len(errors)           # waiting for their frame: no answer yet
+            assert QUERY_QUEUE <= admitted <= CONTROL_THREADS + QUERY_QUEUE, admitted
     finally:
         svc.close()
         for session in (flooder, other):
