@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -285,24 +286,33 @@ def test_a_worker_that_does_not_read_its_pipe_delays_no_control_reply(service, c
             call(client, NODE, "stop", StopRequest(sid=sid), timeout=10)
 
 
-def test_a_session_handed_a_wedged_spare_starts_on_another_worker(service, client, monkeypatch):
-    """A warm spare that wedges (stopped here) before it says "ready" to the session it is handed would leave that
-    session starting for ever: silent for WORKER_SILENCE_S, it is killed and the session restarts elsewhere."""
-    monkeypatch.setattr(service_pool, "WORKER_SILENCE_S", 3.0)
+@contextmanager
+def a_wedged_warm_spare(service):
+    """A warm spare of the service, stopped (SIGSTOP: wedged) until the block ends, unless it was killed."""
     assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
     spare = next(w for w in service.manager.pool.spares() if w.idle)
     os.kill(spare.process.pid, signal.SIGSTOP)
     try:
-        call(client, NODE, "start", StartRequest(profile="kcc", sid="handed", image_key="faults/cam/handed",
-                                                 box=SCENE.box(1), frames=[encode_frame(SCENE.frame(1), 1, "jpeg")]),
-             timeout=10)
-        assert service.manager.worker_pids()["handed"] == spare.process.pid
-        assert wait_until(lambda: spare.process.exitcode == -signal.SIGKILL, 10), spare.process.exitcode
-        assert wait_until(lambda: status(client, "handed").state == "tracking", 30), status(client, "handed")
-        assert status(client, "handed").restarts == 1
+        yield spare
     finally:
         if spare.process.exitcode is None:
             os.kill(spare.process.pid, signal.SIGCONT)
+
+
+def test_a_session_handed_a_wedged_spare_starts_on_another_worker(service, client, monkeypatch):
+    """A warm spare that wedges (stopped here) before it says "ready" to the session it is handed would leave that
+    session starting for ever: silent for WORKER_SILENCE_S, it is killed and the session restarts elsewhere."""
+    monkeypatch.setattr(service_pool, "WORKER_SILENCE_S", 3.0)
+    try:
+        with a_wedged_warm_spare(service) as spare:
+            call(client, NODE, "start", StartRequest(profile="kcc", sid="handed", image_key="faults/cam/handed",
+                                                     box=SCENE.box(1),
+                                                     frames=[encode_frame(SCENE.frame(1), 1, "jpeg")]), timeout=10)
+            assert service.manager.worker_pids()["handed"] == spare.process.pid
+            assert wait_until(lambda: spare.process.exitcode == -signal.SIGKILL, 10), spare.process.exitcode
+            assert wait_until(lambda: status(client, "handed").state == "tracking", 30), status(client, "handed")
+            assert status(client, "handed").restarts == 1
+    finally:
         call(client, NODE, "stop", StopRequest(sid="handed"), timeout=10)
 
 
@@ -310,20 +320,16 @@ def test_a_warm_spare_that_wedges_is_replaced_before_a_session_is_handed_it(serv
     """A warm spare that wedges while it waits (stopped here) no longer repeats "idle": silent for SPARE_SILENCE_S,
     it is killed and replaced, and the next start gets the new spare and tracks at once, not 15 s late."""
     monkeypatch.setattr(service_pool, "SPARE_SILENCE_S", 2.0)
-    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
-    spare = next(w for w in service.manager.pool.spares() if w.idle)
-    os.kill(spare.process.pid, signal.SIGSTOP)
     try:
-        assert wait_until(lambda: service.manager.idle_spares() == 0, 5), "a silent spare still counts as warm"
-        assert wait_until(lambda: spare.process.exitcode == -signal.SIGKILL, 10), spare.process.exitcode
-        start(service, client, sid="fresh", image_key="faults/cam/fresh", box=SCENE.box(1),
-              frames=[encode_frame(SCENE.frame(1), 1, "jpeg")])
-        assert service.manager.worker_pids()["fresh"] != spare.process.pid
-        assert wait_until(lambda: status(client, "fresh").state == "tracking", 10), status(client, "fresh")
-        assert status(client, "fresh").restarts == 0
+        with a_wedged_warm_spare(service) as spare:
+            assert wait_until(lambda: service.manager.idle_spares() == 0, 5), "a silent spare still counts as warm"
+            assert wait_until(lambda: spare.process.exitcode == -signal.SIGKILL, 10), spare.process.exitcode
+            start(service, client, sid="fresh", image_key="faults/cam/fresh", box=SCENE.box(1),
+                  frames=[encode_frame(SCENE.frame(1), 1, "jpeg")])
+            assert service.manager.worker_pids()["fresh"] != spare.process.pid
+            assert wait_until(lambda: status(client, "fresh").state == "tracking", 10), status(client, "fresh")
+            assert status(client, "fresh").restarts == 0
     finally:
-        if spare.process.exitcode is None:
-            os.kill(spare.process.pid, signal.SIGCONT)
         call(client, NODE, "stop", StopRequest(sid="fresh"), timeout=10)
 
 
