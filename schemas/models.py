@@ -11,15 +11,16 @@ from __future__ import annotations
 from bisect import bisect_left
 from collections.abc import Callable
 from operator import attrgetter
-from typing import Annotated, Literal, Optional, Union
-
-from typing_extensions import Self
+from typing import TYPE_CHECKING, Annotated, Literal, Optional, Union
 
 from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, StrictBool, StrictFloat, StrictInt, TypeAdapter,
                       model_validator)
 
 from .limits import (MAX_CARRIED_FRAMES, MAX_FRAME_BYTES, MAX_FRAME_HEIGHT, MAX_FRAME_PIXELS, MAX_FRAME_WIDTH,
                      MAX_ID_LENGTH, MAX_IMAGE_KEY_LENGTH, MAX_MESSAGE_LENGTH, MAX_OVERRIDES, SCHEMA_VERSION)
+
+if TYPE_CHECKING:
+    from typing_extensions import Self      # typing.Self from Python 3.11; only an annotation here
 
 ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 
