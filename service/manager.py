@@ -25,11 +25,10 @@ from tacf_schemas import Health as HealthModel
 from tacf_schemas.images import FrameError, check_frame
 from tacf_schemas.keys import InvalidKeyError, validate_image_key
 
-from . import pool as worker_pool
 from .config import ZenohOptions
 from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
-from .pool import WorkerHandle, WorkerPool
+from .pool import WorkerHandle, WorkerPool, worker_is_silent
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
 from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, worker_context
@@ -455,9 +454,9 @@ class SessionManager:
             if process is not None and process.exitcode is not None and not session.stopping:
                 self._on_worker_exit(session)
             elif (process is not None and not session.stopping
-                  and time.monotonic() - session.heard_at > worker_pool.WORKER_SILENCE_S):
+                  and worker_is_silent(session.heard_at, time.monotonic())):
                 log.warning("session %s: worker pid %d silent for %.0f s: killing it", session.sid, process.pid,
-                            worker_pool.WORKER_SILENCE_S)
+                            time.monotonic() - session.heard_at)
                 process.kill()          # the exit is handled (failed, restart) on the next round
                 session.heard_at = time.monotonic()
         now = time.monotonic()

@@ -132,9 +132,9 @@ class WorkerPool:
             for handle in self._spares:
                 if handle.process.exitcode is not None:
                     continue
-                if not handle.idle and now - handle.started_at > WORKER_SILENCE_S:
+                if not handle.idle and worker_is_silent(handle.started_at, now):
                     log.warning("spare worker pid %d not warm %.0f s after it started: killing it", handle.process.pid,
-                                WORKER_SILENCE_S)
+                                now - handle.started_at)
                     handle.process.kill()       # replaced once its exit shows, like a spare that died
                 elif handle.idle and now - handle.idle_at > SPARE_SILENCE_S:
                     log.warning("spare worker pid %d silent for %.0f s: killing it", handle.process.pid,
@@ -189,6 +189,12 @@ class WorkerPool:
         for spare in spares:
             spare.process.terminate()
         return spares
+
+
+def worker_is_silent(heard_at: float, now: float) -> bool:
+    """A worker last heard from at ``heard_at`` (monotonic) is hung: silent for longer than WORKER_SILENCE_S, read
+    here at each call so that a test can shorten it."""
+    return now - heard_at > WORKER_SILENCE_S
 
 
 def _quiet_close(conn) -> None:
