@@ -123,6 +123,9 @@ class TrackerConfig:
     fast_fft: bool = True
     fast_resize: bool = True
     fast_context: bool = True  # the four context patches cut from one sample covering them (Tracker._context_features)
+    # The fHOG Gaussian kernel exp(-u) in its first-order form 1 - u, whose transform needs no FFT, while u provably
+    # stays under correlator.FAST_KERNEL_EXPONENT (on every frame of the 15 sequences); docs/decisions.md.
+    fast_kernel: bool = True
 
     # The peak refined between cells by a parabola on each axis of the cell-level fused response
     # (docs/decisions.md). False is the paper's and the code's peak: the upsampled response's, which bilinear

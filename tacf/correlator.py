@@ -19,6 +19,9 @@ from tacf.fft import irfft2, rfft2
 # exp(-u) = 1 - u + r with 0 <= r <= u^2 / 2 for u >= 0: under this exponent the first-order kernel is within
 # 1e-5 of the exact one, element by element (float32 resolves about 6e-8 around 1).
 FIRST_ORDER_EXPONENT = 4.5e-3
+# TrackerConfig.fast_kernel: the first-order kernel wherever u stays under this, within u^2 / 2 <= 0.045 of the exact
+# one. On the 15 sequences of ../shared/data the bound on u reaches 0.27 at most and u itself 0.11 (docs/decisions.md).
+FAST_KERNEL_EXPONENT = 0.3
 
 
 def gaussian_label(grid_hw: tuple[int, int], sigma: float) -> np.ndarray:
@@ -40,6 +43,7 @@ class GaussianKernel:
     """k(a, b)[t] = exp(-(|a|^2 + |b|^2 - 2 (a * b)[t]) / (sigma^2 N)), per channel."""
 
     sigma: float
+    first_order_exponent: float = FIRST_ORDER_EXPONENT
 
     def __call__(self, cross: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
         """The kernel map, computed in place in `cross` (the caller's fresh inverse FFT)."""
@@ -53,19 +57,22 @@ class GaussianKernel:
         cv2.exp(rows, rows)
         return rows.reshape(cross.shape)
 
-    def first_order_auto_kernel_hat(self, power: np.ndarray, sq_norm: np.ndarray, n: int) -> np.ndarray | None:
-        """F(k(x, x)) in closed form when the kernel stays close to 1, else None (compute it exactly).
+    def first_order_kernel_hat(self, cross_hat: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray,
+                               n: int) -> np.ndarray | None:
+        """F(k(a, b)) in closed form when the kernel stays close to 1, else None (compute it exactly).
 
-        k(x, x)[t] = exp(-u[t]) with u = 2 (|x|^2 - c[t]) / (sigma^2 N), c the circular autocorrelation, so
-        0 <= u <= 4 |x|^2 / (sigma^2 N). Under FIRST_ORDER_EXPONENT, k = 1 - u to within u^2 / 2, whose transform
-        needs no FFT: F(1 - u) = N delta (1 - 2 |x|^2 / (sigma^2 N)) + 2 |F(x)|^2 / (sigma^2 N), with F(c) = |F(x)|^2.
-        power: |F(x)|^2 (..., H, W//2+1); sq_norm: |x|^2 broadcastable against it; n: H * W.
+        k(a, b)[t] = exp(-u[t]) with u = (|a|^2 + |b|^2 - 2 c[t]) / (sigma^2 N), c the circular cross-correlation,
+        so 0 <= u <= (|a| + |b|)^2 / (sigma^2 N) (Cauchy-Schwarz). Under `first_order_exponent`, k = 1 - u to
+        within u^2 / 2, whose transform needs no FFT:
+        F(1 - u) = N delta (1 - (|a|^2 + |b|^2) / (sigma^2 N)) + 2 F(c) / (sigma^2 N).
+        cross_hat: F(c) (..., H, W//2+1); sq_norm_a, sq_norm_b: |a|^2, |b|^2 broadcastable against it; n: H * W.
         """
-        scale = 2.0 / (self.sigma**2 * n)
-        if 2.0 * scale * float(np.max(sq_norm)) > FIRST_ORDER_EXPONENT:
+        inverse_width = 1.0 / (self.sigma**2 * n)
+        bound = (np.sqrt(sq_norm_a) + np.sqrt(sq_norm_b)) ** 2 * inverse_width
+        if float(np.max(bound)) > self.first_order_exponent:
             return None
-        kernel_hat = scale * power
-        kernel_hat[..., 0, 0] += n * (1.0 - scale * sq_norm[..., 0, 0])
+        kernel_hat = (2.0 * inverse_width) * cross_hat
+        kernel_hat[..., 0, 0] += n * (1.0 - (sq_norm_a + sq_norm_b)[..., 0, 0] * inverse_width)
         return kernel_hat
 
 
@@ -80,7 +87,8 @@ class PolynomialKernel:
         n = cross.shape[-1] * cross.shape[-2]
         return (cross / n + self.offset) ** self.degree
 
-    def first_order_auto_kernel_hat(self, power: np.ndarray, sq_norm: np.ndarray, n: int) -> None:
+    def first_order_kernel_hat(self, cross_hat: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray,
+                               n: int) -> None:
         """No closed form is used for this kernel (see GaussianKernel)."""
         return None
 
@@ -133,14 +141,21 @@ class CorrelatorBank:
 
     def auto_kernel_hat(self, x: np.ndarray, x_hat: np.ndarray) -> np.ndarray:
         """F(k(x_d, x_d)) for every channel d (the leading axes are batch axes)."""
-        cross = self._ifft(x_hat * x_hat.conj())
         norms = _sq_norms(x)
-        return self.spectrum(self.kernel(cross, norms, norms))
+        return self._kernel_hat(x_hat * x_hat.conj(), norms, norms)
 
     def cross_kernel_hat(self, z: np.ndarray, z_hat: np.ndarray) -> np.ndarray:
         """F(k(z_d, model_x_d)): a target displaced by +d in z peaks at +d."""
-        cross = self._ifft(z_hat * self.model_x_hat.conj())
-        return self.spectrum(self.kernel(cross, _sq_norms(z), _sq_norms(self.model_x)))
+        return self._kernel_hat(z_hat * self.model_x_hat.conj(), _sq_norms(z), _sq_norms(self.model_x))
+
+    def _kernel_hat(self, cross_hat: np.ndarray, sq_norm_a: np.ndarray, sq_norm_b: np.ndarray) -> np.ndarray:
+        """F(k) from the cross-correlation's spectrum: in closed form where the kernel allows it, else through
+        the kernel map in space."""
+        n = self.grid_hw[0] * self.grid_hw[1]
+        kernel_hat = self.kernel.first_order_kernel_hat(cross_hat, sq_norm_a, sq_norm_b, n)
+        if kernel_hat is None:
+            kernel_hat = self.spectrum(self.kernel(self._ifft(cross_hat), sq_norm_a, sq_norm_b))
+        return kernel_hat
 
     def context_energy(self, context_x: np.ndarray, context_x_hat: np.ndarray | None = None,
                        scales: np.ndarray | None = None) -> np.ndarray:
@@ -159,10 +174,7 @@ class CorrelatorBank:
         squares = scales**2
         sq_norms = _sq_norms(context_x) * squares  # |p_s x_s|^2 = p_s^2 |x_s|^2
         power = (context_x_hat.real**2 + context_x_hat.imag**2) * squares
-        kernel_hat = self.kernel.first_order_auto_kernel_hat(power, sq_norms, self.grid_hw[0] * self.grid_hw[1])
-        if kernel_hat is not None:  # real
-            return np.sum(kernel_hat**2, axis=0)
-        kernel_hat = self.auto_kernel_hat(context_x * scales, context_x_hat * scales)
+        kernel_hat = self._kernel_hat(power, sq_norms, sq_norms)
         return np.sum(kernel_hat.real**2 + kernel_hat.imag**2, axis=0)
 
     # -- training ------------------------------------------------------------------------------------------
@@ -225,8 +237,8 @@ class CorrelatorBank:
         geometric mean of the per-channel kernels), under the channel-weighted sum of the filters,
         sum_d w_d W_d. Three FFTs per sample instead of 2 C + 1: the context challenge factors use it."""
         z_hat = self.spectrum(z) if z_hat is None else z_hat
-        cross = self._ifft((z_hat * self.model_x_hat.conj()).mean(axis=-3))
-        kernel = self.kernel(cross, _sq_norms(z).mean(axis=-3), _sq_norms(self.model_x).mean(axis=-3))
+        kernel_hat = self._kernel_hat((z_hat * self.model_x_hat.conj()).mean(axis=-3), _sq_norms(z).mean(axis=-3),
+                                      _sq_norms(self.model_x).mean(axis=-3))
         weights = np.ones(len(self.model_filter_hat)) if channel_weights is None else channel_weights
         weighted_filter = (weights.astype(np.float32)[:, None, None] * self.model_filter_hat).sum(axis=-3)
-        return self._ifft(self.spectrum(kernel) * weighted_filter)
+        return self._ifft(kernel_hat * weighted_filter)

@@ -24,7 +24,8 @@ from tacf.attention.spatiotemporal import to_response_origin
 from tacf.boxes import box_around, check_box
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
-from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
+from tacf.correlator import (FAST_KERNEL_EXPONENT, FIRST_ORDER_EXPONENT, CorrelatorBank, GaussianKernel,
+                             PolynomialKernel, gaussian_label)
 from tacf.features import color_names, fhog, fhog_batch
 from tacf.geometry import NormalisedGrid, TargetAreas, round_half_up, search_padding, subwindow
 from tacf.response import crop_centre, fuse, fusion_coefficients, peak_offset, subcell_peak_offset, upsample
@@ -109,7 +110,9 @@ class Tracker:
         self.response_window = to_response_origin(self.cosine_window)
 
         sigma_base = math.sqrt(float(np.prod(self.grid.target_hw))) / cfg.cell_size
-        self.banks = {"hog": CorrelatorBank(GaussianKernel(cfg.hog_kernel_sigma),
+        first_order_below = FAST_KERNEL_EXPONENT if cfg.fast_kernel else FIRST_ORDER_EXPONENT
+        hog_kernel = GaussianKernel(cfg.hog_kernel_sigma, first_order_below)
+        self.banks = {"hog": CorrelatorBank(hog_kernel,
                                             gaussian_label(grid_hw, sigma_base * cfg.hog_output_sigma_factor),
                                             cfg.lambda1, cfg.learning_rate)}
         if cfg.use_colour_names:

@@ -2,8 +2,9 @@
 
 The authors' per-frame boxes on the ten UAV sequences are in ../shared/data/reference/authors_tacf. Our `authors`
 profile departs from that code on purpose in five places that move the boxes from the first frames on:
-1. `fast_fft` and `fast_resize`: we grow the filter grid to a fast FFT size (the search area grows by a few per
-   cent), and shrink patches by 2x2 halvings then bilinearly instead of mexResize's one area resize;
+1. `fast_fft`, `fast_resize` and `fast_kernel`: we grow the filter grid to a fast FFT size (the search area grows
+   by a few per cent), shrink patches by 2x2 halvings then bilinearly instead of mexResize's one area resize, and
+   take fHOG's Gaussian kernel in its first-order form;
 2. spatiotemporal attention: the code takes the map through the centred Hann window while the response has its
    origin at the corner, and keeps it as an EMA at rate 0.02 (docs/decisions.md; the code's window also carries
    the colour likelihood, which makes no measurable difference over the misaligned response);
@@ -35,7 +36,7 @@ class CodeLikeTracker(Tracker):
     """The `authors` profile with the five departures above undone."""
 
     def __init__(self):
-        super().__init__(TrackerConfig.profile("authors", fast_fft=False, fast_resize=False,
+        super().__init__(TrackerConfig.profile("authors", fast_fft=False, fast_resize=False, fast_kernel=False,
                                                  spatial_learning_rate=0.02, subcell_peak=False,
                                                  motion_search=False))
 

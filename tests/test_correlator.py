@@ -5,7 +5,7 @@ import pytest
 import scipy.fft as sfft
 
 from tacf.attention import pme
-from tacf.correlator import CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
+from tacf.correlator import FAST_KERNEL_EXPONENT, CorrelatorBank, GaussianKernel, PolynomialKernel, gaussian_label
 from tacf.features import fhog
 from tacf.response import crop_centre, peak_offset
 
@@ -157,10 +157,19 @@ def test_model_is_an_exponential_moving_average():
     np.testing.assert_allclose(bank.model_x, 0.75 * first + 0.25 * second)
 
 
+def _exact_gaussian_kernel(sigma: float, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """k(a_d, b_d) per channel, written out in float64: exp(-(|a|^2 + |b|^2 - 2 a * b) / (sigma^2 N))."""
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    n = a.shape[-1] * a.shape[-2]
+    cross = sfft.irfft2(sfft.rfft2(a) * np.conj(sfft.rfft2(b)), s=a.shape[-2:])
+    norms = np.sum(a**2, axis=(-2, -1))[..., None, None] + np.sum(b**2, axis=(-2, -1))[..., None, None]
+    return np.exp(-(norms - 2 * cross) / (sigma**2 * n))
+
+
 def _exact_context_energy(bank: CorrelatorBank, contexts: np.ndarray, scales: np.ndarray) -> np.ndarray:
     """sum_s |F(k(p_s x_s, p_s x_s))|^2 through the exact kernel, in float64."""
     scaled = contexts.astype(np.float64) * scales[:, None, None, None]
-    kernel_hat = bank.auto_kernel_hat(scaled, sfft.rfft2(scaled))
+    kernel_hat = sfft.rfft2(_exact_gaussian_kernel(bank.kernel.sigma, scaled, scaled))
     return np.sum(np.abs(kernel_hat) ** 2, axis=0)
 
 
@@ -190,7 +199,7 @@ def test_context_energy_of_large_patches_takes_the_exact_kernel():
     bank = CorrelatorBank(GaussianKernel(0.5), gaussian_label(grid, 1.0), 1e-4, 0.01)
     power = np.abs(sfft.rfft2(contexts)) ** 2
     sq_norms = np.sum(contexts.astype(np.float64) ** 2, axis=(-2, -1))[..., None, None]
-    assert bank.kernel.first_order_auto_kernel_hat(power, sq_norms, 320) is None  # exponent far above the bound
+    assert bank.kernel.first_order_kernel_hat(power, sq_norms, sq_norms, 320) is None  # exponent far above the bound
     exact = _exact_context_energy(bank, contexts, scales)
     np.testing.assert_allclose(bank.context_energy(contexts, scales=scales), exact, rtol=1e-4,
                                atol=1e-6 * exact.max())  # float32 against float64
@@ -210,3 +219,55 @@ def test_pooled_and_per_channel_responses_both_answer_a_copy_of_the_template_mos
         copy_response, other_response = (crop_centre(r, 11) for r in respond(samples))
         assert pme(copy_response) > 3 * pme(other_response)
         assert np.unravel_index(np.argmax(copy_response), (11, 11)) == (5, 5)
+
+
+def _fhog_like(rng, shape) -> np.ndarray:
+    """Values like windowed fHOG channels (0 to 0.2, under a Hann window), whose Gaussian kernel stays near 1."""
+    window = np.outer(np.hanning(shape[-2]), np.hanning(shape[-1]))
+    return (0.2 * rng.random(shape) * window).astype(np.float32)
+
+
+def test_fast_kernel_is_the_gaussian_to_within_its_second_order_term():
+    """TrackerConfig.fast_kernel: under FAST_KERNEL_EXPONENT the kernel's first-order form 1 - u, transformed in
+    closed form, is within u^2 / 2 of exp(-u) at every displacement, with u the exact exponent."""
+    rng = np.random.default_rng(5)
+    a, b = _fhog_like(rng, (31, 24, 30)), _fhog_like(rng, (31, 24, 30))
+    kernel = GaussianKernel(0.5, FAST_KERNEL_EXPONENT)
+    norms_a, norms_b = (np.sum(v.astype(np.float64) ** 2, axis=(-2, -1))[..., None, None] for v in (a, b))
+    kernel_hat = kernel.first_order_kernel_hat(sfft.rfft2(a) * np.conj(sfft.rfft2(b)), norms_a, norms_b, 720)
+    assert kernel_hat is not None
+    exact = _exact_gaussian_kernel(0.5, a, b)
+    exponent = -np.log(exact)
+    assert 0.01 < exponent.max() < FAST_KERNEL_EXPONENT  # far from linear at 1e-5, and the form applies
+    first_order = sfft.irfft2(kernel_hat, s=(24, 30))
+    np.testing.assert_allclose(first_order, 1 - exponent, atol=1e-6)
+    assert np.all(np.abs(first_order - exact) <= exponent**2 / 2 + 1e-6)
+
+
+def test_fast_kernel_takes_the_exact_kernel_above_its_bound():
+    rng = np.random.default_rng(6)
+    a = 5 * _fhog_like(rng, (3, 24, 30))
+    norms = np.sum(a.astype(np.float64) ** 2, axis=(-2, -1))[..., None, None]
+    assert 4 * norms.max() / (0.25 * 720) > FAST_KERNEL_EXPONENT
+    assert GaussianKernel(0.5, FAST_KERNEL_EXPONENT).first_order_kernel_hat(
+        np.abs(sfft.rfft2(a)) ** 2, norms, norms, 720) is None
+    bank = CorrelatorBank(GaussianKernel(0.5, FAST_KERNEL_EXPONENT), gaussian_label((24, 30), 1.0), 1e-4, 0.01)
+    np.testing.assert_allclose(sfft.irfft2(bank.auto_kernel_hat(a, sfft.rfft2(a)), s=(24, 30)),
+                               _exact_gaussian_kernel(0.5, a, a), atol=1e-5)
+
+
+@pytest.mark.parametrize("shift", [(3, -2), (-5, 4)])
+def test_the_fast_kernel_finds_a_shifted_patch_where_the_exact_one_does(shift):
+    rng = np.random.default_rng(2)
+    base = 0.2 * rng.random((31, 60, 60))
+    window = np.outer(np.hanning(48), np.hanning(40))
+    x = base[:, 6:54, 10:50] * window
+    z = base[:, 6 - shift[0]:54 - shift[0], 10 - shift[1]:50 - shift[1]] * window
+    responses = []
+    for kernel in (GaussianKernel(0.5), GaussianKernel(0.5, FAST_KERNEL_EXPONENT)):
+        bank = CorrelatorBank(kernel, gaussian_label((48, 40), 1.0), 1e-4, 0.01)
+        bank.train(x)
+        responses.append(crop_centre(bank.response(z), 21))
+        np.testing.assert_array_equal(peak_offset(responses[-1]), shift)
+    exact, fast = responses
+    assert np.max(np.abs(fast - exact)) < 0.05 * np.max(exact)
