@@ -139,11 +139,11 @@ class TrackerConfig:
     motion_search_threshold: float = 0.2
 
     # Output: the target counts as lost when the PME of the fused response falls under this floor. On the 10 UAV
-    # sequences (`tacf eval`'s lost-flag table, 1,282 frames), the `paper` profile's flag at 20 catches 26 % of the
-    # failures (IoU < 0.1) and flags 1 of 874 tracked frames (IoU > 0.5); before the motion search 23 % and none,
+    # sequences (`tacf eval`'s lost-flag table, 1,282 frames), the `paper` profile's flag at 20 catches 33 % of the
+    # failures (IoU < 0.1) and flags 1 of 908 tracked frames (IoU > 0.5); before the motion search 23 % and none,
     # and 25 would have caught 40 % for 0.1 %. The attentions sharpen the response: without them (`kcc`) PME runs
-    # at about half (median 40 on tracked frames against 84), so that profile's floor is 10, where it catches 24 %
-    # and flags 1 of 895 (at 20, before the motion search: 7 %).
+    # at about half (median 40 on tracked frames against 84), so that profile's floor is 10, where it catches 20 %
+    # and flags none of 819 (at 20, before the motion search: 7 % of the tracked frames).
     lost_pme: float = 20.0
 
     def __post_init__(self) -> None:
