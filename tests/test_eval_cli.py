@@ -422,9 +422,11 @@ def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
         writer.write(frames[i % len(frames)])
     writer.release()
     out = tmp_path / "boxes.txt"
+    # SIGINT not ignored: a shell's background job (a suite run with `&`) hands its children SIGINT ignored
     process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "track", str(video), "--box",
                                 ",".join(str(v) for v in box), "--out", str(out)],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and process.poll() is None and \
