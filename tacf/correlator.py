@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from tacf.fft import irfft2, rfft2
+from tacf.fft import irfft2, rfft2, squared_magnitude
 
 # exp(-u) = 1 - u + r with 0 <= r <= u^2 / 2 for u >= 0: under this exponent the first-order kernel is within
 # 1e-5 of the exact one, element by element (float32 resolves about 6e-8 around 1).
@@ -173,16 +173,16 @@ class CorrelatorBank:
         scales = scales.reshape(-1, 1, 1, 1)
         squares = scales**2
         sq_norms = _sq_norms(context_x) * squares  # |p_s x_s|^2 = p_s^2 |x_s|^2
-        power = (context_x_hat.real**2 + context_x_hat.imag**2) * squares
+        power = squared_magnitude(context_x_hat) * squares
         kernel_hat = self._kernel_hat(power, sq_norms, sq_norms)
-        return np.sum(kernel_hat.real**2 + kernel_hat.imag**2, axis=0)
+        return np.sum(squared_magnitude(kernel_hat), axis=0)
 
     # -- training ------------------------------------------------------------------------------------------
     def train(self, x: np.ndarray, context_energy: np.ndarray | None = None) -> None:
         """Learn fresh filters on x (C, H, W) and blend them into the model."""
         x_hat = self.spectrum(x)
         kernel_hat = self.auto_kernel_hat(x, x_hat)
-        denominator = kernel_hat.real**2 + kernel_hat.imag**2 + self.lambda1
+        denominator = squared_magnitude(kernel_hat) + self.lambda1
         if context_energy is not None:
             denominator = denominator + context_energy
         filter_hat = kernel_hat * self.label_hat

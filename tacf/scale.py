@@ -24,6 +24,7 @@ from scipy.signal.windows import hann
 
 from tacf.config import TrackerConfig
 from tacf.features import fhog_batch
+from tacf.fft import squared_magnitude
 from tacf.geometry import crop_replicate, resize_auto
 
 FeatureFn = Callable[[np.ndarray, int], np.ndarray]
@@ -87,7 +88,7 @@ def scale_patch_rects(pos, base_target_sz, scale_factor: float, factors: np.ndar
 def filter_terms(label_hat: np.ndarray, sample_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One sample's numerator Ys conj(Xs), per feature, and denominator sum_d |Xs|^2 (section 11, training)."""
     num = label_hat[:, None] * np.conj(sample_hat)
-    den = np.sum(sample_hat.real**2 + sample_hat.imag**2, axis=1)
+    den = np.sum(squared_magnitude(sample_hat), axis=1)
     return num, den
 
 

@@ -30,6 +30,7 @@ from tacf.colour import ColourModel
 from tacf.config import check_fields
 from tacf.correlator import gaussian_label
 from tacf.features import fhog
+from tacf.fft import squared_magnitude
 from tacf.geometry import NormalisedGrid, TargetAreas, resize_auto, round_half_up, subwindow
 from tacf.response import crop_centre, peak_offset, upsample
 from tacf.scale import ScaleFilter
@@ -167,7 +168,7 @@ class Staple:
         features_hat = self._features_hat(patch)
         cells = float(np.prod(self.grid.filter_hw))
         numerator = np.conj(self.label_hat) * features_hat / cells
-        denominator = np.sum(features_hat.real**2 + features_hat.imag**2, axis=0) / cells
+        denominator = np.sum(squared_magnitude(features_hat), axis=0) / cells
         if self.numerator is None:
             self.numerator, self.denominator = numerator, denominator
         else:

@@ -36,3 +36,12 @@ def test_public_functions_serve_without_pocketfft(monkeypatch):
     np.testing.assert_array_equal(fft.rfft2(x), scipy.fft.rfft2(x, axes=(-2, -1)))
     np.testing.assert_array_equal(fft.irfft2(fft.rfft2(x), (20, 18)),
                                   scipy.fft.irfft2(scipy.fft.rfft2(x, axes=(-2, -1)), s=(20, 18), axes=(-2, -1)))
+
+
+def test_squared_magnitude_of_complex_and_of_real_spectra():
+    rng = np.random.default_rng(7)
+    spectrum = (rng.normal(size=(3, 8, 5)) + 1j * rng.normal(size=(3, 8, 5))).astype(np.complex64)
+    np.testing.assert_allclose(fft.squared_magnitude(spectrum), np.abs(spectrum) ** 2, rtol=1e-6)
+    assert fft.squared_magnitude(spectrum).dtype == np.float32
+    real = spectrum.real.copy()
+    np.testing.assert_array_equal(fft.squared_magnitude(real), real * real)
