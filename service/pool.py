@@ -136,7 +136,7 @@ class WorkerPool:
                     log.warning("spare worker pid %d not warm %.0f s after it started: killing it", handle.process.pid,
                                 now - handle.started_at)
                     handle.process.kill()       # replaced once its exit shows, like a spare that died
-                elif handle.idle and now - handle.idle_at > SPARE_SILENCE_S:
+                elif handle.idle and not handle.is_warm(now):     # alive, said "idle", then went silent
                     log.warning("spare worker pid %d silent for %.0f s: killing it", handle.process.pid,
                                 now - handle.idle_at)
                     handle.process.kill()
