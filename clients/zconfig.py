@@ -39,8 +39,7 @@ def make_config(options: ZenohOptions | None = None) -> "zenoh.Config":
     try:
         return _config(options)
     except zenoh.ZError as exc:
-        where = f" ({options.config_file})" if options.config_file else ""
-        raise ZenohSettingsError(f"bad Zenoh configuration{where}: {zenoh_error_text(exc)}") from exc
+        raise ZenohSettingsError(f"bad Zenoh configuration{options.refusal(exc)}") from exc
 
 
 def _config(options: ZenohOptions) -> "zenoh.Config":

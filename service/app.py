@@ -15,7 +15,6 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from tacf.zenoh_options import zenoh_error_text
 from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
 
 from .config import ZenohOptions, service_config, worker_endpoints
@@ -133,8 +132,7 @@ def serve(options: ServiceOptions) -> int:
     try:
         service = TrackingService(options).open()
     except zenoh.ZError as exc:     # settings Zenoh refused (a malformed endpoint, a port taken): a usage error
-        where = f" ({options.zenoh.config_file})" if options.zenoh.config_file else ""
-        log.error("cannot start the service: Zenoh%s: %s", where, zenoh_error_text(exc))
+        log.error("cannot start the service: Zenoh%s", options.zenoh.refusal(exc))
         return 2
     except Exception as exc:
         log.error("cannot start the service: %s", exc)

@@ -41,6 +41,11 @@ class ZenohOptions:
     mode: str | None = None
     extra: tuple[tuple[str, str], ...] = ()
 
+    def refusal(self, exc: BaseException) -> str:
+        """Why Zenoh refused these settings, naming the config file when there is one: ' (FILE): reason'."""
+        where = f" ({self.config_file})" if self.config_file else ""
+        return f"{where}: {zenoh_error_text(exc)}"
+
     @classmethod
     def loopback(cls, port: int) -> "ZenohOptions":
         """Options for a session that connects to a service listening on ``tcp/127.0.0.1:<port>``."""
