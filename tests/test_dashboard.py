@@ -333,6 +333,34 @@ def test_a_killed_service_s_sessions_go_at_once_and_come_back_with_it(tmp_path):
             assert _wait(lambda: (s := listed()) and s[0]["health"] is not None, timeout=30), listed()
 
 
+def test_a_service_killed_under_a_shared_node_id_leaves_the_other_s_sessions_shown():
+    """Two services under one node id, started apart and joined later by the dashboard's links: killing one must not
+    take the other's sessions off the page. A dashboard drops a node's sessions when its liveliness token goes;
+    Zenoh keeps a key's token up while any of its declarers lives, so no drop comes (measured with Zenoh 1.x, with
+    a kill and with a clean stop alike), and this test says so if that changes."""
+    from tacf_clients.local_service import LocalService
+
+    node = f"shared{free_port()}"
+    with LocalService(node=node) as kept, LocalService(node=node) as twin, \
+            TrackingClient(kept.options, timeout=10.0) as client:
+        kept.wait_ready(client.session)
+        client.start("test/dashboard/shared", (20, 20, 40, 40), sid="kept")
+        with DashboardApp(ZenohOptions(connect=(kept.endpoint, twin.endpoint), listen=()), port=0) as app:
+            def shown() -> bool:
+                return any(s["id"] == f"{node}/kept" for s in json.loads(_get(app.url + "api/state")[2])["sessions"])
+
+            assert _wait(shown, timeout=30)
+            assert _wait(lambda: len(app.dashboard.client.nodes()) == 2, timeout=30), "the dashboard links both"
+            twin.process.kill()
+            twin.process.wait(10)
+            checks = []
+            for _ in range(int(3 * dashboard.LIST_PERIOD_S / 0.2)):   # three list rounds
+                checks.append(shown())
+                time.sleep(0.2)
+            assert all(checks), checks
+            assert app.dashboard.client.nodes() == [node]
+
+
 def test_frames_kept_are_capped_in_bytes(monkeypatch):
     """32 frames of a 4K bgr8 camera were 800 MB: the frames kept stop at KEEP_BYTES, but the newest stays."""
     key = "test/dashboard/raw"
