@@ -639,6 +639,11 @@ def test_robustness_of_hand_made_scores():
     table = robustness_table(result)
     assert table.startswith("Robustness: first box moved by (dx,dy) = (+0,+0), (+1,+0), (-1,+0) pixels; 3 seq")
     assert "| b | 0.633 | 0.544 | 0.500 - 0.633 | +0.011 (" in table
+    # each sequence's mean over the starts, in summary.json and as a table after the trackers'
+    assert b["per_sequence"] == pytest.approx({"s0": 1.1 / 3, "s1": 1.4 / 3, "s2": 2.4 / 3})
+    assert table.split("Success AUC per sequence, the mean over the 3 starts:\n\n")[1].splitlines() == [
+        "| sequence | a | b |", "|---|---|---|", "| s0 | 0.400 | 0.367 |", "| s1 | 0.500 | 0.467 |",
+        "| s2 | 0.700 | 0.800 |"]
     temporal = robustness_table(robustness({"0/3": per_start["+0,+0"], "1/3": per_start["+1,+0"]}, ["a"], "tre"))
     assert temporal.startswith("Temporal robustness: runs started at (0/3), (1/3) of each sequence; 3 sequences")
 

@@ -288,14 +288,19 @@ def markdown_table(summary: dict) -> str:
                      f"| {len(t['sequences'])} |")
     if "protocol" in summary:
         lines += ["", protocol_line(summary["protocol"])]
-    seq_names = sorted({s for _, t in ranked for s in t["sequences"]})
-    if seq_names:
-        lines += ["", "Success AUC per sequence:", "",
-                  "| sequence | " + " | ".join(n for n, _ in ranked) + " |",
-                  "|---|" + "---|" * len(ranked)]
-        for s in seq_names:
-            cells = [_f(t["sequences"][s]["auc"]) if s in t["sequences"] else "-" for _, t in ranked]
-            lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    per_sequence = {name: {s: scores["auc"] for s, scores in t["sequences"].items()} for name, t in ranked}
+    if any(per_sequence.values()):
+        lines += ["", per_sequence_table("Success AUC per sequence:", per_sequence).rstrip("\n")]
+    return "\n".join(lines) + "\n"
+
+
+def per_sequence_table(title: str, columns: dict[str, dict[str, float]]) -> str:
+    """A markdown table of one value per sequence (rows, sorted) and tracker (columns {tracker: {sequence: v}},
+    in their order); "-" where a tracker has no value."""
+    names = sorted({s for values in columns.values() for s in values})
+    lines = [title, "", "| sequence | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
+    for s in names:
+        lines.append(f"| {s} | " + " | ".join(_f(v[s]) if s in v else "-" for v in columns.values()) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -348,7 +353,7 @@ def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = 
     in every start count. Per tracker: the mean AUC of each start, their mean, min and max. Per later tracker: its
     AUC minus the first tracker's, per sequence averaged over the starts, then over the sequences, with a 95 %
     bootstrap interval over the sequences (fixed seed): an interval that holds 0 means the sequences cannot tell
-    the two apart.
+    the two apart. "per_sequence" holds each sequence's AUC averaged over the starts: where the differences are.
 
     With frames_scored {start label: {sequence name: frames scored}} (metrics.frames_scored), each tracker also
     gets "otb_pooled", the AUC and precision@20 as OTB's toolkit computes TRE (genPerfMat): per sequence, the hits
@@ -371,7 +376,8 @@ def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = 
     for t in trackers:
         per_start_auc = aucs[t].mean(axis=1)
         entry = {"auc_per_start": per_start_auc.tolist(), "mean": float(per_start_auc.mean()),
-                 "min": float(per_start_auc.min()), "max": float(per_start_auc.max())}
+                 "min": float(per_start_auc.min()), "max": float(per_start_auc.max()),
+                 "per_sequence": dict(zip(names, aucs[t].mean(axis=0).tolist()))}
         if t != first:
             difference = (aucs[t] - aucs[first]).mean(axis=0)
             low, high = np.percentile(difference[resampled].mean(axis=1), [2.5, 97.5])
@@ -416,6 +422,8 @@ def robustness_table(result: dict) -> str:
     if pooled:
         lines += ["", "The mean over the starts weighs every start alike; OTB's TRE (genPerfMat) pools each "
                       "sequence's frames over its starts, so that a short late start weighs less."]
+    title = f"Success AUC per sequence, the mean over the {len(result['starts'])} starts:"
+    lines += ["", per_sequence_table(title, {name: t["per_sequence"] for name, t in trackers.items()}).rstrip("\n")]
     return "\n".join(lines) + "\n"
 
 
