@@ -479,9 +479,12 @@ def test_publish_runs_on_through_reconnections_with_one_seq_count(camera, collec
         with open_source(cam.url) as source:
             stats = publish(session, source, KEY, encoding="bgr8", max_frames=9)
     frames = collector.wait(9)
-    assert stats.frames == 9 and [f.seq for f in frames] == list(range(9))
-    assert source.reconnects == 2
-    assert [MjpegCamera.connection_of(decode_frame(frame)) for frame in frames] == [1] * 4 + [2] * 4 + [3]
+    assert stats.frames == 9 and stats.last_seq == 8 and source.reconnects == 2
+    # Frames are published with CongestionControl.DROP, so a loaded machine may lose one on the way (seen once in a
+    # full suite: seq 2); the count is what is tested: one seq run over the three connections, 4 frames each.
+    seqs = [f.seq for f in frames]
+    assert len(frames) >= 7 and seqs == sorted(set(seqs)) and set(seqs) <= set(range(9)), seqs
+    assert [MjpegCamera.connection_of(decode_frame(frame)) for frame in frames] == [seq // 4 + 1 for seq in seqs]
 
 
 class CountingCamera(MjpegCamera):
