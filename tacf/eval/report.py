@@ -290,18 +290,18 @@ def markdown_table(summary: dict) -> str:
         lines += ["", protocol_line(summary["protocol"])]
     per_sequence = {name: {s: scores["auc"] for s, scores in t["sequences"].items()} for name, t in ranked}
     if any(per_sequence.values()):
-        lines += ["", per_sequence_table("Success AUC per sequence:", per_sequence).rstrip("\n")]
+        lines += ["", per_sequence_table("Success AUC per sequence:", per_sequence)]
     return "\n".join(lines) + "\n"
 
 
 def per_sequence_table(title: str, columns: dict[str, dict[str, float]]) -> str:
     """A markdown table of one value per sequence (rows, sorted) and tracker (columns {tracker: {sequence: v}},
-    in their order); "-" where a tracker has no value."""
+    in their order); "-" where a tracker has no value. No final newline: it is a part of a report."""
     names = sorted({s for values in columns.values() for s in values})
     lines = [title, "", "| sequence | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
     for s in names:
         lines.append(f"| {s} | " + " | ".join(_f(v[s]) if s in v else "-" for v in columns.values()) + " |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines)
 
 
 def bootstrap_indices(count: int, resamples: int = 10000) -> np.ndarray:
@@ -423,7 +423,7 @@ def robustness_table(result: dict) -> str:
         lines += ["", "The mean over the starts weighs every start alike; OTB's TRE (genPerfMat) pools each "
                       "sequence's frames over its starts, so that a short late start weighs less."]
     title = f"Success AUC per sequence, the mean over the {len(result['starts'])} starts:"
-    lines += ["", per_sequence_table(title, {name: t["per_sequence"] for name, t in trackers.items()}).rstrip("\n")]
+    lines += ["", per_sequence_table(title, {name: t["per_sequence"] for name, t in trackers.items()})]
     return "\n".join(lines) + "\n"
 
 
