@@ -598,23 +598,27 @@ def test_ablation_table_rows_and_gains():
         return {"auc": float(np.mean(aucs)), "precision20": 0.5, "fps": 100.0, "frames": 10,
                 "sequences": {f"s{i}": {"auc": a} for i, a in enumerate(aucs)}}
 
-    summary = {"trackers": {"kcc": entry(0.40, 0.40), "kcc+sa": entry(0.44, 0.46), "kcc+da": entry(0.38, 0.38),
-                            "kcc+ca": entry(0.42, 0.42), "tacf-authors": entry(0.40, 0.60),
-                            "tacf": entry(0.45, 0.45)}}
+    summary = {"trackers": {"kcc": entry(*[0.40] * 5), "kcc+sa": entry(0.44, 0.46), "kcc+da": entry(*[0.38] * 5),
+                            "kcc+ca": entry(*[0.42] * 5), "tacf-authors": entry(0.60, 0.40, 0.40, 0.40, 0.40),
+                            "tacf": entry(*[0.45] * 5)}}
     lines = ablation_table(summary).splitlines()
     assert [line.split("|")[2].strip() for line in lines[2:]] == list(trackers.ABLATION)
-    assert "| +0.050 | +12.5% (+10.0% to +15.0%) |" in lines[3], lines[3]       # resamples of (s0, s1)
+    assert "| +0.050 | +12.5% (no interval: under 5 sequences) |" in lines[3], lines[3]   # s0, s1 only
     assert "| -0.020 | -5.0% (-5.0% to -5.0%) |" in lines[4], lines[4]
-    assert "| +0.100 | +25.0% (+0.0% to +50.0%) |" in lines[6], lines[6]        # all of it from one sequence
+    # all of it from s0: none in 33 % of the resamples, three or more times in 5.8 %
+    assert "| +0.040 | +10.0% (+0.0% to +30.0%) |" in lines[6], lines[6]
     assert "| +0.050 | +12.5% (+12.5% to +12.5%) |" in lines[7], lines[7]
 
 
 def test_relative_gain_and_its_interval():
     from tacf.eval.report import relative_gain
 
-    assert relative_gain([0.5, 0.5, 0.5], [0.4, 0.4, 0.4]) == pytest.approx((0.25, 0.25, 0.25))
-    gain, low, high = relative_gain([0.9, 0.4, 0.4, 0.4], [0.4, 0.4, 0.4, 0.4])
-    assert gain == pytest.approx(0.3125) and low == pytest.approx(0.0) and high > 0.6   # one sequence carries it
+    assert relative_gain([0.5] * 5, [0.4] * 5) == pytest.approx((0.25, 0.25, 0.25))
+    gain, low, high = relative_gain([0.9, 0.4, 0.4, 0.4, 0.4], [0.4] * 5)
+    assert gain == pytest.approx(0.25) and low == pytest.approx(0.0) and high > 0.6   # one sequence carries it
+    # over four sequences a bootstrap has too few resamples to tell anything: no interval
+    gain, low, high = relative_gain([0.9, 0.4, 0.4, 0.4], [0.4] * 4)
+    assert gain == pytest.approx(0.3125) and np.isnan(low) and np.isnan(high)
 
 
 def test_robustness_of_hand_made_scores():
@@ -624,9 +628,10 @@ def test_robustness_of_hand_made_scores():
         sequences = lambda aucs: {"sequences": {f"s{i}": {"auc": a} for i, a in enumerate(aucs)}}  # noqa: E731
         return {"trackers": {"a": sequences(aucs_a), "b": sequences(aucs_b)}}
 
-    per_start = {"+0,+0": summary([0.5, 0.6, 0.7], [0.4, 0.6, 0.9]),
-                 "+1,+0": summary([0.2, 0.6, 0.7], [0.2, 0.5, 0.8]),
-                 "-1,+0": summary([0.5, 0.3, 0.7], [0.5, 0.3, 0.7])}
+    aucs = {"+0,+0": ([0.5, 0.6, 0.7], [0.4, 0.6, 0.9]),
+            "+1,+0": ([0.2, 0.6, 0.7], [0.2, 0.5, 0.8]),
+            "-1,+0": ([0.5, 0.3, 0.7], [0.5, 0.3, 0.7])}
+    per_start = {start: summary(a, b) for start, (a, b) in aucs.items()}
     result = robustness(per_start, ["a", "b"])
     assert result["starts"] == ["+0,+0", "+1,+0", "-1,+0"] and result["sequences"] == 3
     a, b = result["trackers"]["a"], result["trackers"]["b"]
@@ -634,11 +639,15 @@ def test_robustness_of_hand_made_scores():
     assert (a["mean"], a["min"], a["max"]) == pytest.approx((1.6 / 3, 0.5, 0.6)) and "difference" not in a
     # b - a per sequence, over the starts: (-0.1 + 0 + 0) / 3, (0 - 0.1 + 0) / 3, (0.2 + 0.1 + 0) / 3
     assert b["difference"]["to"] == "a" and b["difference"]["mean"] == pytest.approx(0.1 / 9)
-    low, high = b["difference"]["ci95"]
-    assert -0.1 / 3 - 1e-12 <= low < b["difference"]["mean"] < high <= 0.1 + 1e-12  # within the per-sequence range
+    assert np.isnan(b["difference"]["ci95"]).all()   # three sequences are too few for an interval
     table = robustness_table(result)
     assert table.startswith("Robustness: first box moved by (dx,dy) = (+0,+0), (+1,+0), (-1,+0) pixels; 3 seq")
-    assert "| b | 0.633 | 0.544 | 0.500 - 0.633 | +0.011 (" in table
+    assert "| b | 0.633 | 0.544 | 0.500 - 0.633 | +0.011 (no interval: under 5 sequences) |" in table
+    # five sequences: an interval, within the range of the per-sequence differences (-0.1 / 3 to +0.1)
+    five = {start: summary(a + [a[0], a[2]], b + [b[0], b[2]]) for start, (a, b) in aucs.items()}
+    low, high = robustness(five, ["a", "b"])["trackers"]["b"]["difference"]["ci95"]
+    assert -0.1 / 3 - 1e-12 <= low < high <= 0.1 + 1e-12
+    assert f"({low:+.3f} to {high:+.3f}) |" in robustness_table(robustness(five, ["a", "b"]))
     # each sequence's mean over the starts, in summary.json and as a table after the trackers'
     assert b["per_sequence"] == pytest.approx({"s0": 1.1 / 3, "s1": 1.4 / 3, "s2": 2.4 / 3})
     assert table.split("Success AUC per sequence, the mean over the 3 starts:\n\n")[1].splitlines() == [
@@ -663,7 +672,12 @@ def test_temporal_starts_begin_at_the_segments_first_usable_box():
     # frames 0, 5, 10 -> 13 (the first box after the gap), 15 -> 16
     assert [p.frames[0].name for p in parts] == ["0.jpg", "5.jpg", "13.jpg", "16.jpg"]
     assert [len(p) for p in parts] == [20, 15, 7, 4] and np.array_equal(parts[2].gt, gt[13:])
-    assert Start(segment=19, segments=20).sequence(seq) is None     # no frame to track after the start
+    # no frame to track after frame 19: from the last box that leaves two frames, so that s stays in the report
+    assert Start(segment=19, segments=20).sequence(seq).frames[0].name == "18.jpg"
+    tail_absent = Sequence("t", seq.frames, np.vstack([gt[:14], np.full((6, 4), np.nan)]))
+    assert [p.frames[0].name for p in map(lambda s: s.sequence(tail_absent), starts)] == ["0.jpg", "5.jpg", "13.jpg",
+                                                                                          "13.jpg"]
+    assert Start(segment=1, segments=4).sequence(Sequence("u", seq.frames[:1], gt[:1])) is None
     assert Start(segment=1, segments=4).directory(Path("out")) == Path("out/tre/1of4")
     assert starts[0].directory(Path("out")) == Path("out")
 
@@ -729,6 +743,22 @@ def test_eval_tre_command(tmp_path, capsys):
         assert "OTB's TRE, pooled: AUC / precision@20" in text
     assert (out / "temporal_robustness_plot.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (out / "robustness_plot.png").is_file()
+    # 7 frames start the segments at frames 1, 3, 5: the results of 6, 4 and 2 rows from frames 2, 4, 6 are not theirs
+    assert main(args + ["--tre", "4", "--max-frames", "7"]) == 0
+    for i in (1, 2, 3):
+        first = 2 * i - 1
+        rows = (out / "tre" / f"{i}of4" / "identity" / "synthetic" / "drift.txt").read_text().splitlines()
+        assert len(rows) == 7 - first and rows[0] == f"{31 + 2 * first:.3f},{41 + first:.3f},24.000,24.000"
+
+
+def test_shifted_start_boxes_stay_in_the_frame():
+    from tacf.eval.runner import shifted_box
+
+    assert shifted_box([5.0, 3.0, 10.0, 8.0], (1, -1), (20, 30)).tolist() == [6.0, 2.0, 10.0, 8.0]
+    assert shifted_box([0.5, 0.0, 10.0, 8.0], (-1, -1), (20, 30)).tolist() == [0.0, 0.0, 10.0, 8.0]
+    assert shifted_box([25.0, 15.0, 10.0, 8.0], (1, 1), (20, 30)).tolist() == [26.0, 16.0, 4.0, 4.0]
+    with pytest.raises(ValueError, match=r"moved by \(6, 0\) lies outside the 30x20 frame"):
+        shifted_box([25.0, 15.0, 10.0, 8.0], (6, 0), (20, 30))
 
 
 @needs_tacf
@@ -736,8 +766,11 @@ def test_eval_shifts_off_the_image_fail_clearly(tmp_path, caplog):
     data = write_synthetic_dataset(tmp_path, 3)
     rc = main(["eval", str(data), "--trackers", "kcc", "--out", str(tmp_path / "out"), "--shifts", "500",
                "--no-progress"])
-    assert rc == 1  # the 8 shifted starts leave the 160 x 120 frames; the given start still runs
-    assert "first box moved by (-500, -500)" in caplog.text and "outside" in caplog.text
+    assert rc == 1  # 7 shifted starts leave the 160 x 120 frames; the given start still runs
+    assert "moved by (500, 500) lies outside the 160x120 frame" in caplog.text
+    # (-500, -500) is kept in the frame, at its top left corner, as OTB's shiftInitBB keeps it
+    assert (tmp_path / "out" / "shifted" / "-500-500" / "kcc" / "synthetic" / "drift.txt").read_text().startswith(
+        "1.000,1.000,24.000,24.000")
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["trackers"]["kcc"]["sequences"] and summary["robustness"]["sequences"] == 0
 

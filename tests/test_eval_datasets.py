@@ -108,6 +108,16 @@ def test_uav123_layout_honours_frame_ranges(tmp_path):
 
 
 @needs_data
+def test_uav123_range_missing_its_first_frame_is_skipped(tmp_path, caplog):
+    make_uav123(tmp_path)
+    (tmp_path / "data_seq" / "UAV123_10fps" / "bird1" / "000259.jpg").unlink()   # bird1_2's first frame
+    names = [s.name for s in load_sequences(tmp_path)]
+    # its ground truth's first row would meet frame 260, and every row the frame after its own
+    assert "UAV123_10fps/bird1_2" not in names and "UAV123_10fps/bird1_1" in names
+    assert "UAV123_10fps/bird1_2: frame 259 missing from" in caplog.text
+
+
+@needs_data
 def test_uav123_range_table_from_configseqs_and_none(tmp_path):
     make_uav123(tmp_path, with_table=False)
     seqs = [s.name for s in load_sequences(tmp_path)]

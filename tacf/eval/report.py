@@ -304,20 +304,44 @@ def per_sequence_table(title: str, columns: dict[str, dict[str, float]]) -> str:
     return "\n".join(lines)
 
 
-def bootstrap_indices(count: int, resamples: int = 10000) -> np.ndarray:
-    """(resamples, count) sequence indices drawn with replacement, with a fixed seed: every report resamples alike."""
+# A bootstrap over fewer sequences has too few distinct resamples for its percentiles to mean anything: over one
+# sequence it is that sequence's value twice, an interval of no width that would read as a sure difference.
+MIN_SEQUENCES_FOR_INTERVAL = 5
+
+
+def bootstrap_indices(count: int, resamples: int = 10000) -> np.ndarray | None:
+    """(resamples, count) sequence indices drawn with replacement, with a fixed seed: every report resamples alike;
+    None for fewer than MIN_SEQUENCES_FOR_INTERVAL sequences (no interval is given then)."""
+    if count < MIN_SEQUENCES_FOR_INTERVAL:
+        return None
     return np.random.default_rng(0).integers(0, count, (resamples, count))
+
+
+def percentile_interval(resampled: np.ndarray | None) -> tuple[float, float]:
+    """The 95 % interval of resampled statistics; NaN, NaN without resamples (too few sequences)."""
+    if resampled is None:
+        return float("nan"), float("nan")
+    low, high = np.percentile(resampled, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def interval_text(low: float, high: float, fmt: str = "+.3f") -> str:
+    """"(low to high)", or why there is none."""
+    if not (np.isfinite(low) and np.isfinite(high)):
+        return f"(no interval: under {MIN_SEQUENCES_FOR_INTERVAL} sequences)"
+    return f"({low:{fmt}} to {high:{fmt}})"
 
 
 def relative_gain(aucs, base_aucs, resamples: int = 10000) -> tuple[float, float, float]:
     """mean(aucs) / mean(base_aucs) - 1 over paired per-sequence AUCs (the paper's relative gain), and its 95 %
-    bootstrap interval over the sequences."""
+    bootstrap interval over the sequences (NaN under MIN_SEQUENCES_FOR_INTERVAL sequences)."""
     aucs, base = np.asarray(aucs, float), np.asarray(base_aucs, float)
     picks = bootstrap_indices(len(aucs), resamples)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        resampled = aucs[picks].sum(axis=1) / base[picks].sum(axis=1) - 1
-    low, high = np.percentile(resampled, [2.5, 97.5])
-    return float(aucs.sum() / base.sum() - 1), float(low), float(high)
+    resampled = None
+    if picks is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            resampled = aucs[picks].sum(axis=1) / base[picks].sum(axis=1) - 1
+    return (float(aucs.sum() / base.sum() - 1), *percentile_interval(resampled))
 
 
 def ablation_table(summary: dict) -> str:
@@ -337,7 +361,7 @@ def ablation_table(summary: dict) -> str:
         if names:
             mean, low, high = relative_gain([t["sequences"][n]["auc"] for n in names],
                                             [kcc["sequences"][n]["auc"] for n in names])
-            relative = f"{mean:+.1%} ({low:+.1%} to {high:+.1%})"
+            relative = f"{mean:+.1%} {interval_text(low, high, '+.1%')}"
         lines.append(f"| {label} | {name} | {_f(t['auc'])} | {'+' if gain >= 0 else ''}{_f(gain)} | {relative} "
                      f"| {_f(t['precision20'])} | {_f(t['fps'], 1)} |")
     return "\n".join(lines) + "\n"
@@ -352,8 +376,9 @@ def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = 
     per_start: {start label: summary dict of the runs started there}, the given start first; the sequences scored
     in every start count. Per tracker: the mean AUC of each start, their mean, min and max. Per later tracker: its
     AUC minus the first tracker's, per sequence averaged over the starts, then over the sequences, with a 95 %
-    bootstrap interval over the sequences (fixed seed): an interval that holds 0 means the sequences cannot tell
-    the two apart. "per_sequence" holds each sequence's AUC averaged over the starts: where the differences are.
+    bootstrap interval over the sequences (fixed seed; NaN under MIN_SEQUENCES_FOR_INTERVAL sequences): an interval
+    that holds 0 means the sequences cannot tell the two apart. "per_sequence" holds each sequence's AUC averaged
+    over the starts: where the differences are.
 
     With frames_scored {start label: {sequence name: frames scored}} (metrics.frames_scored), each tracker also
     gets "otb_pooled", the AUC and precision@20 as OTB's toolkit computes TRE (genPerfMat): per sequence, the hits
@@ -380,8 +405,8 @@ def robustness(per_start: dict[str, dict], trackers: list[str], protocol: str = 
                  "per_sequence": dict(zip(names, aucs[t].mean(axis=0).tolist()))}
         if t != first:
             difference = (aucs[t] - aucs[first]).mean(axis=0)
-            low, high = np.percentile(difference[resampled].mean(axis=1), [2.5, 97.5])
-            entry["difference"] = {"to": first, "mean": float(difference.mean()), "ci95": [float(low), float(high)]}
+            low, high = percentile_interval(None if resampled is None else difference[resampled].mean(axis=1))
+            entry["difference"] = {"to": first, "mean": float(difference.mean()), "ci95": [low, high]}
         if frames_scored is not None:
             weights = np.array([[frames_scored[start][n] for n in names] for start in starts], float)
             entry["otb_pooled"] = {key: _pooled(per_sequence(t, key), weights) for key in ("auc", "precision20")}
@@ -414,8 +439,7 @@ def robustness_table(result: dict) -> str:
              "|---|---|---|---|---|" + ("---|" if pooled else "")]
     for name, t in trackers.items():
         difference = t.get("difference")
-        cell = "-" if difference is None else (f"{difference['mean']:+.3f} ({difference['ci95'][0]:+.3f} to "
-                                                f"{difference['ci95'][1]:+.3f})")
+        cell = "-" if difference is None else f"{difference['mean']:+.3f} {interval_text(*difference['ci95'])}"
         lines.append(f"| {name} | {_f(t['auc_per_start'][0])} | {_f(t['mean'])} | {_f(t['min'])} - {_f(t['max'])} "
                      f"| {cell} |" + (f" {_f(t['otb_pooled']['auc'])} / {_f(t['otb_pooled']['precision20'])} |"
                                       if pooled else ""))

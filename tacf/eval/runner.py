@@ -14,6 +14,7 @@ Result folders written by other toolkits (`tacf eval --results NAME=DIR`) are re
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import multiprocessing
 import re
@@ -81,12 +82,25 @@ def track_frames(tracker: BoxTracker, frames: Iterable[np.ndarray], init_box) ->
     return TrackRun(np.asarray(boxes, dtype=np.float64), np.asarray(times), np.asarray(oks), np.asarray(pmes))
 
 
+def shifted_box(box, shift: tuple[int, int], frame_hw) -> np.ndarray:
+    """box (x, y, w, h) moved by shift = (dx, dy), then kept inside the frame as OTB's shiftInitBB keeps it: a left
+    or top edge beyond the border is moved onto it, and the size cut at the right and bottom borders."""
+    x, y = max(box[0] + shift[0], 0.0), max(box[1] + shift[1], 0.0)
+    moved = np.array([x, y, min(box[2], frame_hw[1] - x), min(box[3], frame_hw[0] - y)], dtype=np.float64)
+    if moved[2] <= 0 or moved[3] <= 0:
+        raise ValueError(f"the first box {list(box)} moved by {shift} lies outside the {frame_hw[1]}x{frame_hw[0]} "
+                         "frame")
+    return moved
+
+
 def track_sequence(tracker: BoxTracker, seq: Sequence, shift: tuple[int, int] = (0, 0)) -> TrackRun:
-    """One-pass evaluation: init from the first ground-truth box, moved by shift = (dx, dy) pixels, decode frames
-    lazily outside the timer."""
+    """One-pass evaluation: init from the first ground-truth box, moved by shift = (dx, dy) pixels and kept in the
+    frame (`shifted_box`); frames are decoded lazily outside the timer."""
     if not np.isfinite(seq.gt[0]).all() or seq.gt[0, 2] <= 0 or seq.gt[0, 3] <= 0:
         raise ValueError(f"{seq.name}: the first ground-truth box {seq.gt[0].tolist()} cannot start a track")
-    return track_frames(tracker, iter_frames(seq.frames), seq.gt[0] + [shift[0], shift[1], 0, 0])
+    first = read_frame(seq.frames[0])
+    box = seq.gt[0] if shift == (0, 0) else shifted_box(seq.gt[0], shift, first.shape[:2])
+    return track_frames(tracker, itertools.chain([first], iter_frames(seq.frames[1:])), box)
 
 
 WARM_UP_FRAMES = 3
@@ -139,15 +153,21 @@ class Start:
         return Path(out_dir)
 
     def sequence(self, seq: Sequence) -> Sequence | None:
-        """The part of `seq` these runs track; None when no box at or after the start frame leaves 2 frames."""
+        """The part of `seq` these runs track: from the first box at or after the start frame that leaves 2 frames
+        to track, else (the target absent to the end) from the last such box before it, as OTB's last start is the
+        last usable one, so that the sequence stays in every start's report; None when no box leaves 2 frames."""
         if not self.segment:
             return seq
         segment_start = self.segment * len(seq) // self.segments
         startable = np.isfinite(seq.gt).all(axis=1) & (seq.gt[:, 2] > 0) & (seq.gt[:, 3] > 0)
-        candidates = np.flatnonzero(startable[segment_start:len(seq) - 1])
+        candidates = np.flatnonzero(startable[:len(seq) - 1])
         if not len(candidates):
             return None
-        first = segment_start + int(candidates[0])
+        later = candidates[candidates >= segment_start]
+        first = int(later[0]) if len(later) else int(candidates[-1])
+        if first < segment_start:
+            log.info("%s: no usable box from frame %d of %d on; start %s starts at frame %d", seq.name,
+                     segment_start + 1, len(seq), self.label, first + 1)
         return replace(seq, frames=seq.frames[first:], gt=seq.gt[first:])
 
     def sequences(self, seqs: list[Sequence]) -> list[Sequence]:
@@ -370,19 +390,25 @@ def run_job(job: Job) -> JobOutcome:
         return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}{start}")
 
 
-def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool = False) -> bool:
+def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool = False,
+                first_box: np.ndarray | None = None) -> bool:
     """Whether out_dir holds a result of `tracker` that scores `seq` (see `rows_fit`); one of another length, left
-    by a run with other --max-frames or frame ranges, is not, nor one that cannot be read."""
+    by a run with other --max-frames or frame ranges, is not, nor one that cannot be read, nor, given `first_box`,
+    one whose first row (the box the tracker started from) is another: a TRE start moves with the sequence's
+    length, so a run with other --max-frames can leave a result of the same length from another frame."""
     path = result_path(out_dir, tracker, seq.name)
     if not path.is_file():
         return False
     try:
-        rows = len(read_boxes(path, one_based=True))
+        boxes = read_boxes(path, one_based=True)
     except ValueError as exc:
         log.warning("%s; run again", exc)
         return False
-    if not rows_fit(rows, len(seq), allow_longer):
-        log.info("%s: %d rows for the %d frames of %s; run again", path, rows, len(seq), seq.name)
+    if not rows_fit(len(boxes), len(seq), allow_longer):
+        log.info("%s: %d rows for the %d frames of %s; run again", path, len(boxes), len(seq), seq.name)
+        return False
+    if first_box is not None and not np.allclose(boxes[0], first_box, atol=1e-3, rtol=0):
+        log.info("%s starts from %s, not from %s; run again", path, boxes[0].tolist(), first_box.tolist())
         return False
     return True
 
@@ -395,7 +421,8 @@ def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, 
     jobs = []
     for name in trackers:
         for seq in start.sequences(sequences):
-            if force or not is_recorded(out_dir, name, seq, allow_longer and start.from_first_frame):
+            first_box = None if start.from_first_frame else seq.gt[0]
+            if force or not is_recorded(out_dir, name, seq, allow_longer and start.from_first_frame, first_box):
                 jobs.append(Job(name, seq, out_dir, start))
             else:
                 log.debug("%s/%s already recorded; skipped", name, seq.name)

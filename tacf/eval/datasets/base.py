@@ -96,13 +96,18 @@ def frame_number(path: Path) -> int | None:
     return int(digits[-1]) if digits else None
 
 
-def missing_frame_numbers(frames: list[Path]) -> list[int]:
-    """The numbers absent between consecutively numbered frames (000004 between 000003 and 000005); none when
-    some frame carries no number or no two are consecutive (names such as time stamps)."""
+def missing_frame_numbers(frames: list[Path], first: int | None = None) -> list[int]:
+    """The numbers absent between consecutively numbered frames (000004 between 000003 and 000005), and, given
+    `first`, the number the first frame must carry (a UAV123 range's start), those absent before the first frame
+    on disk; none when some frame carries no number, nor gaps when no two are consecutive (names such as time
+    stamps)."""
     numbers = [frame_number(p) for p in frames]
-    if len(numbers) < 2 or None in numbers or min(b - a for a, b in zip(numbers, numbers[1:])) != 1:
+    if not numbers or None in numbers:
         return []
-    return [n for a, b in zip(numbers, numbers[1:]) for n in range(a + 1, b)]
+    before = list(range(first, numbers[0])) if first is not None else []
+    if len(numbers) < 2 or min(b - a for a, b in zip(numbers, numbers[1:])) != 1:
+        return before
+    return before + [n for a, b in zip(numbers, numbers[1:]) for n in range(a + 1, b)]
 
 
 def list_frames(folder: Path, prefix: str = "") -> list[Path]:
@@ -115,12 +120,13 @@ def list_frames(folder: Path, prefix: str = "") -> list[Path]:
     return sorted(files, key=natural_key)
 
 
-def make_sequence(name: str, frames: list[Path], gt: np.ndarray,
-                  attributes: frozenset[str] | None = None) -> Sequence | None:
+def make_sequence(name: str, frames: list[Path], gt: np.ndarray, attributes: frozenset[str] | None = None,
+                  first_number: int | None = None) -> Sequence | None:
     """A Sequence, cutting frames or ground truth to the shorter of the two (with a warning); None (with a warning)
-    when either is empty, or when numbered frames are missing on disk between those the ground truth covers: every
-    row after the gap would be scored against the frame after its own."""
-    missing = missing_frame_numbers(frames[:len(gt)])
+    when either is empty, or when numbered frames are missing on disk between those the ground truth covers, or
+    before the first one on disk when the number the first frame must carry is known (`first_number`): every row
+    after the gap would be scored against the frame after its own."""
+    missing = missing_frame_numbers(frames[:len(gt)], first_number)
     if missing:
         listed = ", ".join(map(str, missing[:5])) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
         log.warning("%s: frame%s %s missing from %s: the ground truth after it would meet the wrong frames; skipped",

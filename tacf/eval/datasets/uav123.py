@@ -151,7 +151,8 @@ def load(root: Path, ranges: dict[tuple[str | None, str], FrameRange] | Path | N
             last = rng.last if rng.last else rng.first + len(gt) - 1
             flags = set_dir / "att" / anno.name
             attributes = read_uav123_flags(flags) if flags.is_file() else None
-            seq = make_sequence(f"{set_dir.name}/{name}", _frames_in_range(frames, rng.first, last), gt, attributes)
+            seq = make_sequence(f"{set_dir.name}/{name}", _frames_in_range(frames, rng.first, last), gt, attributes,
+                                first_number=rng.first)
             if seq is not None:
                 seqs.append(seq)
     return seqs
