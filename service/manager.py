@@ -108,6 +108,7 @@ class SessionManager:
         self._log_level = log_level
         self._lock = threading.RLock()
         self._sessions: dict[str, Session] = {}
+        self._stopping: set[str] = set()    # ids of sessions being stopped: not free for a start until stopped
         self._closing = threading.Event()
         worker_spec = WorkerSpec(node=node, zenoh=zenoh_options, endpoints=tuple(endpoints),
                                  tracker_factory=tracker_factory, log_level=log_level)
@@ -115,6 +116,10 @@ class SessionManager:
                                deliver=self._on_message)
         self._dirty = False
         self._save_failing = False          # the last save failed (logged once until one works again)
+        # Held from a save's snapshot to its rename: saves from the control threads and the supervisor would
+        # otherwise land in any order, an older table last (a stopped session back after a restart).
+        self._save_lock = threading.Lock()
+        self._saves_closed = False          # shutdown's last save is written: none after it (the file is unlocked)
         self._supervisor = threading.Thread(target=self._supervise, name="supervisor", daemon=True)
 
     # ------------------------------------------------------------------ lifecycle
@@ -186,7 +191,7 @@ class SessionManager:
             self._send(session, ("stop",))
         spares = self.pool.retire()
         _reap([s.process for s in sessions if s.process] + [w.process for w in spares], deadline)
-        self._save(force=True)
+        self._save(force=True, last=True)
         for session in sessions:
             _close_conn(session)
         for spare in spares:
@@ -214,6 +219,9 @@ class SessionManager:
             self._check_open()
             if sid in self._sessions:
                 raise ServiceError("duplicate_session", f"session {sid!r} already exists on node {self.node!r}")
+            if sid in self._stopping:
+                raise ServiceError("duplicate_session", f"session {sid!r} is still being stopped on node "
+                                                        f"{self.node!r}; retry")
             if len(self._sessions) >= self.max_sessions:
                 raise ServiceError("too_many_sessions", f"node {self.node!r} already runs {len(self._sessions)} "
                                                         f"session(s) (--max-sessions {self.max_sessions})")
@@ -239,22 +247,29 @@ class SessionManager:
 
     def stop(self, sid: str) -> SessionInfo:
         with self._lock:
+            self._check_open()                  # shutdown stops every worker and keeps the table for the restart
             session = self._get(sid)
             del self._sessions[sid]
+            self._stopping.add(sid)             # until its "stopped" is out, the id is not free for a new session
             session.stopping = True
             process = session.process           # _spawn attaches a worker under the lock, or not at all now
-        self._send(session, ("stop",))
-        _reap([process] if process else [], time.monotonic() + STOP_GRACE_S)
-        _close_conn(session)
-        self._release_history(session)
-        session.state = "stopped"
-        self._publish_health(session, "stopped", "stopped by request")
+        try:
+            self._send(session, ("stop",))
+            _reap([process] if process else [], time.monotonic() + STOP_GRACE_S)
+            _close_conn(session)
+            self._release_history(session)
+            session.state = "stopped"
+            self._publish_health(session, "stopped", "stopped by request")
+        finally:
+            with self._lock:
+                self._stopping.discard(sid)
         self._mark_dirty(save_now=True)
         log.info("stopped session %s", sid)
         return session.info(self.node)
 
     def reinit(self, request: ReinitRequest) -> SessionInfo:
         with self._lock:
+            self._check_open()
             session = self._get(request.sid)
         carried = _carried_frames(request.frames)
         frames = self._init_frames(session.image_key, request.drawn_on, carried)
@@ -264,10 +279,9 @@ class SessionManager:
             session.gave_up, session.crashes = False, deque()
             session.state, session.message = "starting", None
             self._queue_init(session, request.box, request.drawn_on, released=True, frames=frames)  # sets box
-            needs_worker = session.process is None or session.process.exitcode is not None
+            needs_worker = not _has_live_worker(session)
             reply = session.info(self.node)
         if needs_worker:
-            _close_conn(session)
             self._spawn(session)
         else:
             written = self._flush_init(session)
@@ -340,7 +354,9 @@ class SessionManager:
         """Give the session a worker: a warm spare when there is one, else a new process. A session stopped in
         the meantime (a stop while a start waited for a frame) gets none: ServiceError unknown_session. The
         check and the attachment are one step under the lock, and stop() reads the worker under it, so a worker
-        is either attached before the stop, which then stops it, or never."""
+        is either attached before the stop, which then stops it, or never. A session given a live worker
+        meanwhile (a reinit while its start waited for a frame, two reinits after a crash) keeps that one, which
+        takes the pending init: a second worker would serve it unseen and outlive its stop."""
         assignment = Assignment(sid=session.sid, image_key=session.image_key, profile=session.profile,
                                 overrides=session.overrides, restarts=session.restarts)
         with self._lock:
@@ -354,21 +370,30 @@ class SessionManager:
             # shutdown() stops the workers and spares it found: one attached or put back after that would outlive it
             closing = self._closing.is_set()
             gone = closing or self._is_gone(session)
-            returned = gone and warm and not closing
+            served = not gone and _has_live_worker(session)
+            returned = (gone or served) and warm and not closing
+            replaced = None
             if returned:
                 self.pool.put_back(handle)      # still a warm, unassigned spare
-            elif not gone:
+            elif not (gone or served):
+                replaced = session.worker       # a dead worker's pipe, not yet closed by the supervisor
                 session.worker = handle
                 session.process, session.conn, session.worker_ready = handle.process, handle.conn, False
                 session.heard_at = time.monotonic()     # silent from now on, it is hung even before "ready"
                 session.restart_at = None
                 if session.state == "failed" and not session.gave_up:
                     session.state = "starting"
-        if gone:
+        if gone or served:
             if not returned:
                 handle.discard()
+        if served:
+            self._flush_init(session)
+            return
+        if gone:
             self._check_open()
             raise _stopped_meanwhile(session, self.node)
+        if replaced is not None:
+            replaced.close()
         with handle.recv_lock:
             handle.owner = session
         self._send(session, ("assign", assignment))
@@ -452,7 +477,7 @@ class SessionManager:
             self._drain(session)
             process = session.process
             if process is not None and process.exitcode is not None and not session.stopping:
-                self._on_worker_exit(session)
+                self._on_worker_exit(session, process)
             elif (process is not None and not session.stopping
                   and worker_is_silent(session.heard_at, time.monotonic())):
                 log.warning("session %s: worker pid %d silent for %.0f s: killing it", session.sid, process.pid,
@@ -508,11 +533,15 @@ class SessionManager:
                 session.state, session.message, session.gave_up = "failed", message[1], True
             log.warning("session %s failed: %s", session.sid, message[1])
 
-    def _on_worker_exit(self, session: Session) -> None:
-        code = session.process.exitcode
-        _close_conn(session)
+    def _on_worker_exit(self, session: Session, process) -> None:
         with self._lock:
-            session.process = None
+            if session.process is not process:
+                return                          # a reinit gave it a new worker meanwhile, and closed this one's pipe
+            worker, session.worker, session.conn, session.process = session.worker, None, None, None
+        if worker is not None:
+            worker.close()
+        code = process.exitcode
+        with self._lock:
             if session.gave_up:
                 return
             session.state = "failed"
@@ -571,9 +600,18 @@ class SessionManager:
         if save_now:
             self._save(force=True)
 
-    def _save(self, force: bool = False) -> None:
+    def _save(self, force: bool = False, last: bool = False) -> None:
+        """Write the table (and each session's box frame) when it changed, at most every SAVE_PERIOD_S unless
+        `force`; `last`: shutdown's save, after which none is written."""
         if self._store is None or not (self._dirty or force):
             return
+        with self._save_lock:
+            if self._saves_closed:
+                return
+            self._saves_closed = last
+            self._write_table(force)
+
+    def _write_table(self, force: bool) -> None:
         now = time.monotonic()
         if not force and now - getattr(self, "_saved_at", 0.0) < SAVE_PERIOD_S:
             return
@@ -632,6 +670,10 @@ def _carried_frames(frames: list[Frame]) -> list[StoredFrame]:
         except FrameError as exc:
             raise ServiceError("frame_rejected", f"the request's frame {frame.seq} is not an image: {exc}") from None
     return [StoredFrame(frame.seq, frame.width, frame.height, encode(frame)) for frame in frames]
+
+
+def _has_live_worker(session: Session) -> bool:
+    return session.process is not None and session.process.exitcode is None
 
 
 def _stopped_meanwhile(session: Session, node: str) -> ServiceError:

@@ -7,6 +7,7 @@ the workers' fork server and its SIGKILL, too many sessions.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import statistics
@@ -29,6 +30,7 @@ from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequ
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
+from tacf_service.errors import ServiceError
 from tacf_service.frames import StoredFrame
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
@@ -601,6 +603,140 @@ def test_a_session_stopped_while_it_starts_gets_no_worker(service, client, feed)
     finally:
         watch.close()
         call(client, NODE, "stop", StopRequest(sid="keeper"))
+
+
+def _stop_leaves_no_orphan(client, node: str, watch, sid: str) -> None:
+    """Stop `sid`; then no liveliness token and no health but "stopped" for it (an orphaned worker, unknown to the
+    manager, says "starting" or "tracking" every second)."""
+    assert call(client, node, "stop", StopRequest(sid=sid)).state == "stopped"
+    time.sleep(0.5)                                     # what was on its way before the stop
+    heard = len(watch.health)
+    time.sleep(2.5)
+    assert {h.state for h in watch.health[heard:]} <= {"stopped"}, [h.state for h in watch.health[heard:]]
+    assert not list(client.liveliness().get(session_liveliness_key(node, sid), timeout=1))
+
+
+def test_a_reinit_while_the_start_waits_gives_the_session_one_worker(service, client, feed):
+    """A reinit that arrives while its session's start waits for the frame its box was drawn on used to give the
+    session a worker, and the start another one: the first served the session unseen, and outlived its stop."""
+    watch = Collector(client, NODE, "twin")
+    try:
+        assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+        outcome = {}
+        thread = threading.Thread(target=lambda: outcome.update(
+            info=start(client, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq + 1000, sid="twin")))
+        thread.start()
+        time.sleep(0.3)                                     # the start is waiting for seq + 1000
+        call(client, NODE, "reinit", ReinitRequest(sid="twin", box=feed.truth[feed.seq]), timeout=10)
+        thread.join(10)
+        assert outcome["info"].sid == "twin"
+        assert wait_until(lambda: len(watch.results()) >= 5, 30)
+        assert mean_iou(watch.results(), feed.truth) > 0.5
+        _stop_leaves_no_orphan(client, NODE, watch, "twin")
+    finally:
+        watch.close()
+
+
+def test_two_reinits_after_a_worker_crash_give_it_one_worker(endpoint, client, feed):
+    """Two reinits right after a crash each found no live worker and each started one (no warm spares here: a
+    new process each, which leaves the window open); the one attached first served the session unseen."""
+    cold = TrackingService(ServiceOptions(node="cold", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",),
+                                                                          connect=(endpoint,)),
+                                          spare_workers=0)).open()
+    watch = Collector(client, "cold", "phoenix")
+    try:
+        assert wait_until(lambda: "cold" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
+        call(client, "cold", "start", StartRequest(image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq,
+                                                   sid="phoenix", profile=PROFILE), timeout=20)
+        assert wait_until(lambda: len(watch.results()) >= 3, 30)
+        os.kill(cold.manager.worker_pids()["phoenix"], signal.SIGKILL)
+        assert wait_until(lambda: "phoenix" not in cold.manager.worker_pids(), 5, period=0.005)
+        replies = []
+        reinit = lambda: replies.append(call(client, "cold", "reinit",  # noqa: E731
+                                             ReinitRequest(sid="phoenix", box=feed.truth[feed.seq]), timeout=10))
+        threads = [threading.Thread(target=reinit) for _ in range(2)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(10)
+        assert len(replies) == 2
+        count = len(watch.results())
+        assert wait_until(lambda: len(watch.results()) >= count + 5, 30)
+        seqs = [r.seq for r in watch.results()[count:]]
+        assert len(seqs) == len(set(seqs)), seqs        # two workers would both publish each frame's box
+        _stop_leaves_no_orphan(client, "cold", watch, "phoenix")
+    finally:
+        watch.close()
+        cold.close()
+
+
+def test_an_id_being_stopped_is_not_free_for_a_start(service, client, feed, monkeypatch):
+    """A stop used to free the id before its worker was reaped and its "stopped" published: a start of the same id
+    meanwhile was accepted, and then got the old session's "stopped" on its health key."""
+    import tacf_service.manager as manager
+
+    start(client, service, image_key=feed.key, box=feed.truth[feed.seq], sid="again")
+    reap = manager._reap
+    monkeypatch.setattr(manager, "_reap", lambda *args: (time.sleep(0.5), reap(*args)))   # a slow worker exit
+    stopping = threading.Thread(target=service.manager.stop, args=("again",))
+    stopping.start()
+    time.sleep(0.2)
+    with pytest.raises(ServiceError) as refused:
+        service.manager.start(StartRequest(image_key=feed.key, box=feed.truth[feed.seq], sid="again",
+                                           profile=PROFILE))
+    assert refused.value.code == "duplicate_session" and "still being stopped" in str(refused.value)
+    stopping.join(10)
+    assert start(client, service, image_key=feed.key, box=feed.truth[feed.seq], sid="again").sid == "again"
+    call(client, NODE, "stop", StopRequest(sid="again"))
+
+
+def test_a_slow_save_never_lands_after_a_newer_one(endpoint, client, feed, tmp_path, monkeypatch):
+    """The supervisor's periodic save and a stop's save used to write outside any lock: an older table (with the
+    stopped session) could land last, and a restarted service brought the session back."""
+    import tacf_service.state as state
+
+    write = state._atomic_write
+    writing = threading.Event()
+
+    def slow_supervisor_write(path, data):      # a slow fsync (an SD card) in the supervisor's save
+        if threading.current_thread().name == "supervisor" and path.name == "sessions.json":
+            writing.set()
+            time.sleep(1.5)
+        write(path, data)
+    monkeypatch.setattr(state, "_atomic_write", slow_supervisor_write)
+    table = tmp_path / "sessions.json"
+    disk = TrackingService(ServiceOptions(node="disk", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",),
+                                                                          connect=(endpoint,)),
+                                          state_file=str(table), spare_workers=0)).open()
+    try:
+        disk.manager.start(StartRequest(image_key=feed.key, box=feed.truth[feed.seq], sid="gone", profile=PROFILE))
+        assert wait_until(lambda: disk.manager.status("gone").state == "tracking", 30)
+        writing.clear()
+        assert writing.wait(10)                 # the supervisor took its snapshot, "gone" in it, and writes it
+        disk.manager.stop("gone")
+        time.sleep(2.0)
+        assert json.loads(table.read_text())["sessions"] == []
+    finally:
+        disk.close()
+
+
+def test_nothing_changes_the_table_while_the_service_shuts_down():
+    """Start, reinit and stop are refused once shutdown has begun: the workers are being stopped and the table is
+    kept for the next start (a late save used to land after the state file was unlocked)."""
+    listen = ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",))
+    small = TrackingService(ServiceOptions(node="closing", zenoh=listen, spare_workers=0, init_wait_s=0.1)).open()
+    try:
+        small.manager.start(StartRequest(image_key="test/cam/none", box=(1.0, 1.0, 10.0, 10.0), sid="kept",
+                                         profile=PROFILE))
+        small.manager.begin_shutdown()
+        for operation in (lambda: small.manager.reinit(ReinitRequest(sid="kept", box=(2.0, 2.0, 10.0, 10.0))),
+                          lambda: small.manager.stop("kept")):
+            with pytest.raises(ServiceError) as refused:
+                operation()
+            assert refused.value.code == "unavailable"
+        assert [s.sid for s in small.manager.list().sessions] == ["kept"]
+    finally:
+        small.close()
 
 
 def test_a_reinit_box_stays_with_its_frame_through_a_worker_restart(service, client):
