@@ -52,6 +52,9 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
         listen = _configured_list(options.config_file, "listen/endpoints", mode)
     endpoints = []
     for endpoint in listen:
+        if endpoint.startswith("unixsock-stream/"):     # a socket file on this host: reached as it is
+            endpoints.append(endpoint)
+            continue
         m = _ENDPOINT_RE.match(endpoint)
         if not m or m.group("port") == "0":
             continue

@@ -30,7 +30,7 @@ from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
 from .pool import WorkerHandle, WorkerPool, worker_is_silent
 from .state import PersistedSession, StateStore
-from .trackers import DEFAULT_FACTORY, check_tracker_config, default_profile
+from .trackers import DEFAULT_FACTORY, checked_overrides, default_profile
 from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, worker_context
 
 log = logging.getLogger(__name__)
@@ -206,9 +206,8 @@ class SessionManager:
         except InvalidKeyError as exc:
             raise ServiceError("invalid_key", str(exc)) from None
         profile = request.profile or default_profile()
-        overrides = dict(request.overrides)
         try:
-            check_tracker_config(profile, overrides)
+            overrides = checked_overrides(profile, dict(request.overrides))
         except (ValueError, TypeError) as exc:
             raise ServiceError("invalid_config", str(exc)) from None
         carried = _carried_frames(request.frames)

@@ -18,7 +18,6 @@ import logging
 import os
 import tempfile
 from pathlib import Path
-from typing import Union
 
 try:
     import fcntl
@@ -28,7 +27,7 @@ except ImportError:         # Windows
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from tacf_schemas.models import Box, Id
+from tacf_schemas.models import Box, Count, Id, Override, Seq, StampNs
 
 log = logging.getLogger(__name__)
 
@@ -36,16 +35,18 @@ STATE_VERSION = 1
 
 
 class PersistedSession(BaseModel):
+    """A session as saved: its fields as the wire's SessionInfo bounds them, so that a restored session always
+    makes a valid reply (an entry with created_ns -1 used to make every list and its status fail)."""
     model_config = ConfigDict(extra="ignore")
 
     sid: Id
     image_key: str
     profile: str
-    overrides: dict[str, Union[bool, int, float]] = {}
+    overrides: dict[str, Override] = {}
     box: Box
-    last_seq: int | None = None
-    created_ns: int
-    restarts: int = 0
+    last_seq: Seq | None = None
+    created_ns: StampNs
+    restarts: Count = 0
 
 
 class StateError(Exception):

@@ -15,10 +15,18 @@ def tacf_tracker(profile: str, overrides: dict):
     return Tracker(TrackerConfig.profile(profile, **overrides))
 
 
-def check_tracker_config(profile: str, overrides: dict) -> None:
-    """Raise ValueError if TrackerConfig rejects the profile or an override (tacf.config is light)."""
+def checked_overrides(profile: str, overrides: dict) -> dict:
+    """The overrides as TrackerConfig takes them: a float without a fraction given for an int field is that int
+    (msgpack from JavaScript sends every number as a float, as the wire protocol allows). Raises ValueError if
+    TrackerConfig rejects the profile or an override (tacf.config is light)."""
+    import dataclasses
+
     from tacf.config import TrackerConfig
+    int_fields = {f.name for f in dataclasses.fields(TrackerConfig) if f.type == "int"}
+    overrides = {name: int(value) if name in int_fields and isinstance(value, float) and value.is_integer()
+                 else value for name, value in overrides.items()}
     TrackerConfig.profile(profile, **overrides)
+    return overrides
 
 
 def default_profile() -> str:

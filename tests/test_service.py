@@ -361,6 +361,18 @@ def test_latest_only_under_a_fast_publisher(service, client):
 
 # ---------------------------------------------------------------------------------------------- bad input
 
+def test_an_int_override_sent_as_a_float_without_fraction_is_that_int(service, client, feed):
+    """As msgpack from JavaScript sends it: {"cell_size": 4.0} is cell_size 4 (it used to be refused as no int)."""
+    request = msgpack.packb({"image_key": feed.key, "box": list(feed.truth[feed.seq]), "seq": feed.seq,
+                             "sid": "js", "profile": PROFILE, "overrides": {"cell_size": 4.0}})
+    assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+    info = call(client, NODE, "start", request, timeout=10)
+    try:
+        assert info.overrides == {"cell_size": 4} and type(info.overrides["cell_size"]) is int
+    finally:
+        call(client, NODE, "stop", StopRequest(sid="js"))
+
+
 @pytest.mark.parametrize("op,payload,code", [
     ("start", b"\xc1\xc1", "invalid_request"),                                        # not msgpack
     ("start", msgpack.packb([1, 2, 3]), "invalid_request"),                           # not a map
@@ -379,6 +391,8 @@ def test_latest_only_under_a_fast_publisher(service, client):
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), profile="nope")), "invalid_config"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), overrides={"nope": 1})), "invalid_config"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), overrides={"cell_size": -3})),
+     "invalid_config"),
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "overrides": {"cell_size": 4.5}}),
      "invalid_config"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), frames=[Frame(
         seq=3, stamp_ns=0, encoding="jpeg", width=64, height=48, data=b"not a jpeg")])), "frame_rejected"),

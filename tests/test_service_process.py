@@ -158,6 +158,30 @@ def test_default_zenoh_config_is_loopback_only():
         worker_endpoints(ZenohOptions(listen=("tcp/127.0.0.1:0",)))
 
 
+def test_a_service_listening_on_a_unix_socket_only_tracks(tmp_path):
+    """Its workers connect to the socket as it is (they used to be refused: "give --listen with a fixed port")."""
+    endpoint = f"unixsock-stream/{tmp_path / 'tacf.sock'}"
+    assert worker_endpoints(ZenohOptions(listen=(endpoint,))) == [endpoint]
+    service = TrackingService(ServiceOptions(node="unix", zenoh=ZenohOptions(listen=(endpoint,)),
+                                             spare_workers=0)).open()
+    client = zenoh.open(peer_config(connect=[endpoint]))
+    try:
+        with FramePublisher(client, "unix/cam", MovingTargetScene(320, 240, speed=2.0), fps=10) as feed:
+            assert wait_until(lambda: feed.seq >= 3, 10)
+            results = Collector(client, "unix", "s")
+            try:
+                call(client, "unix", "start", StartRequest(image_key=feed.key, box=feed.truth[feed.seq],
+                                                           seq=feed.seq, sid="s", profile="kcc"), timeout=20)
+                assert wait_until(lambda: len(results.results()) >= 5, 30)
+                pairs = [(r.box, feed.truth[r.seq]) for r in results.results() if r.seq in feed.truth]
+                assert statistics.fmean(box_iou(a, b) for a, b in pairs) > 0.5
+            finally:
+                results.close()
+    finally:
+        client.close()
+        service.close()
+
+
 @pytest.mark.parametrize("node", ["bad/id", ""])
 def test_serve_rejects_a_bad_node_id(tmp_path, endpoint, node):
     serve = Serve(tmp_path, endpoint, "--node", node)       # the last --node wins
@@ -272,6 +296,14 @@ def test_state_file_is_atomic_and_survives_corruption(tmp_path):
     assert (tmp_path / "state.json.corrupt").exists()
     path.write_text(json.dumps({"version": 1, "sessions": [entry.model_dump(mode="json"), {"sid": "bad/"}]}))
     assert [s.sid for s in store.load()] == ["a"]
+    # bounded as the wire's SessionInfo is: a restored session must make a valid reply to list and status
+    fine = entry.model_dump(mode="json") | {"last_seq": 7.0, "restarts": 2.0}     # integral floats are ints
+    out_of_range = [{"created_ns": -1}, {"last_seq": -3}, {"restarts": -1}, {"last_seq": 2**63},
+                    {"overrides": {"cell_size": "4"}}, {"last_seq": 7.5}]
+    path.write_text(json.dumps({"version": 1, "sessions": [fine] + [
+        entry.model_dump(mode="json") | {"sid": f"bad{i}"} | field for i, field in enumerate(out_of_range)]}))
+    [restored] = store.load()
+    assert (restored.sid, restored.last_seq, restored.restarts) == ("a", 7, 2)
 
 
 @pytest.mark.parametrize("content, kept_as", [
