@@ -72,6 +72,7 @@ class Session:
     init_frames: list = field(default_factory=list)   # frames pinned for the init: the init frame, then newer
     init_released: bool = False         # start validation is over: the pending init may go out
     awaiting_init: bool = False         # results older than the pending init are ignored until "initialised"
+    init_generation: int = 0            # counts the inits queued: a reply to a replaced one is stale
     gave_up: bool = False               # failed for good (bad box or config, crash loop): no restart
     stopping: bool = False
     holds_history: bool = False         # holds a reference on its image key's frame history (released once)
@@ -422,6 +423,7 @@ class SessionManager:
         session.box_frame = frames[0] if frames else None
         session.init_pending, session.init_released = True, released
         session.awaiting_init = True
+        session.init_generation += 1
 
     def _release_init(self, session: Session) -> None:
         session.init_released = True
@@ -435,12 +437,13 @@ class SessionManager:
                 return None
             session.init_pending = False
             box, pinned, session.init_frames = session.init_box, session.init_frames, []
+            generation = session.init_generation
         if pinned:
             frames = pinned + self._history.frames_newer(session.image_key, pinned[-1].seq)
         else:
             frames = self._history.frames_from(session.image_key, None)
         frames = catch_up_subset(frames, CATCHUP_FRAMES)
-        return self._send(session, ("init", box, [f.payload for f in frames]))
+        return self._send(session, ("init", box, [f.payload for f in frames], generation))
 
     def _send(self, session: Session, message: tuple) -> threading.Event | None:
         """Queue a message to the session's worker (Outbox); the event is set once it is written."""
@@ -524,11 +527,15 @@ class SessionManager:
             self._flush_init(session)
         elif kind == "initialised":
             with self._lock:
+                if message[2] != session.init_generation:
+                    return              # of an init a reinit has replaced: its results are still of the old box
                 session.awaiting_init = False
                 session.init_seq = message[1]
                 session.state, session.message = "tracking", None
         elif kind == "failed":
             with self._lock:
+                if message[2] is not None and message[2] != session.init_generation:
+                    return              # the box of a replaced init did not fit; the new one may
                 session.state, session.message, session.gave_up = "failed", message[1], True
             log.warning("session %s failed: %s", session.sid, message[1])
 

@@ -23,11 +23,16 @@ Parent <-> worker protocol over a multiprocessing Pipe (tuples):
                        ("ready",)                          assigned, subscribed, tracker built: send the init
                        ("result", seq, box, ok, pme)       per processed frame (the parent keeps the last box)
                        ("health", health_msgpack)          about 1 Hz
-                       ("failed", message)                 the tracker cannot be initialised (bad box, config)
-                       ("initialised", seq)                the tracker was initialised on frame seq
+                       ("failed", message, generation)     the tracker cannot be initialised: a bad box (the
+                                                           generation of its init), its config (None: any init)
+                       ("initialised", seq, generation)    the tracker was initialised on frame seq, by the init
+                                                           of that generation
     parent -> worker   ("assign", Assignment)              become the worker of this session
-                       ("init", box, [frame payloads])     init on the first decodable payload, catch up
-                                                           through the rest; [] = init on the next live frame
+                       ("init", box, [frame payloads], generation)
+                                                           init on the first decodable payload, catch up through
+                                                           the rest; [] = init on the next live frame. The
+                                                           generation counts the session's inits, so that the
+                                                           service can tell a reply to an init it has replaced
                        ("stop",)
 The worker also stops when the pipe breaks (the service died), so no worker outlives its service.
 """
@@ -158,6 +163,7 @@ class Worker:
         self._slot = LatestFrame()
         self._pending_lock = threading.Lock()
         self._pending_init: tuple | None = None
+        self._init_generation = 0                # of the init last applied: echoed in "initialised" and "failed"
         self._tracker = None
         self._init_box: tuple | None = None      # box to initialise on the next frame
         self._image_shape: tuple | None = None   # shape of the frame the tracker was initialised on
@@ -215,7 +221,7 @@ class Worker:
                                                                                 self.job.overrides)
                     except (ValueError, TypeError) as exc:
                         self._state = "failed"
-                        self._send(("failed", f"tracker config: {exc}"))
+                        self._send(("failed", f"tracker config: {exc}", None))
                     else:
                         self._serve(session, zenoh)
         finally:
@@ -300,7 +306,7 @@ class Worker:
                 self._assigned.set()
             elif message[0] == "init":
                 with self._pending_lock:
-                    self._pending_init = (tuple(message[1]), list(message[2]))
+                    self._pending_init = (tuple(message[1]), list(message[2]), message[3])
                 self._slot.wake()
             elif message[0] == "stop":
                 self.request_stop()
@@ -319,7 +325,7 @@ class Worker:
             pending, self._pending_init = self._pending_init, None
         if pending is None:
             return
-        box, payloads = pending
+        box, payloads, self._init_generation = pending
         self._init_box, self._image_shape = box, None
         self._last_frame_id = None          # the init frame may be older than the last frame tracked
         self._state, self._message = "starting", None
@@ -407,14 +413,14 @@ class Worker:
             self._state, self._message = "failed", f"cannot initialise on seq {frame.seq}: {exc}"
             self._stats.rejected()
             log.warning("%s", self._message)
-            self._send(("failed", self._message))
+            self._send(("failed", self._message, self._init_generation))
             self._publish_health()
             return
         self._image_shape, self._last_box = image.shape, tuple(box)
         self._init_box = None
         self._state = "tracking"
         self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, None, True)
-        self._send(("initialised", frame.seq))
+        self._send(("initialised", frame.seq, self._init_generation))
         log.info("initialised on seq %d with box %s", frame.seq, box)
 
     def _follow_new_size(self, image, frame, started: float) -> None:

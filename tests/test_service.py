@@ -704,6 +704,27 @@ def test_an_id_being_stopped_is_not_free_for_a_start(service, client, feed, monk
     call(client, NODE, "stop", StopRequest(sid="again"))
 
 
+def test_replies_to_a_replaced_init_change_nothing(service):
+    """A worker's "initialised" or "failed" for an init that a reinit has replaced since, read late by a busy
+    supervisor, used to end the wait for the new init: the old target's results then became the session's box
+    (and the box a restart would start from), or the session failed for a box no longer asked for."""
+    from tacf_service.manager import Session
+
+    session = Session(sid="late", image_key="cam", profile=PROFILE, overrides={}, box=(1.0, 1.0, 5.0, 5.0),
+                      created_ns=1)
+    service.manager._queue_init(session, (1.0, 1.0, 5.0, 5.0), None, released=True, frames=[])
+    service.manager._queue_init(session, (40.0, 40.0, 5.0, 5.0), None, released=True, frames=[])   # a reinit
+    service.manager._on_message(session, ("initialised", 3, session.init_generation - 1))
+    service.manager._on_message(session, ("result", 4, (2.0, 2.0, 5.0, 5.0), True, 9.0))
+    service.manager._on_message(session, ("failed", "box outside the frame", session.init_generation - 1))
+    assert session.awaiting_init and session.box == (40.0, 40.0, 5.0, 5.0) and session.state == "starting"
+    service.manager._on_message(session, ("initialised", 5, session.init_generation))
+    service.manager._on_message(session, ("result", 6, (41.0, 40.0, 5.0, 5.0), True, 9.0))
+    assert not session.awaiting_init and session.box == (41.0, 40.0, 5.0, 5.0) and session.state == "tracking"
+    service.manager._on_message(session, ("failed", "tracker config: bad", None))     # whatever the init
+    assert session.state == "failed" and session.gave_up
+
+
 def test_a_slow_save_never_lands_after_a_newer_one(endpoint, client, feed, tmp_path, monkeypatch):
     """The supervisor's periodic save and a stop's save used to write outside any lock: an older table (with the
     stopped session) could land last, and a restarted service brought the session back."""
