@@ -74,6 +74,17 @@ class StateStore:
             lock_file.close()
             raise StateError(f"state file {self.path} is in use by another service") from None
         self._lock_file = lock_file
+        self._remove_partial_writes()
+
+    def _remove_partial_writes(self) -> None:
+        """Remove what a service killed in the middle of a write left (its temporary files, frames of up to
+        48 MiB among them): this service holds the lock, so no write of another is under way."""
+        for folder, name in ((self.path.parent, self.path.name), (self.frames_dir, "")):
+            for leftover in folder.glob(f"{name}*.tmp") if folder.is_dir() else ():
+                try:
+                    leftover.unlink()
+                except OSError:
+                    pass
 
     def unlock(self) -> None:
         if self._lock_file is not None:
@@ -170,9 +181,20 @@ def _atomic_write(path: Path, data: bytes) -> None:
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+        _sync_folder(path.parent)       # the rename itself survives a power cut
     except BaseException:
         try:
             os.unlink(tmp)
         except OSError:
             pass
         raise
+
+
+def _sync_folder(folder: Path) -> None:
+    if not hasattr(os, "O_DIRECTORY"):      # Windows: a folder cannot be opened to sync it
+        return
+    fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

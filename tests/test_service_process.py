@@ -306,6 +306,24 @@ def test_state_file_is_atomic_and_survives_corruption(tmp_path):
     assert (restored.sid, restored.last_seq, restored.restarts) == ("a", 7, 2)
 
 
+def test_a_write_cut_short_leaves_nothing_behind_the_next_service(tmp_path):
+    """A service killed in the middle of a write leaves its temporary files (a frame's up to 48 MiB); the next
+    one to take the state file removes them, and only them."""
+    path = tmp_path / "state.json"
+    store = StateStore(path)
+    store.save_frame("a", b"frame")
+    leftovers = [tmp_path / "state.json.k2j4.tmp", store.frames_dir / "a.msgpack.x9q1.tmp"]
+    for leftover in leftovers:
+        leftover.write_bytes(b"cut short")
+    (tmp_path / "other.json.k2j4.tmp").write_bytes(b"not ours")
+    store.lock()
+    try:
+        assert not any(p.exists() for p in leftovers)
+        assert (tmp_path / "other.json.k2j4.tmp").exists() and store.load_frame("a") == b"frame"
+    finally:
+        store.unlock()
+
+
 @pytest.mark.parametrize("content, kept_as", [
     (b"\xff\xfe\x00garbage\x9c", "state.json.corrupt"),                  # not UTF-8 (a torn or foreign file)
     (b"[" * 100_000 + b"]" * 100_000, "state.json.corrupt"),               # nested beyond the JSON parser's depth
