@@ -7,6 +7,7 @@ with all three attentions off.
 from __future__ import annotations
 
 import dataclasses
+import math
 import sys
 from dataclasses import dataclass
 
@@ -14,22 +15,40 @@ PROFILES = ("paper", "authors", "kcc")
 DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; see README "Accuracy"
 
 
-# Generous ceilings, far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 4 (`paper`: 2), 32,
-# and for the sigmas 0.5, 1/40, 1/16): the square of a sigma over 1e154 overflows, and init failed with a math range
-# error.
+# Ceilings, most far above any sensible setting (the defaults are 4, 200^2, 33, 1.03, 512, 4 (`paper`: 2), 32, and for
+# the sigmas 0.5, 1/40, 1/16): the square of a sigma over 1e154 overflows, and init failed with a math range error;
+# a label factor over 1 makes the label wider than the target. cn_poly_a: float32 keeps 7 digits, which the
+# products x.z / N (at most 1) lose beside a larger offset (1e4 cut the PME to a third; with 1e6 Color Names
+# answered nothing).
 LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_step": 2.0,
           "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256,
-          "hog_kernel_sigma": 1e6, "hog_output_sigma_factor": 1e6, "cn_output_sigma_factor": 1e6}
+          "hog_kernel_sigma": 1e6, "hog_output_sigma_factor": 1.0, "cn_output_sigma_factor": 1.0,
+          "lambda1": 1e6, "scale_lambda": 1e6, "cn_poly_a": 1e3}
+# Floors where > 0 is not enough. The models are float32: 1/lambda overflows under ~3e-39 and lambda over 3.4e38,
+# turning the filters NaN; 1e-12 .. 1e6 leaves wide margins around the paper's 5e-5 and the code's 1e-4 (from ~1
+# up the filters are all regularisation and barely follow the target, but nothing breaks). A label's sigma is
+# about 25 cells times its factor at the default area: at 1e-3 the label is one cell, at 1e-300 its square
+# underflowed (a NaN label). A challenge floor of 0 (or 1e-200, whose square underflows) gave 0/0 penalties when
+# all four context responses were flat. One histogram bin gives every pixel the same likelihood: the colour window
+# (Staple: the colour response) silently flat. num_scales: see TrackerConfig.num_scales.
+FLOORS = {"lambda1": 1e-12, "scale_lambda": 1e-12, "hog_output_sigma_factor": 1e-3, "cn_output_sigma_factor": 1e-3,
+          "context_challenge_floor": 1e-3, "hist_bins": 2, "num_scales": 5}
 # Combinations the tracker can run (defaults: 2,500 cells, scales up to 1.6 times the target, 32 bins, sigma 0.5).
-MIN_CELLS, MAX_CELLS = 16, 250.0**2         # 1000^2 pixels in cells of 4
+# Under 48 cells a long thin target's cropped response can be a single cell (at 40, targets of 1:20 and 1:50 had
+# one), and a one-cell response never moves the box; 48 gives at least 3 for every aspect ratio up to 1:50.
+MIN_CELLS, MAX_CELLS = 48, 250.0**2         # 1000^2 pixels in cells of 4
 MAX_SCALE_RANGE = 4.0
 MAX_HIST_BINS = 64
 MIN_KERNEL_SIGMA = 0.01                     # 1e-6 turned the HOG model NaN
+# Color Names' cells sum to 1, so x.z / N <= 1 and the polynomial kernel is at most (1 + a)^b; float32 squares its
+# transform, up to MAX_CELLS times that: 1e12 keeps it finite with a margin (a = 100, b = 50 turned the model NaN).
+MAX_CN_KERNEL = 1e12
 
 
 def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> None:
     """Validate a frozen config dataclass: each field of its declared type and finite, the `positive` ones > 0,
-    the `rates` in [0, 1], the scale filter's step > 1 and count odd, and every field named in LIMITS under it."""
+    the `rates` in [0, 1], the scale filter's step > 1 and count odd, and every field named in FLOORS or LIMITS
+    within them."""
     name = type(config).__name__
     for f in dataclasses.fields(config):
         v = getattr(config, f.name)
@@ -50,10 +69,16 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
         raise ValueError(f"{name}.scale_step must be > 1, got {config.scale_step}")
     if config.num_scales % 2 == 0:
         raise ValueError(f"{name}.num_scales must be odd, got {config.num_scales}")
-    # Upper bounds: overrides arrive from the network, and a huge area or scale count is a memory bomb.
-    for field, high in LIMITS.items():
-        if hasattr(config, field) and getattr(config, field) > high:
-            raise ValueError(f"{name}.{field} must be <= {high:g}, got {getattr(config, field)}")
+    # Bounds: overrides arrive from the network, a huge area or scale count is a memory bomb, and the float32
+    # models turn NaN at the extremes of some fields.
+    for field in dict.fromkeys([*FLOORS, *LIMITS]):
+        if not hasattr(config, field):
+            continue
+        low, high = FLOORS.get(field, -math.inf), LIMITS.get(field, math.inf)
+        if not low <= getattr(config, field) <= high:
+            allowed = (f"in [{low:g}, {high:g}]" if field in FLOORS and field in LIMITS
+                       else f">= {low:g}" if field in FLOORS else f"<= {high:g}")
+            raise ValueError(f"{name}.{field} must be {allowed}, got {getattr(config, field)}")
 
 
 @dataclass(frozen=True)
@@ -108,9 +133,11 @@ class TrackerConfig:
     # Colour histogram window (Staple-like, detection only).
     hist_bins: int = 32
     hist_learning_rate: float = 0.02
-    likelihood_floor: float = 0.1
+    likelihood_floor: float = 0.1  # in [0, 1]; 1 leaves the window all ones, as colour_window=False does more cheaply
 
-    # DSST scale filter.
+    # DSST scale filter. At least 5 scales: the symmetric Hann window zeroes both ends, so 3 would sample the centre
+    # scale alone and never change it. Few scales rarely change it either: on a target growing 3 % a frame for 19
+    # frames (to 1.75 times), 5 to 13 scales stayed at 1.000, 17 and 33 followed (1.61, 1.65).
     num_scales: int = 33
     scale_step: float = 1.03
     scale_sigma_factor: float = 0.5
@@ -147,11 +174,11 @@ class TrackerConfig:
     lost_pme: float = 20.0
 
     def __post_init__(self) -> None:
-        check_fields(self, positive=("cell_size", "fixed_area", "hog_kernel_sigma", "hog_output_sigma_factor",
-                                     "cn_output_sigma_factor", "lambda1", "context_interval", "hist_bins",
-                                     "num_scales", "scale_sigma_factor", "scale_lambda", "scale_model_max_area"),
+        check_fields(self, positive=("cell_size", "fixed_area", "hog_kernel_sigma", "cn_poly_b", "context_interval",
+                                     "scale_sigma_factor", "scale_model_max_area"),
                      rates=("learning_rate", "context_penalty_rate", "dim_learning_rate", "spatial_learning_rate",
-                            "hist_learning_rate", "scale_learning_rate", "motion_search_threshold"))
+                            "hist_learning_rate", "likelihood_floor", "scale_learning_rate",
+                            "motion_search_threshold"))
         self._check_combinations()
 
     def _check_combinations(self) -> None:
@@ -163,6 +190,11 @@ class TrackerConfig:
                 problems.append(f"{field} must be >= 0, got {getattr(self, field)}")
         if self.hog_kernel_sigma < MIN_KERNEL_SIGMA:
             problems.append(f"hog_kernel_sigma must be >= {MIN_KERNEL_SIGMA}, got {self.hog_kernel_sigma}")
+        # cn_poly_b * log10(1 + cn_poly_a): (1 + a) ** b itself overflows a Python float (b = 1e5)
+        cn_kernel_digits = self.cn_poly_b * math.log10(1 + max(self.cn_poly_a, 0.0))
+        if cn_kernel_digits > math.log10(MAX_CN_KERNEL):
+            problems.append(f"(1 + cn_poly_a) ** cn_poly_b, the Color Names kernel's largest value, must be <= "
+                            f"{MAX_CN_KERNEL:g}, got 10**{cn_kernel_digits:.3g}")
         if self.hist_bins > MAX_HIST_BINS or 256 % self.hist_bins:
             problems.append(f"hist_bins must be a power of two up to {MAX_HIST_BINS} (its cube is the colour "
                             f"histogram's size), got {self.hist_bins}")

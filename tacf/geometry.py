@@ -15,7 +15,9 @@ from scipy.signal.windows import hann
 
 
 def round_half_up(x):
-    """MATLAB's round for the non-negative values used here (numpy's round is half-to-even)."""
+    """Halves rounded up: MATLAB's round for non-negative values (numpy's round is half-to-even). Negative values
+    occur too (subwindow's top-left corner near the top and left borders; areas of thin targets before their
+    floor), and there a half goes up, -2.5 to -2, where MATLAB's round gives -3."""
     return np.floor(np.asarray(x, dtype=np.float64) + 0.5)
 
 

@@ -61,8 +61,19 @@ def fuse(responses: list[np.ndarray], coefficients: np.ndarray | None = None) ->
     return fused
 
 
+def has_peak(response: np.ndarray) -> bool:
+    """Whether the response is finite and not flat. np.argmax of one with a NaN is that NaN's index, of a flat one
+    its first cell: either would move the box by the whole search radius up and left."""
+    return bool(np.isfinite(response).all() and response.max() > response.min())
+
+
 def peak_offset(response: np.ndarray) -> np.ndarray:
-    """(row, col) of the first maximum (column-major, as MATLAB's find) relative to the centre."""
+    """(row, col) of the first maximum (column-major, as MATLAB's find) relative to the centre; (0, 0), no move,
+    for a response without a peak (has_peak)."""
+    return _first_maximum_offset(response) if has_peak(response) else np.zeros(2)
+
+
+def _first_maximum_offset(response: np.ndarray) -> np.ndarray:
     flat = int(np.argmax(response.T))
     col, row = divmod(flat, response.shape[0])
     centre = (np.asarray(response.shape) - 1) / 2
@@ -71,9 +82,12 @@ def peak_offset(response: np.ndarray) -> np.ndarray:
 
 def subcell_peak_offset(response: np.ndarray) -> np.ndarray:
     """(row, col) of the maximum relative to the centre, refined by a parabola through it and its two neighbours on
-    each axis (in the response's own units, e.g. cells). A bilinear upsampling cannot do this: its maximum always
-    sits on an original sample, so the displacement stays whole cells."""
-    offset = peak_offset(response)
+    each axis (in the response's own units, e.g. cells); (0, 0) as peak_offset for a response without a peak.
+    A bilinear upsampling cannot do this: its maximum always sits on an original sample, so the displacement stays
+    whole cells."""
+    if not has_peak(response):
+        return np.zeros(2)
+    offset = _first_maximum_offset(response)
     peak = tuple(int(i) for i in offset + (np.asarray(response.shape) - 1) / 2)
     refined = offset.copy()
     for axis in (0, 1):

@@ -63,9 +63,8 @@ class StapleConfig:
     fast_resize: bool = False
 
     def __post_init__(self) -> None:
-        check_fields(self, positive=("cell_size", "fixed_area", "padding", "output_sigma_factor", "lambda1",
-                                     "hist_bins", "num_scales", "scale_sigma_factor", "scale_lambda",
-                                     "scale_model_max_area"),
+        check_fields(self, positive=("cell_size", "fixed_area", "padding", "output_sigma_factor",
+                                     "scale_sigma_factor", "scale_model_max_area"),
                      rates=("learning_rate", "merge_factor", "hist_learning_rate", "scale_learning_rate"))
 
 

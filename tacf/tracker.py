@@ -57,6 +57,10 @@ class TrackResult:
 
 
 MIN_FRAME_SIDE = 3  # with 2 the background area rounds to 0 pixels
+# A response of one cell a side has its peak at the centre whatever the frame: the box never moves. The default
+# profiles' grids have at least 3 for every box in frames up to 50 times as long as wide; a long thin box in a
+# longer strip (3 x 168, 8 x 1,280, 32 x 8,000 pixels) can leave 1.
+MIN_CROP_CELLS = 3
 
 
 def check_frame(frame, expected_shape=None) -> np.ndarray:
@@ -104,6 +108,12 @@ class Tracker:
         self.padding = search_padding(self.target_hw, cfg.fixed_area)
         self.areas = self._areas_around(self.target_hw)
         self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size, cfg.fast_fft)
+        if self.grid.crop_cells < MIN_CROP_CELLS:
+            self._frame_shape = None  # not initialised: update() asks for init() again
+            raise ValueError(f"box {(float(x), float(y), float(w), float(h))} in the {frame.shape[1]}x"
+                             f"{frame.shape[0]} image: its search area's response would be {self.grid.crop_cells} "
+                             f"cell(s) a side, under {MIN_CROP_CELLS}, and the box could not move; use a larger "
+                             f"frame or more filter cells (fixed_area / cell_size**2)")
         grid_hw = self.grid.filter_hw
         self.cosine_window = self.grid.cosine_window()
         # The paper's spatial attention windows the response with hann alone, centred on zero displacement.
@@ -163,18 +173,20 @@ class Tracker:
             self.spatiotemporal[name].keep(spatial_map)
         found = detection.centre + detection.offset / self.areas.resize_factor
         self.displacement = found - self.pos
-        self.pos = np.clip(found, 0, np.asarray(frame.shape[:2]) - 1)
+        self.pos = self._overlapping(found)
 
         # ------- SCALE -------
         if self.scale_filter is not None:
             self.scale_factor = self.scale_filter.estimate(frame, self.pos, self.scale_factor)
             self.target_hw = np.maximum(round_half_up(self.base_target_hw * self.scale_factor), 1.0)
             self.areas = self._areas_around(self.target_hw)
+            self.pos = self._overlapping(self.pos)  # a box that shrank may have to come closer
 
         self._to_learn = frame, detection.hog_response
         confidence = pme(detection.fused)
+        # A PME of 0 is a response without a peak (flat, or not finite), and the box did not move: never ok.
         return TrackResult(box=self.box, pme=confidence, score=float(detection.fused.max()),
-                           ok=confidence >= self.config.lost_pme, scale=self.scale_factor)
+                           ok=confidence > 0 and confidence >= self.config.lost_pme, scale=self.scale_factor)
 
     def learn(self) -> None:
         """The second half of update(): learn from the frame of the last locate(); nothing if done already."""
@@ -193,6 +205,14 @@ class Tracker:
     def _areas_around(self, target_hw: np.ndarray) -> TargetAreas:
         return TargetAreas.around(target_hw, self.padding, self._frame_shape[:2], self.config.fixed_area,
                                   self.config.inner_padding)
+
+    def _overlapping(self, pos: np.ndarray) -> np.ndarray:
+        """pos moved as little as needed for the box of the current size to overlap the frame by a pixel, as init
+        requires of a box. Not into the frame: init accepts a box whose centre lies outside, and a clip of the
+        centre into the frame moved it on the first update (10 px on identical frames). Within the frame,
+        where ordinary targets are, nothing changes."""
+        half = self.target_hw / 2
+        return np.clip(pos, 1 - half, np.asarray(self._frame_shape[:2]) - 1 + half)
 
     def _sample_hw(self) -> np.ndarray:
         """The image area a sample covers: the background area, grown with the fast-FFT grid."""

@@ -130,6 +130,23 @@ def test_peak_tie_break_is_column_major():
     np.testing.assert_array_equal(peak_offset(response), [1, -1])  # (3, 1) comes first by columns
 
 
+def _with(value, at):
+    """A peak two cells right of the centre, and value at `at`."""
+    response = np.exp(-np.add.outer(np.arange(-3, 4) ** 2, np.arange(-5, 2) ** 2) / 4.0)
+    response[at] = value
+    return response
+
+
+@pytest.mark.parametrize("response", [np.zeros((7, 7)), np.full((7, 7), np.nan), _with(np.nan, (5, 1)),
+                                      _with(-np.inf, (0, 0)), _with(np.inf, (3, 4))],
+                         ids=["flat", "all-nan", "one-nan", "minus-inf", "inf-beside-peak"])
+def test_a_response_without_a_peak_gives_no_move(response):
+    """A response with a NaN or an infinity is broken, a flat one finds nothing: no move from either peak function.
+    np.argmax took the first NaN, or the first cell of a flat map: a move to the corner."""
+    np.testing.assert_array_equal(peak_offset(response), [0, 0])
+    np.testing.assert_array_equal(subcell_peak_offset(response), [0, 0])
+
+
 def test_fusion_prefers_the_confident_response():
     grid = np.arange(-10, 11)
     sharp = np.exp(-(grid[:, None] ** 2 + grid[None, :] ** 2) / 4.0)

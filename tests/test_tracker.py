@@ -195,7 +195,7 @@ def test_config_refuses_wrong_types_and_memory_bombs():
                          (dict(scale_step=2.0**62), "scale_step must be <= 2"),
                          (dict(lambda1=10**400), "lambda1 must be finite"),             # an int past float range
                          (dict(hog_kernel_sigma=1e200), "hog_kernel_sigma must be <= 1e\\+06"),  # its square overflows
-                         (dict(cn_output_sigma_factor=1e200), "cn_output_sigma_factor must be <= 1e\\+06")]:
+                         (dict(cn_output_sigma_factor=1e200), "cn_output_sigma_factor must be in \\[0.001, 1\\]")]:
         with pytest.raises(ValueError, match=message):
             TrackerConfig.profile("authors", **bad)
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
@@ -208,12 +208,98 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     (dict(hist_bins=3), "power of two up to 64"),                         # failed in init
     (dict(hist_bins=256), "power of two up to 64"),                       # 16.7 M bins: 9 s and 1 GB for 3 frames
     (dict(fixed_area=16.0), "the filter's cells"),                        # one cell: failed in init
+    (dict(fixed_area=400.0), "the filter's cells\\) must be in \\[48, "),    # a one-cell response: the box froze
     (dict(cell_size=1, fixed_area=1e6), "the filter's cells"),            # 1e6 cells: 113 s and 3.3 GB
     (dict(num_scales=129, scale_step=1.1), "largest scale patch"),        # 446 times the target: 31 s, 1.2 GB
 ])
 def test_config_refuses_combinations_the_tracker_cannot_run(overrides, message):
     with pytest.raises(ValueError, match=message):
         TrackerConfig.profile("paper", **overrides)
+
+
+@pytest.mark.parametrize("overrides, message", [
+    # float32 models: NaN filters, and the box sent to the search area's corner
+    (dict(lambda1=1e-45), r"lambda1 must be in \[1e-12, 1e\+06\], got 1e-45"),
+    (dict(lambda1=1e39), r"lambda1 must be in \[1e-12, 1e\+06\], got 1e\+39"),
+    (dict(scale_lambda=1e39), r"scale_lambda must be in \[1e-12, 1e\+06\], got 1e\+39"),
+    (dict(hog_output_sigma_factor=1e-300), r"hog_output_sigma_factor must be in \[0.001, 1\], got 1e-300"),
+    (dict(cn_output_sigma_factor=1e-300), r"cn_output_sigma_factor must be in \[0.001, 1\], got 1e-300"),
+    (dict(cn_poly_a=100.0, cn_poly_b=50.0), r"\(1 \+ cn_poly_a\) \*\* cn_poly_b.* must be <= 1e\+12, got 10\*\*100"),
+    (dict(cn_poly_b=1e5), r"\(1 \+ cn_poly_a\) \*\* cn_poly_b.* must be <= 1e\+12, got 10\*\*3.01e\+04"),
+    (dict(cn_poly_a=1e6, cn_poly_b=1.0), r"cn_poly_a must be <= 1000, got 1000000.0"),  # Color Names answered nothing
+    (dict(cn_poly_b=0.0), r"cn_poly_b must be > 0, got 0.0"),                        # likewise
+    (dict(context_challenge_floor=0.0), r"context_challenge_floor must be >= 0.001, got 0.0"),  # 0/0 penalties
+    # parts silently switched off
+    (dict(hist_bins=1), r"hist_bins must be in \[2, 256\], got 1"),                  # a flat colour window
+    (dict(likelihood_floor=5.0), r"likelihood_floor must be in \[0, 1\], got 5.0"),   # features times 5
+    (dict(num_scales=3), r"num_scales must be in \[5, 129\], got 3"),                 # the centre scale alone
+])
+def test_config_refuses_values_that_broke_the_tracker(overrides, message):
+    with pytest.raises(ValueError, match=message):
+        TrackerConfig.profile("paper", **overrides)
+
+
+def test_config_bounds_keep_the_profiles_and_their_ends():
+    for name in TrackerConfig.profile_names():
+        TrackerConfig.profile(name)
+    TrackerConfig.profile(lambda1=1e-12, scale_lambda=1e6, hog_output_sigma_factor=1e-3, cn_output_sigma_factor=1.0,
+                          cn_poly_a=1e3, cn_poly_b=3.9, context_challenge_floor=1e-3, hist_bins=2,
+                          likelihood_floor=1.0, num_scales=5, fixed_area=48.0 * 4**2)
+
+
+@pytest.mark.parametrize("target_hw", [(300, 6), (600, 12), (5, 250), (40, 40)])
+def test_the_smallest_grid_still_has_a_response_to_move_in(target_hw):
+    """At the floor of filter cells the cropped response keeps 3 cells a side, even for targets of 1:50 (at 36-40
+    cells these had one, and a one-cell response never moves the box)."""
+    image = np.zeros((1500, 1500), np.uint8)
+    tracker = Tracker(TrackerConfig.profile(fixed_area=48.0 * 4**2, scale_estimation=False, colour_window=False))
+    tracker.init(image, (600, 400, target_hw[1], target_hw[0]))
+    assert tracker.grid.crop_cells >= 3
+
+
+def test_init_refuses_a_box_whose_response_would_be_one_cell():
+    """In a strip 67 times as long as high a long thin box's search area leaves one cell of response."""
+    strip = texture(np.random.default_rng(2), (3, 200, 3), blur=1)
+    tracker = Tracker()
+    with pytest.raises(ValueError, match=r"response would be 1 cell\(s\) a side, under 3"):
+        tracker.init(strip, (10, 1, 100, 1))
+    with pytest.raises(RuntimeError, match="init"):
+        tracker.update(strip)
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
+@pytest.mark.parametrize("value", [np.nan, np.inf, 0.0], ids=["nan", "inf", "flat"])
+def test_a_response_without_a_peak_leaves_the_box_in_place_and_not_ok(monkeypatch, value):
+    """np.argmax of a NaN map is its first NaN and of a flat one its first cell: the box jumped by the whole search
+    radius up and left. Now it stays, with PME 0, not ok even under a floor of 0."""
+    from tacf.correlator import CorrelatorBank
+
+    images, truth = moving_target_sequence(frames=5)
+    tracker = Tracker(TrackerConfig.profile(lost_pme=0.0))
+    tracker.init(images[0], truth[0])
+    tracker.update(images[1])
+    centre = np.array(tracker.box[:2]) + np.array(tracker.box[2:]) / 2
+    with monkeypatch.context() as patch:
+        patch.setattr(CorrelatorBank, "response", lambda self, z, *args: np.full(z.shape[-2:], value, np.float32))
+        result = tracker.update(images[2])
+    assert np.array(result.box[:2]) + np.array(result.box[2:]) / 2 == pytest.approx(centre)
+    assert result.pme == 0.0 and not result.ok
+    assert box_iou(tracker.update(images[3]).box, truth[3]) > 0.5  # and tracks on
+
+
+@pytest.mark.parametrize("box", [(-30, 100, 40, 60), (310, 100, 40, 60), (150, -20, 40, 30), (150, 230, 40, 30)],
+                         ids=["left", "right", "top", "bottom"])
+def test_a_box_with_its_centre_outside_the_frame_stays_put_on_identical_frames(box):
+    """init accepts a box that overlaps the frame; the first update clipped its centre into the frame, a 10 px
+    jump on identical frames. (Its size may drift by a pixel: the scale samples there are mostly replicated border.)"""
+    image = texture(np.random.default_rng(4), (240, 320, 3), blur=2)
+    tracker = Tracker()
+    tracker.init(image, box)
+    centre = np.array(box[:2]) + np.array(box[2:]) / 2
+    for _ in range(5):
+        result = tracker.update(image)
+        assert np.array(result.box[:2]) + np.array(result.box[2:]) / 2 == pytest.approx(centre, abs=1.5)
+        assert result.ok
 
 
 def test_blank_frames_leave_the_scale_alone():
