@@ -264,6 +264,19 @@ def test_a_vot_polygon_row_is_read_as_its_enclosing_box(tmp_path):
     assert np.isnan(seq.gt[1]).all()
 
 
+def test_the_vot_toolkit_layout_of_2020_on_reads_its_color_frames(tmp_path, caplog):
+    write_frames(tmp_path / "bag" / "color", 2, "{:08d}.jpg")
+    write_frames(tmp_path / "bag" / "depth", 2, "{:08d}.png")       # an RGB-D sequence's other channel: ignored
+    (tmp_path / "bag" / "sequence").write_text("channels.color=color/%08d.jpg\nchannels.depth=depth/%08d.png\n")
+    (tmp_path / "bag" / "groundtruth.txt").write_text("292.23,128.36,145.96,132.47\n" * 2)
+    (seq,) = load_sequences(tmp_path)
+    assert seq.name == "bag" and [p.parent.name for p in seq.frames] == ["color", "color"]
+    write_frames(tmp_path / "ants" / "color", 2, "{:08d}.jpg")
+    (tmp_path / "ants" / "groundtruth.txt").write_text("m10,10,4,3,2,5,5\n" * 2)  # VOT-ST's masks
+    with pytest.raises(ValueError, match="ants/groundtruth.txt:1: a VOT segmentation mask; tacf evaluates boxes"):
+        load_sequences(tmp_path)
+
+
 @needs_data
 def test_vot_polygons_give_the_axis_aligned_ground_truth_shipped_beside_them():
     bag = SEQUENCES / "VOT" / "bag"

@@ -55,6 +55,9 @@ def parse_boxes(lines: list[str], path: Path, one_based: bool = True) -> np.ndar
         line = line.strip()
         if not line or line.startswith("#"):
             continue
+        if line.startswith("m"):
+            raise ValueError(f"{path}:{lineno}: a VOT segmentation mask; tacf evaluates boxes: use the rectangle "
+                             "(VOT-STb) or polygon ground truth")
         parts = [p for p in _SEPARATORS.split(line) if p]
         if len(parts) < 4:
             raise ValueError(f"{path}:{lineno}: expected 4 numbers x,y,w,h, got {line!r}")

@@ -1,7 +1,8 @@
 """Sequence-per-folder layouts: the generic layout of ../shared/data/sequences and OTB.
 
 generic: <ROOT>/[<dataset>/...]<seq>/img/*.jpg + groundtruth.txt (comma-separated, 1-based); the official
-         VOT layout (frames beside a groundtruth.txt of polygons) reads each polygon as its enclosing box.
+         VOT layouts (frames beside a groundtruth.txt of polygons, or in color/ as the VOT toolkit of 2020 on
+         keeps them) read each polygon as its enclosing box.
          The VOT folders of ../shared/data also hold groundtruth_poly.txt, which is ignored.
 OTB:     <ROOT>/<seq>/img/*.jpg + groundtruth_rect.txt (comma, tab or space separated, 1-based); the
          two-target sequences ship groundtruth_rect.1.txt / .2.txt and become <seq>-1 / <seq>-2.
@@ -40,8 +41,15 @@ def _gt_files(folder: Path) -> list[tuple[str, Path]]:
     return found
 
 
+FRAME_FOLDERS = ("img", "color")      # color/: the VOT toolkit's layout since 2020 (with depth/ or ir/ beside)
+
+
 def _frames_of(folder: Path) -> list[Path]:
-    return list_frames(folder / "img") or list_frames(folder)
+    for name in FRAME_FOLDERS:
+        frames = list_frames(folder / name)
+        if frames:
+            return frames
+    return list_frames(folder)
 
 
 def sequence_folders(root: Path) -> list[Path]:
@@ -50,7 +58,7 @@ def sequence_folders(root: Path) -> list[Path]:
     out = []
     for dirpath, dirnames, _ in os.walk(root):
         folder = Path(dirpath)
-        dirnames[:] = sorted(d for d in dirnames if d != "img" and not d.startswith("."))
+        dirnames[:] = sorted(d for d in dirnames if d not in FRAME_FOLDERS and not d.startswith("."))
         if _gt_files(folder) and _frames_of(folder):
             out.append(folder)
     return sorted(out)
