@@ -364,6 +364,13 @@ def test_track_image_folder_and_video(tmp_path):
     assert rc == 0
     rows = check_boxes_file(tmp_path / "boxes.txt", 20, box)
     assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=3)
+    # a dataset's sequence folder: its img/, not a preview image beside it
+    (tmp_path / "seq").mkdir()
+    folder.rename(tmp_path / "seq" / "img")
+    cv2.imwrite(str(tmp_path / "seq" / "preview.jpg"), frames[0])
+    assert main(["track", str(tmp_path / "seq"), "--box", ",".join(str(v) for v in box), "--tracker", "opencv-kcf",
+                 "--out", str(tmp_path / "seq_boxes.txt")]) == 0
+    check_boxes_file(tmp_path / "seq_boxes.txt", 20, box)
     cap = cv2.VideoCapture(str(tmp_path / "out.mp4"))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 20
     cap.release()

@@ -13,7 +13,8 @@ import numpy as np
 
 from ..boxes import check_box
 from . import metrics
-from .datasets import Sequence, list_frames
+from .datasets import Sequence
+from .datasets.folders import frames_of
 from .runner import read_frame
 from .trackers import BoxTracker
 
@@ -25,12 +26,13 @@ BOXES_HEADER = ("# x,y,w,h,pme,ok - one line per frame, line 1 = the initial box
 
 
 def open_source(source: Path) -> tuple[Iterator[np.ndarray], float]:
-    """(BGR frames, frame rate) of a video file or an image folder (its img/ subfolder if it has one)."""
+    """(BGR frames, frame rate) of a video file or an image folder (its img/ subfolder if it has one, as a
+    dataset's sequence folder: a stray image beside img/ is no sequence)."""
     import cv2
 
     source = Path(source)
     if source.is_dir():
-        paths = list_frames(source) or list_frames(source / "img")
+        paths = frames_of(source)
         if not paths:
             raise FileNotFoundError(f"{source}: no images (.jpg, .jpeg, .png, .bmp) in the folder")
         return (read_frame(p) for p in paths), 10.0

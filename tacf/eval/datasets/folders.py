@@ -44,7 +44,8 @@ def _gt_files(folder: Path) -> list[tuple[str, Path]]:
 FRAME_FOLDERS = ("img", "color")      # color/: the VOT toolkit's layout since 2020 (with depth/ or ir/ beside)
 
 
-def _frames_of(folder: Path) -> list[Path]:
+def frames_of(folder: Path) -> list[Path]:
+    """A sequence folder's frames: those of its img/ (or VOT's color/) when it has one, else its own."""
     for name in FRAME_FOLDERS:
         frames = list_frames(folder / name)
         if frames:
@@ -59,7 +60,7 @@ def sequence_folders(root: Path) -> list[Path]:
     for dirpath, dirnames, _ in os.walk(root):
         folder = Path(dirpath)
         dirnames[:] = sorted(d for d in dirnames if d not in FRAME_FOLDERS and not d.startswith("."))
-        if _gt_files(folder) and _frames_of(folder):
+        if _gt_files(folder) and frames_of(folder):
             out.append(folder)
     return sorted(out)
 
@@ -76,7 +77,7 @@ def load(root: Path) -> list[Sequence]:
     for folder in sequence_folders(root):
         rel = folder.relative_to(root).as_posix()
         base = folder.name if rel == "." else rel
-        frames = _frames_of(folder)
+        frames = frames_of(folder)
         attributes = read_attribute_list(folder / ATTRIBUTES) if (folder / ATTRIBUTES).is_file() else None
         for suffix, gt_path in _gt_files(folder):
             gt = read_boxes(gt_path)
