@@ -109,6 +109,9 @@ def resize_auto(patch: np.ndarray, out_hw, fast: bool = False) -> np.ndarray:
     over weight tables: a 586x528 colour crop to 216x192 takes 1.1 ms that way and 0.25 ms this way. On real frames
     the two differ by 0.3 grey levels on average (mean absolute difference) for shrinks under 1.3x and by 1-2 for
     larger ones (tests/test_geometry.py); the tracker's accuracy is unchanged within its noise (docs/decisions.md).
+    A shrink of 2x or more on one axis alone (DSST's scale patches of tall or wide targets) is not halved: one
+    bilinear sample, which aliases (5.5 grey levels from area averaging on person12_1's); halving each axis on its
+    own was measured and not adopted (docs/decisions.md).
     """
     rows, cols = int(out_hw[0]), int(out_hw[1])
     if patch.shape[0] == rows and patch.shape[1] == cols:
