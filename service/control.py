@@ -41,6 +41,10 @@ class ControlServer:
         # that close() can always queue the end markers.
         self._slow: queue.Queue = queue.Queue()
         self._quick: queue.Queue = queue.Queue()
+        # A query admitted after the end markers would wait behind them unanswered: admitting and closing take
+        # turns, and a closed server refuses at once.
+        self._admission = threading.Lock()
+        self._closed = False
         # Declared before the threads start (queries admitted meanwhile wait in their lane): a declaration that
         # fails leaves no thread behind to keep the process alive.
         self._queryable = zenoh_session.declare_queryable(control_key(node, "*"), self._admit)
@@ -57,8 +61,10 @@ class ControlServer:
             self._queryable.undeclare()
         except Exception:
             pass
-        for lane, _ in self._threads:
-            lane.put(None)
+        with self._admission:
+            self._closed = True
+            for lane, _ in self._threads:
+                lane.put(None)
         deadline = time.monotonic() + timeout
         for _, thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -67,14 +73,15 @@ class ControlServer:
         """On Zenoh's callback thread: queue the query in its lane, or refuse it at once when the lane is full."""
         op = str(query.key_expr).rsplit("/", 1)[-1]
         lane = self._slow if op in SLOW_OPS else self._quick
-        waiting = lane.qsize()
-        if waiting < QUERY_QUEUE:
-            lane.put(query)
-            return
+        with self._admission:
+            closed, waiting = self._closed, lane.qsize()
+            if not closed and waiting < QUERY_QUEUE:
+                lane.put(query)
+                return
+        message = (f"node {self.node!r} is shutting down" if closed
+                   else f"node {self.node!r} is busy, {waiting} control queries waiting; retry")
         with query:
-            self._reply_err(query, Error(code="unavailable", node=self.node,
-                                         message=f"node {self.node!r} is busy, {waiting} control queries waiting; "
-                                                 f"retry"))
+            self._reply_err(query, Error(code="unavailable", node=self.node, message=message))
 
     def _serve(self, lane: queue.Queue) -> None:
         while True:

@@ -25,7 +25,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
-from tacf_schemas import (Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
+from tacf_schemas import (Error, Frame, Health, ReinitRequest, StartRequest, StatusRequest, StopRequest,
                           catch_up_subset, control_key, decode, encode, session_liveliness_key)
 from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
@@ -433,6 +433,23 @@ def test_control_fuzz_gets_a_reply_or_a_typed_error(service, client, op, payload
     else:
         if op == "start":       # a random payload that happens to be a valid start: clean it up
             call(client, NODE, "stop", StopRequest(sid=reply.sid))
+
+
+def test_a_query_admitted_after_the_control_server_closed_is_refused_not_lost(client):
+    """A Zenoh callback still running when close() queued the lanes' end markers used to queue its query behind
+    them, where no thread took it: the client got no reply. A late admission is refused at once."""
+    from tacf_service.control import ControlServer
+
+    server = ControlServer(client, "late", manager=None)
+    server.close()
+    late = client.declare_queryable("tacf/late/control/*", server._admit)   # a callback that outlived close()
+    try:
+        replies = list(client.get("tacf/late/control/status", timeout=5.0))
+    finally:
+        late.undeclare()
+    assert len(replies) == 1 and replies[0].err is not None
+    error = decode(replies[0].err.payload.to_bytes(), Error)
+    assert error.code == "unavailable" and "shutting down" in error.message
 
 
 def test_unknown_op_and_wildcard_op(service, client):
