@@ -229,10 +229,12 @@ def _setting(text: str) -> tuple[str, bool | int | float]:
 
 @contextmanager
 def stop_on_signals():
-    """An Event set by SIGINT / SIGTERM while the block runs (previous handlers restored afterwards)."""
+    """An Event set by SIGINT / SIGTERM / SIGHUP (the terminal closed: `tacf demo` used to leave its service
+    running) while the block runs (previous handlers restored afterwards)."""
     stop = threading.Event()
     handler = lambda *_: stop.set()  # noqa: E731
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    signals = (signal.SIGINT, signal.SIGTERM) + ((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ())
+    previous = {sig: signal.signal(sig, handler) for sig in signals}
     try:
         yield stop
     finally:
@@ -263,6 +265,9 @@ def cmd_publish(args: argparse.Namespace) -> int:
                             max_frames=args.frames, stop=stop)
     except (SourceError, FrameError) as exc:       # FrameError: frames beyond the wire limits, which no service takes
         print(f"tacf publish: {exc}", file=sys.stderr)
+        return 2
+    if stats.frames == 0 and not stop.is_set():
+        print(f"tacf publish: {args.source}: no frame could be read", file=sys.stderr)
         return 2
     reconnected = f", {source.reconnects} reconnections" if source.reconnects else ""
     print(f"published {stats.frames} frames in {stats.seconds:.1f} s ({stats.fps:.1f} fps, "
@@ -404,12 +409,19 @@ def cmd_nodes(args: argparse.Namespace) -> int:
     if args.follow:
         return _follow_nodes(args)
     from tacf_clients.client import node_load
+    from tacf_clients.errors import TacfError
     from tacf_clients.watch import columns
 
     with _client(args) as client:
         alive = client.alive_nodes()
         listings: dict[str, list] = {}
-        for listing in client.services():   # a row per service that answers, even two under one node id
+        try:
+            answers = client.services()     # a row per service that answers, even two under one node id
+        except TacfError:
+            if not alive:
+                raise
+            answers = []                    # alive but none answered: each gets its "no answer" row
+        for listing in answers:
             listings.setdefault(listing.node, []).append(listing)
     rows = []
     for node in sorted(set(alive) | set(listings)):

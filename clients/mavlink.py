@@ -64,8 +64,9 @@ PROGRESS_S = 1.0            # how often a command in progress is answered IN_PRO
 PROGRESS_UNKNOWN = 255      # COMMAND_ACK.progress when the percentage is not known
 LINK_RETRY_S = 1.0          # pause between reconnections to a TCP ground station that went away
 VENDOR, MODEL = b"tacf", b"TACF tracker"
-# A ground station may send any command in either message; the commands answered here read param1-4 only, which
-# both carry as floats (COMMAND_INT's x, y, z hold a position, which none of them has).
+# A ground station may send any command in either message; the commands answered here read param1-4, which both
+# carry as floats, and the target camera id of the two tracking commands (param5 of TRACK_RECTANGLE, which
+# COMMAND_INT carries as x; param1 of STOP_TRACKING).
 COMMAND_MESSAGES = ["COMMAND_LONG", "COMMAND_INT"]
 # pymavlink's network links, each HOST:PORT after its prefix ("udp:" and no prefix at all: UDP as well)
 NETWORK_LINKS = ("tcp:", "tcpin:", "udpin:", "udpout:", "udpbcast:", "udp:")
@@ -249,6 +250,8 @@ class MavlinkCamera:
                 message.target_component not in (0, self.component):
             return                                   # for another system or component
         command, requested = message.command, None
+        if message.target_component == 0 and _target_camera(message) not in (0, self.component):
+            return                                   # broadcast for another camera, which answers it
         key = (message.get_srcSystem(), message.get_srcComponent(), command)
         params = (message.param1, message.param2, message.param3, message.param4)
         if key in self._pending:
@@ -453,3 +456,16 @@ class MavlinkCamera:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _target_camera(message) -> int:
+    """The camera a tracking command is for (0: any; 1-6 attached to the autopilot, 7-255 a camera component's
+    id); 0 for other commands and for values no camera id can be."""
+    if message.command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
+        value = message.x if message.get_type() == "COMMAND_INT" else message.param5
+    elif message.command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
+        value = message.param1
+    else:
+        return 0
+    return int(value) if math.isfinite(value) and 1 <= value <= 255 and value == int(value) else 0
+

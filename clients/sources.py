@@ -18,6 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from tacf.eval.datasets.base import natural_key
+
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
@@ -92,7 +94,7 @@ class ImageFolderSource(FrameSource):
         folder = Path(folder)
         if not any(_is_image(p) for p in folder.iterdir()) and (folder / "img").is_dir():
             folder = folder / "img"
-        self.paths = sorted(p for p in folder.iterdir() if _is_image(p))
+        self.paths = sorted((p for p in folder.iterdir() if _is_image(p)), key=natural_key)   # 2.png before 10.png
         if not self.paths:
             raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
         self.folder, self.name, self.loop, self.fps = folder, str(folder), loop, fps

@@ -437,3 +437,25 @@ def test_command_line_list_of_a_service_that_does_not_answer_prints_an_empty_jso
     assert captured.out == "" and captured.err.strip() == "tacf list: no tracking service answered (node 'nobody')"
     assert main(["list", "--json", "--node", service.node, *zenoh_args]) == 0       # no sessions: a valid answer
     assert [row["node"] for row in json.loads(capsys.readouterr().out)] == [service.node]
+
+
+def test_nodes_shows_a_service_that_is_alive_but_does_not_answer(tmp_path):
+    """With no other service answering, the list query's timeout used to end `tacf nodes` in an error (exit 1)
+    instead of the row that says so."""
+    import subprocess
+    import sys
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as hung:
+        token = hung.liveliness().declare_token("@tacf/hung")
+        queries = hung.declare_queryable("tacf/hung/control/*", zenoh.handlers.FifoChannel(64))   # never answered
+        try:
+            done = subprocess.run([sys.executable, "-m", "tacf.cli", "nodes", "--connect", f"tcp/127.0.0.1:{port}",
+                                   "--timeout", "1"], capture_output=True, text=True, timeout=60)
+        finally:
+            queries.undeclare()
+            token.undeclare()
+    assert done.returncode == 0, done.stderr
+    row = next(line for line in done.stdout.splitlines() if line.split()[:1] == ["hung"])
+    assert "no answer" in row
+

@@ -118,6 +118,14 @@ def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):
     assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, component=0) == \
         mav.MAV_RESULT_ACCEPTED
     assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED, "nothing to stop is fine"
+    # broadcast tracking commands that name another camera (param5 of TRACK_RECTANGLE, param1 of STOP_TRACKING) are
+    # that camera's: with one component per camera, camera 101's rectangle used to start this one tracking
+    other = mav.MAV_COMP_ID_CAMERA + 1
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.3, 0.3, other, component=0,
+                    timeout=1.5) is None
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, other, component=0, timeout=1.5) is None
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, mav.MAV_COMP_ID_CAMERA, component=0) == \
+        mav.MAV_RESULT_ACCEPTED
     assert SID not in {info.sid for info in client.list()}
 
 

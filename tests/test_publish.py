@@ -332,6 +332,30 @@ def test_publish_command_line_on_an_image_folder(tmp_path, collector):
     assert "published 5 frames" in done.stderr + done.stdout
 
 
+def test_an_image_folder_plays_in_natural_order(tmp_path):
+    """FFmpeg's %d.jpg names frames 1, 2, ... 10: sorted as text, 10.png came before 2.png."""
+    for i in (1, 2, 10, 11, 3):
+        cv2.imwrite(str(tmp_path / f"{i}.png"), np.full((8, 8, 3), i, np.uint8))
+    assert [p.stem for p in ImageFolderSource(tmp_path).paths] == ["1", "2", "3", "10", "11"]
+
+
+def test_publish_command_line_fails_on_a_video_without_frames(tmp_path, collector):
+    """A video whose headers survive but whose frames were cut off opens, then yields nothing: that is no success."""
+    clip = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 25, (64, 48))
+    for i in range(5):
+        writer.write(np.full((48, 64, 3), i * 10, np.uint8))
+    writer.release()
+    data = clip.read_bytes()
+    cut = tmp_path / "headers_only.avi"
+    cut.write_bytes(data[:data.index(b"movi") + 4])
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", str(cut), "--key", KEY,
+           "--connect", f"tcp/127.0.0.1:{collector.port}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert f"tacf publish: {cut}: no frame could be read" in done.stderr
+
+
 def test_publish_command_line_ends_on_a_looped_folder_it_cannot_read(tmp_path, collector):
     for name in ("a.jpg", "b.jpg"):
         (tmp_path / name).write_bytes(b"not a jpeg")
