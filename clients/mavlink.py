@@ -23,6 +23,10 @@ twice; the same command with other parameters meanwhile is TEMPORARILY_REJECTED.
   answers those, and an UNSUPPORTED from the camera could reach the ground station before their ACCEPTED.
 While a session runs it streams CAMERA_TRACKING_IMAGE_STATUS with the newest box (rectangle and centre, target
 data IN_STATUS): ACTIVE, plus COASTING while the tracker reports the target lost; one IDLE status follows a stop.
+A box older than STALE_BOX_S is not shown (ACTIVE | COASTING, no target data): a frozen box over the video would
+say the target stands still. A service that has not answered SERVICE_LOST_CHECKS session checks in a row (killed,
+hung, out of reach) turns the status to ERROR; the checks go on, and the status is ACTIVE again once the service
+answers that the session runs (a service restarted with --state brings it back).
 A session that could not start, or that failed on the service, stays `failed`: its status says ERROR, at the same
 rate, until a stop clears it or a new rectangle starts it again.
 Point tracking is not offered: a tracker needs the target's extent. The video itself stays the camera's own
@@ -60,6 +64,8 @@ log = logging.getLogger(__name__)
 DEFAULT_STATUS_HZ = 10.0
 HEARTBEAT_S = 1.0
 SESSION_CHECK_S = 2.0       # how often a running session is asked whether it still runs
+SERVICE_LOST_CHECKS = 2     # session checks unanswered in a row before the status says ERROR (one may be a blip)
+STALE_BOX_S = 1.0           # a box not followed by a newer one within this long is no longer shown
 PROGRESS_S = 1.0            # how often a command in progress is answered IN_PROGRESS again
 PROGRESS_UNKNOWN = 255      # COMMAND_ACK.progress when the percentage is not known
 LINK_RETRY_S = 1.0          # pause between reconnections to a TCP ground station that went away
@@ -168,6 +174,8 @@ class MavlinkCamera:
         self._service_thread.start()
         self._newest_frame: zenoh.Sample | None = None
         self._box: TrackedBox | None = None
+        self._box_arrived = 0.0                      # monotonic time the box arrived
+        self._unanswered_checks = 0                  # session checks in a row the service did not answer
         # (seq, stamp_ns) of the frame the session was last (re)started on, until a box of the new start arrives
         self._started_on: tuple[int, int] | None = None
         self._started = time.monotonic()
@@ -197,7 +205,7 @@ class MavlinkCamera:
                         if self._started_on is None or not _precedes(box, self._started_on):
                             # boxes arrive in order: once one is from after the (re)start, later ones are too,
                             # even with the seq of a camera that restarted from 0
-                            self._box, self._started_on = box, None
+                            self._box, self._box_arrived, self._started_on = box, now, None
                 if self.state != "idle" and self.status_interval_s > 0 and now >= next_status:
                     self._send_status()
                     next_status = now + self.status_interval_s
@@ -229,7 +237,7 @@ class MavlinkCamera:
             if call.key is None:                     # the session check
                 self._checking = False
                 if call.result != mav.MAV_RESULT_ACCEPTED:
-                    self._send_status()              # it ended: IDLE or ERROR
+                    self._send_status()              # it changed: IDLE, ERROR, or ACTIVE once the service is back
                 continue
             del self._pending[call.key]
             self._ack(call.key, call.result)
@@ -362,25 +370,38 @@ class MavlinkCamera:
         return mav.MAV_RESULT_ACCEPTED
 
     def _check_session(self) -> int:
-        """A session stopped elsewhere (the dashboard, `tacf stop`) ends the tracking here too, and one that failed
-        on the service is failed here. ACCEPTED while it still runs (or the service is out of reach for now)."""
+        """A session stopped elsewhere (the dashboard, `tacf stop`) ends the tracking here too, one that failed on
+        the service is failed here, and a service that stopped answering is lost (ERROR) until it answers again.
+        ACCEPTED when the status to send is unchanged, FAILED when it changed."""
         try:
             state = self.client.status(self.sid).state
         except UnknownSession:
             state = "stopped"
-        except TacfError as exc:                     # the service out of reach for now: ask again later
-            log.warning("status of %s: %s", self.sid, exc)
-            return mav.MAV_RESULT_ACCEPTED
+        except TacfError as exc:                     # no answer: killed, hung or out of reach; ask again later
+            with self._lock:
+                self._unanswered_checks += 1
+                lost_now = self._unanswered_checks == SERVICE_LOST_CHECKS
+            if lost_now:
+                log.warning("the service has not answered %d checks of %s (%s): status ERROR until it answers",
+                            SERVICE_LOST_CHECKS, self.sid, exc)
+            return mav.MAV_RESULT_FAILED if lost_now else mav.MAV_RESULT_ACCEPTED
+        with self._lock:
+            was_lost, self._unanswered_checks = self._unanswered_checks >= SERVICE_LOST_CHECKS, 0
         if state not in ("stopped", "failed") or not self.tracking:
-            return mav.MAV_RESULT_ACCEPTED           # still runs, or a command changed it meanwhile
+            if was_lost:
+                log.info("the service answers again: %s is %s", self.sid, state)
+            # still runs (back to ACTIVE if the service was lost), or a command changed it meanwhile
+            return mav.MAV_RESULT_FAILED if was_lost else mav.MAV_RESULT_ACCEPTED
         log.info("session %s is %s: tracking ended", self.sid, state)
         self._held = state == "failed"               # the service keeps a failed session until it is stopped
         self._set_state("idle" if state == "stopped" else "failed")
         return mav.MAV_RESULT_FAILED
 
     def _set_state(self, state: str, started_on: tuple[int, int] | None = None) -> None:
+        """Called after the service answered: it is not lost."""
         with self._lock:
             self.state, self._box, self._started_on = state, None, started_on
+            self._unanswered_checks = 0
 
     def _set_interval(self, message) -> int:
         if _message_id(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:
@@ -406,12 +427,15 @@ class MavlinkCamera:
         status, mode, target_data = mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE, mav.CAMERA_TRACKING_MODE_NONE, 0
         point, corners = (nan, nan), (nan, nan, nan, nan)
         with self._lock:
-            state, box = self.state, self._box
-        if state == "failed":
+            state, box, box_age = self.state, self._box, time.monotonic() - self._box_arrived
+            lost = self._unanswered_checks >= SERVICE_LOST_CHECKS
+        if state == "failed" or (state == "tracking" and lost):
             status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR, mav.CAMERA_TRACKING_MODE_RECTANGLE
         elif state == "tracking":
             status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_RECTANGLE
-            if box is not None:
+            if box is not None and box_age > STALE_BOX_S:
+                status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING      # no box lately: none to show
+            elif box is not None:
                 target_data = mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS
                 point, corners = box.center_norm, box.corners_normalised
                 if not box.ok:
