@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import numbers
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -58,7 +59,8 @@ class TrackingClient:
     `options` (ZenohOptions; None = loopback defaults) and closes it in `close()`.
     node: the service to address by default; None = whichever service holds the session (and, for `start`,
     the only service on the network). LEAST_LOADED is refused here: it is a choice for `start` only.
-    timeout: seconds to wait for replies to each call.
+    timeout: seconds each call may take, however many queries it makes (a start with no node lists the services
+    first; a session whose service is not known yet is looked for first).
     """
 
     def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
@@ -99,12 +101,12 @@ class TrackingClient:
         """
         request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, frames=list(frames),
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
-        target = node or self.node
-        if target == LEAST_LOADED:
-            target = least_loaded(self.services(node=keys.WILDCARD))     # every service, even with self.node set
+        deadline, target = self._deadline(), node or self.node
+        if target == LEAST_LOADED:                                       # every service, even with self.node set
+            target = least_loaded(self._services(keys.WILDCARD, deadline))
         elif target is None:
-            target = self._single_node()
-        info = self._call_one(target, "start", request, SessionInfo)
+            target = self._single_node(deadline)
+        info = self._call_one(target, "start", request, SessionInfo, deadline)
         self._remember(info)
         return info
 
@@ -132,8 +134,14 @@ class TrackingClient:
 
     def services(self, *, node: str | None = None) -> list[SessionList]:
         """One SessionList per service that answers (a wildcard query on tacf/*/control/list)."""
-        node = node or self.node
-        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList)
+        return self._services(node or self.node, self._deadline())
+
+    def nodes(self) -> list[str]:
+        """Ids of the services that answer a list query."""
+        return [listing.node for listing in self.services()]
+
+    def _services(self, node: str | None, deadline: float) -> list[SessionList]:
+        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList, deadline)
         listings = [r.model for r in replies if r.model is not None]
         errors = [r.error for r in replies if r.error is not None]
         if not listings and errors:
@@ -151,10 +159,6 @@ class TrackingClient:
                 else:
                     self._nodes_of_sid.pop(sid, None)
         return sorted(listings, key=lambda lst: lst.node)
-
-    def nodes(self) -> list[str]:
-        """Ids of the services that answer a list query."""
-        return [listing.node for listing in self.services()]
 
     def alive_nodes(self) -> list[str]:
         """Ids of the services whose liveliness token is up, whether or not they answer queries."""
@@ -214,8 +218,12 @@ class TrackingClient:
         with self._lock:
             self._nodes_of_sid[sid] = node
 
-    def _single_node(self) -> str:
-        nodes = self.nodes()
+    def _deadline(self) -> float:
+        """When the call starting now must end: every query it makes shares its `timeout`."""
+        return time.monotonic() + self.timeout
+
+    def _single_node(self, deadline: float) -> str:
+        nodes = [listing.node for listing in self._services(None, deadline)]
         if not nodes:
             raise NoService("no tracking service answered on tacf/*/control/list")
         if twins := sorted({node for node in nodes if nodes.count(node) > 1}):
@@ -229,21 +237,22 @@ class TrackingClient:
     def _call_session(self, sid: str, node: str | None, op: str, request: WireModel) -> SessionInfo:
         """Call `op` on the service holding `sid`. A node remembered from an earlier reply may be out of date
         (the session was stopped and started elsewhere): then look it up again once."""
+        deadline = self._deadline()
         if node or self.node:
-            return self._call_one(node or self.node, op, request, SessionInfo)
+            return self._call_one(node or self.node, op, request, SessionInfo, deadline)
         with self._lock:
             cached = self._nodes_of_sid.get(sid)
         if cached is not None:
             try:
-                return self._call_one(cached, op, request, SessionInfo)
+                return self._call_one(cached, op, request, SessionInfo, deadline)
             except (UnknownSession, NoService):
                 with self._lock:
                     self._nodes_of_sid.pop(sid, None)
-        return self._call_one(self._find_node(sid), op, request, SessionInfo)
+        return self._call_one(self._find_node(sid, deadline), op, request, SessionInfo, deadline)
 
-    def _find_node(self, sid: str) -> str:
+    def _find_node(self, sid: str, deadline: float) -> str:
         """The node holding session `sid`, found by a wildcard status query."""
-        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo)
+        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo, deadline)
         found = sorted({r.model.node for r in replies if r.model is not None})
         if len(found) > 1:
             raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: pass node=...")
@@ -257,8 +266,8 @@ class TrackingClient:
                         key=lambda e: isinstance(e, UnknownSession))
         raise errors[0] if errors else UnknownSession(f"unknown session {sid!r}")
 
-    def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]):
-        replies = self._query(node, op, request, reply_model)
+    def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float):
+        replies = self._query(node, op, request, reply_model, deadline)
         if not replies:
             raise NoService(f"no tracking service {node!r} answered on {keys.control_key(node, op)}")
         for reply in replies:
@@ -266,13 +275,17 @@ class TrackingClient:
                 return reply.model
         raise replies[0].error
 
-    def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel]) -> list[_Reply]:
+    def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel],
+               deadline: float) -> list[_Reply]:
         with as_invalid_id():
             key = keys.control_key(node, op)
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:                       # the queries before this one took the call's whole timeout
+            raise RequestTimeout(f"no reply on {key} within {self.timeout:g} s")
         log.debug("query %s %s", key, request)
         replies = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
                                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                                   timeout=self.timeout)
+                                   timeout=remaining)
         return [_parse_reply(reply, reply_model, key, self.timeout) for reply in replies]
 
 

@@ -188,6 +188,36 @@ def test_no_service_and_timeout():
                 client.stop("abc")
 
 
+def test_a_call_takes_no_longer_than_its_timeout_however_many_queries_it_makes():
+    """A start with no node lists the services first: each query had the whole timeout, so a service slow to
+    answer both made a 1 s call take 1.4 s. Every query of a call now shares its timeout."""
+    from tacf_schemas.codec import MSGPACK_ENCODING, encode
+    from tacf_schemas.models import SessionInfo, SessionList
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as slow:
+        info = SessionInfo(node="slow", sid="s", image_key="cam/a", profile="default", state="tracking",
+                           box=(1, 2, 3, 4), created_ns=1)
+        replies = {"list": SessionList(node="slow", max_sessions=8), "start": info, "status": info}
+
+        def answer_late(query):
+            time.sleep(0.7)
+            op = str(query.key_expr).rsplit("/", 1)[-1]
+            query.reply(query.key_expr, encode(replies[op]), encoding=zenoh.Encoding(MSGPACK_ENCODING))
+
+        queryable = slow.declare_queryable("tacf/slow/control/*", answer_late)
+        try:
+            with TrackingClient(ZenohOptions.loopback(port), timeout=1.0) as client:
+                started = time.monotonic()
+                with pytest.raises(RequestTimeout):
+                    client.start("cam/a", (1, 2, 3, 4))
+                assert time.monotonic() - started < 1.3
+                time.sleep(1.0)                       # the late start is answered (to nobody): the queue is clear
+                assert client.status("s", node="slow").sid == "s", "one query within the timeout is answered"
+        finally:
+            queryable.undeclare()
+
+
 def _cli_error(main, argv: list[str], capsys) -> str:
     """The one line a command prints on stderr when it fails with exit code 1 (SystemExit, not a traceback)."""
     with pytest.raises(SystemExit) as exc:
