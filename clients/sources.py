@@ -162,7 +162,10 @@ class CaptureSource(FrameSource):
                     return
             elif self.loop and index > 0:
                 self._cap.release()
-                self._cap = self._open()
+                try:
+                    self._cap = self._open()
+                except ValueError:                   # the file went away or changed under the loop
+                    raise SourceError(f"cannot reopen {self.name} to play it again") from None
                 index = 0
             else:
                 return

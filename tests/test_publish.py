@@ -188,6 +188,18 @@ def test_video_file_source_reads_every_frame_and_loops(tmp_path):
         assert [next(it).index for _ in range(8)] == [0, 1, 2, 3, 4, 5, 0, 1]
 
 
+def test_a_looping_video_that_cannot_be_reopened_is_a_source_error(tmp_path):
+    """The file removed while it plays: the reopen at its end raised a bare ValueError, a traceback in
+    `tacf publish`; it is now the SourceError the command reports in one line (exit 2)."""
+    path = _write_video(tmp_path / "clip.avi", _frames(3), fps=25)
+    with open_source(str(path), loop=True) as source:
+        frames = source.frames()
+        assert [next(frames).index for _ in range(3)] == [0, 1, 2]
+        path.unlink()
+        with pytest.raises(SourceError, match="cannot reopen .*clip.avi to play it again"):
+            next(frames)
+
+
 def test_open_source_rejects_what_does_not_exist(tmp_path):
     with pytest.raises(FileNotFoundError):
         open_source(str(tmp_path / "missing.mp4"))
