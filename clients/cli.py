@@ -161,6 +161,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="images per second and image key at most (default 10: viewers keep what they get)")
     p.add_argument("--record", metavar="FILE.mcap",
                    help="also write everything (images at --image-hz) to this MCAP file, for replay in Foxglove")
+    p.add_argument("--allow-origin", dest="allow_origins", action="append", default=[], metavar="ORIGIN",
+                   help="let in web pages from this origin, e.g. http://10.0.0.2:8080 (a Lichtblick served there), "
+                        "repeatable; '*' any. Let in already: programs, pages from this machine, Foxglove's web app "
+                        "and desktop apps")
     p.add_argument("--certfile", metavar="PEM", help="serve wss:// only, with this certificate (chain)")
     p.add_argument("--keyfile", metavar="PEM", help="the certificate's private key (default: in --certfile)")
     p.add_argument("--key", "-k", dest="keys", action="append", default=[], type=_image_key, metavar="IMAGE_KEY",
@@ -534,7 +538,8 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
             with Dashboard(viewer_options(options_from_args(args)), image_keys=args.keys, node=args.node,
                            max_frame_fps=args.image_hz) as board, \
                  FoxgloveBridge(board, host=args.host, port=args.port, image_hz=args.image_hz,
-                                control=args.control, tls=tls, record=args.record) as bridge:
+                                control=args.control, tls=tls, record=args.record,
+                                allow_origins=args.allow_origins) as bridge:
                 scheme = "wss" if tls else "ws"
                 services = "with" if bridge.control else "without"
                 print(f"tacf foxglove: open {scheme}://{args.host}:{bridge.port} in Foxglove or Lichtblick (Open "

@@ -20,7 +20,9 @@ Services (JSON, e.g. from the Service Call panel): `/tacf/start` (the fields of 
 and optionally seq, sid, profile, overrides, node), `/tacf/reinit` (sid, box, seq, node), `/tacf/stop` (sid, node)
 and `/tacf/list`; replies are SessionInfo JSON (a list for /tacf/list), failures the service's error message.
 Foxglove's protocol has no authentication, so the services are offered on a loopback address only, unless
-`control=True`.
+`control=True`; web pages connect only from the origins the relay lets in (foxglove_relay.origin_allowed).
+A viewer that subscribes to a topic is sent its newest message at once (a paused camera's last frame, the boxes
+on it, a session that no longer changes), not only the next change.
 
 The data side is the dashboard's (Dashboard: latest-only, never blocking a Zenoh thread); this module only turns
 its state into Foxglove messages, from one thread.
@@ -52,6 +54,7 @@ log = logging.getLogger(__name__)
 DEFAULT_PORT = 8765                 # Foxglove's default WebSocket port
 DEFAULT_IMAGE_HZ = 10.0             # viewers keep every image they get: a cap keeps a long session's memory bounded
 MESSAGE_BACKLOG = 64                # messages queued per client before the oldest are dropped (SDK default: 1024)
+MAX_STAMP_NS = (2**32 - 1) * 1_000_000_000 + 999_999_999    # Foxglove's Timestamp: seconds in 32 bits (2106)
 TRACKING, LOST = Color(r=0.2, g=0.9, b=0.3, a=1.0), Color(r=1.0, g=0.25, b=0.2, a=1.0)
 LABEL_BACKGROUND = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 # The fields of each service's JSON request, as JSON schemas in the subset Lichtblick parses (plain types: no null,
@@ -87,6 +90,9 @@ SESSION_SCHEMA = {"type": "object", "properties": {
 
 
 def _timestamp(ns: int) -> Timestamp:
+    """A frame's stamp as Foxglove's Timestamp; the wire allows stamps past 2106, which it cannot hold (a
+    camera with a garbage clock): those are shown at its last second rather than failing every message."""
+    ns = min(ns, MAX_STAMP_NS)
     return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
 
@@ -120,15 +126,26 @@ def _key_values(pairs: dict[str, str]) -> list[KeyValuePair]:
 
 
 class _Subscriptions(foxglove.websocket.ServerListener):
-    """How many client subscriptions each topic has (the server calls these from its own threads)."""
+    """How many client subscriptions each topic has, and which got a new one (the server calls these from its
+    own threads)."""
 
     def __init__(self):
         self._lock = threading.Lock()
         self._count: Counter[str] = Counter()
+        self._new: set[str] = set()
 
     def on_subscribe(self, client, channel) -> None:
         with self._lock:
             self._count[channel.topic] += 1
+            self._new.add(channel.topic)
+
+    def take_new(self, topic: str) -> bool:
+        """Whether `topic` got a subscriber since the last call: it is owed the newest message, even unchanged."""
+        with self._lock:
+            if topic not in self._new:
+                return False
+            self._new.discard(topic)
+            return True
 
     def on_unsubscribe(self, client, channel) -> None:   # also on disconnect and on a channel's removal
         with self._lock:
@@ -145,13 +162,15 @@ class FoxgloveBridge:
     `serve(stop)` publishes until `stop` is set; close() stops the WebSocket server (the board is not closed
     here). control: offer the start/stop/reinit/list services (default: only on a loopback host). tls: a server
     context to serve wss:// only. record: an MCAP file to write everything to (it must not exist yet).
+    allow_origins: web page origins let in besides the default ones (SubprotocolRelay).
     The SDK's server listens on a loopback port of its own; the public address is a SubprotocolRelay's, which also
     lets in Lichtblick (foxglove_relay.py).
     """
 
     def __init__(self, board: Dashboard, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
                  image_hz: float = DEFAULT_IMAGE_HZ, control: bool | None = None,
-                 tls: ssl.SSLContext | None = None, record: str | Path | None = None, name: str = "tacf"):
+                 tls: ssl.SSLContext | None = None, record: str | Path | None = None, name: str = "tacf",
+                 allow_origins=()):
         if image_hz <= 0:
             raise ValueError(f"image_hz must be positive, got {image_hz}")
         self.board = board
@@ -166,7 +185,8 @@ class FoxgloveBridge:
                 name=name, host="127.0.0.1", port=0, context=self.context, server_listener=self._subscriptions,
                 services=services, capabilities=[foxglove.Capability.Services] if services else [],
                 supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG)
-            self.relay = SubprotocolRelay(self.server.port, host=host, port=port, tls=tls)
+            self.relay = SubprotocolRelay(self.server.port, host=host, port=port, tls=tls,
+                                          allow_origins=allow_origins)
             log.info("viewers connect to %s:%d; the SDK's server on 127.0.0.1:%d is internal, behind the relay",
                      host, self.relay.port, self.server.port)
             # last: a bridge that cannot serve leaves no empty recording behind, which a retry could not overwrite
@@ -188,12 +208,14 @@ class FoxgloveBridge:
         return self.relay.port
 
     def close(self) -> None:
-        if self.relay is not None:
-            self.relay.close()
-        if self.server is not None:
-            self.server.stop()
-        if self._recording is not None:
-            self._recording.close()        # writes the MCAP summary: without it the file is read only slowly
+        try:
+            if self.relay is not None:
+                self.relay.close()
+        finally:
+            if self.server is not None:
+                self.server.stop()
+            if self._recording is not None:
+                self._recording.close()    # writes the MCAP summary: without it the file is read only slowly
 
     def __enter__(self) -> "FoxgloveBridge":
         return self
@@ -219,8 +241,10 @@ class FoxgloveBridge:
         """Each changed session on `/tacf/N/S`, and the boxes of every image key one of them is on."""
         versions = self.board.versions()
         changed = {sid_id for sid_id, version in versions.items() if self._sent_versions.get(sid_id) != version}
+        changed |= {sid_id for sid_id in self._session_channels if self._subscriptions.take_new(f"/tacf/{sid_id}")}
+        owed_tracks = {key for key in self._tracks if self._subscriptions.take_new(f"/{key}/tracks")}
         gone = self._sent_versions.keys() - versions.keys()
-        if not changed and not gone:
+        if not changed and not gone and not owed_tracks:
             return
         sessions, _ = self.board.sessions_json(points_after={k: v[1] for k, v in versions.items()})
         now_ns = time.time_ns()
@@ -240,12 +264,15 @@ class FoxgloveBridge:
             # a key's annotations change with its boxes (not with health); a key whose last session went away
             # gets one empty message, so that the last rectangle disappears
             boxes = tuple((s["id"], s["box"]["seq"], s["box"]["ok"]) for s in on_key if s["box"] is not None)
-            if self._sent_boxes.get(key) == boxes:
+            if self._sent_boxes.get(key) == boxes and key not in owed_tracks:
                 continue
             self._sent_boxes[key] = boxes
             if key not in self._tracks:
                 self._tracks[key] = ImageAnnotationsChannel(f"/{key}/tracks", context=self.context)
             self._tracks[key].log(session_annotations(on_key), log_time=now_ns)
+        for key in self._tracks.keys() - self._images.keys():
+            if not by_key[key]:          # no session left on a key the board does not watch (it watches 32 at most)
+                self._withdraw_tracks(key)
 
     def publish_images(self) -> None:
         """The newest frame of each watched key whose image topic somebody subscribes to (or all, recording)."""
@@ -266,7 +293,8 @@ class FoxgloveBridge:
                     self._unshowable.add(key)
                 continue
             self._unshowable.discard(key)
-            if snap is None or self._sent_frames.get(key) == (snap.seq, snap.received_ns):
+            owed = self._subscriptions.take_new(topic)
+            if snap is None or (self._sent_frames.get(key) == (snap.seq, snap.received_ns) and not owed):
                 continue
             self._sent_frames[key] = (snap.seq, snap.received_ns)
             self._images[key].log(CompressedImage(timestamp=_timestamp(snap.stamp_ns), frame_id=key,
@@ -279,8 +307,11 @@ class FoxgloveBridge:
             return
         self._images.pop(key).close()
         self._sent_frames.pop(key, None)
-        self._sent_boxes.pop(key, None)
         self._unshowable.discard(key)
+        self._withdraw_tracks(key)
+
+    def _withdraw_tracks(self, key: str) -> None:
+        self._sent_boxes.pop(key, None)
         tracks = self._tracks.pop(key, None)
         if tracks is not None:
             tracks.close()

@@ -14,17 +14,30 @@ offers them too).
 Nothing queues without bound: the relay sends a message on before it reads the next, so a client that reads too
 slowly fills the TCP buffers back to the SDK's server, which then drops that client's oldest messages, as it would
 without the relay (its per-client backlog, FoxgloveBridge's MESSAGE_BACKLOG).
+
+Web pages are let in only from known origins. A browser lets any page it shows open a WebSocket to any address,
+127.0.0.1 included, and says which page asked in the Origin header; without this check any web site the operator
+visits could watch the cameras and stop the sessions. Let in: no Origin (programs: the SDKs, Node.js), a page
+served from this machine (a loopback host, any port), Foxglove's web app, desktop apps (origins that are no web
+address: file://, app://...), and each origin given in `allow_origins` ("*" for any). `null` (sandboxed frames of
+any site send it) only when given.
 """
 from __future__ import annotations
 
 import asyncio
+import http
 import logging
 import ssl
 import threading
+import weakref
+from urllib.parse import urlsplit
 
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, WebSocketException
+from websockets.http11 import Request, Response
+
+from tacf_clients.dashboard_access import is_loopback
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +46,20 @@ SUBPROTOCOLS = (SDK_SUBPROTOCOL, "foxglove.websocket.v1")  # the SDK's name, the
 MAX_CLIENT_MESSAGE = 1 << 20   # subscriptions and service calls are small; the SDK's own limit is larger
 UPSTREAM_QUEUE = 4             # messages read ahead from the SDK's server per client (images are ~0.1-0.5 MB)
 CLOSE_TIMEOUT_S = 1.0          # a viewer that stopped reading never completes a close: don't wait 10 s for it
+FOXGLOVE_WEB_APP = "https://app.foxglove.dev"
+WEB_SCHEMES = ("http", "https", "ws", "wss")
+
+
+def origin_allowed(origin: str | None, allow_origins=()) -> bool:
+    """Whether a connection whose handshake carries this Origin header is let in (see the module's docstring)."""
+    if origin is None or "*" in allow_origins or origin in allow_origins or origin == FOXGLOVE_WEB_APP:
+        return True
+    if origin == "null":
+        return False
+    parts = urlsplit(origin)
+    if parts.scheme.lower() not in WEB_SCHEMES:
+        return bool(parts.scheme)                     # a desktop app's own scheme; no web page can send it
+    return parts.hostname is not None and is_loopback(parts.hostname)
 
 
 class SubprotocolRelay:
@@ -40,9 +67,13 @@ class SubprotocolRelay:
 
     Runs its own asyncio loop on a daemon thread; close() stops it and drops every connection."""
 
-    def __init__(self, upstream_port: int, *, host: str, port: int, tls: ssl.SSLContext | None = None):
+    def __init__(self, upstream_port: int, *, host: str, port: int, tls: ssl.SSLContext | None = None,
+                 allow_origins=()):
         self.upstream = f"ws://127.0.0.1:{upstream_port}"
-        self._clients: set[ServerConnection] = set()
+        self.allow_origins = frozenset(allow_origins)
+        # every connection, those still in their handshake too (a port scan, a half-sent request): close() drops
+        # them all after CLOSE_TIMEOUT_S, where the server would wait out the handshake's 10 s
+        self._connections: weakref.WeakSet[ServerConnection] = weakref.WeakSet()
         self._loop = asyncio.new_event_loop()
         self._thread = threading.Thread(target=self._loop.run_forever, name="foxglove-relay", daemon=True)
         self._thread.start()
@@ -55,10 +86,22 @@ class SubprotocolRelay:
 
     async def _listen(self, host: str, port: int, tls: ssl.SSLContext | None):
         return await serve(self._relay, host, port, ssl=tls, subprotocols=list(SUBPROTOCOLS),
-                           compression=None, max_size=MAX_CLIENT_MESSAGE, close_timeout=CLOSE_TIMEOUT_S)
+                           compression=None, max_size=MAX_CLIENT_MESSAGE, close_timeout=CLOSE_TIMEOUT_S,
+                           process_request=self._check_origin, create_connection=self._connection)
+
+    def _connection(self, *args, **kwargs) -> ServerConnection:
+        connection = ServerConnection(*args, **kwargs)
+        self._connections.add(connection)
+        return connection
+
+    def _check_origin(self, connection: ServerConnection, request: Request) -> Response | None:
+        origin = request.headers.get("Origin")
+        if origin_allowed(origin, self.allow_origins):
+            return None
+        log.warning("foxglove relay: refused a page at %s (tacf foxglove --allow-origin %s lets it in)", origin, origin)
+        return connection.respond(http.HTTPStatus.FORBIDDEN, f"pages at {origin} are not let in\n")
 
     async def _relay(self, client: ServerConnection) -> None:
-        self._clients.add(client)
         try:
             async with connect(self.upstream, subprotocols=[SDK_SUBPROTOCOL], compression=None, max_size=None,
                                max_queue=UPSTREAM_QUEUE, open_timeout=5, close_timeout=CLOSE_TIMEOUT_S) as server:
@@ -68,30 +111,39 @@ class SubprotocolRelay:
                 for task in (forward, back):
                     task.cancel()
                 await asyncio.gather(forward, back, return_exceptions=True)
-        # asyncio.TimeoutError: before Python 3.11 it is not the builtin TimeoutError (an OSError)
-        except (OSError, asyncio.TimeoutError, ConnectionClosed) as exc:
+        # asyncio.TimeoutError: before Python 3.11 it is not the builtin TimeoutError (an OSError);
+        # WebSocketException: a closed connection, or the SDK's server refusing the handshake
+        except (OSError, asyncio.TimeoutError, WebSocketException) as exc:
             log.info("foxglove relay: %s closed: %s", client.remote_address, exc)
-        finally:
-            self._clients.discard(client)
 
     def close(self) -> None:
         if self._loop.is_closed():
             return
-        asyncio.run_coroutine_threadsafe(self._shut_down(), self._loop).result(timeout=10)
-        self._stop_loop()
+        try:
+            asyncio.run_coroutine_threadsafe(self._shut_down(), self._loop).result(timeout=10)
+        finally:
+            self._stop_loop()
 
     async def _shut_down(self) -> None:
-        self._server.close()          # also closes every connection, politely
+        self._server.close()          # also closes every open connection, politely
         try:
             await asyncio.wait_for(self._server.wait_closed(), CLOSE_TIMEOUT_S)
-        except asyncio.TimeoutError:  # a viewer that stopped reading blocks its own close: drop it
-            for client in self._clients:
-                client.transport.abort()
+        except asyncio.TimeoutError:  # a viewer that stopped reading, or a handshake never finished: drop them
+            for connection in list(self._connections):
+                transport = getattr(connection, "transport", None)    # none yet while a TLS handshake runs
+                if transport is not None:
+                    transport.abort()
             await self._server.wait_closed()
 
     def _stop_loop(self) -> None:
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout=10)
+        # what is left (asyncio's own TLS handshake of a client that never sent a ClientHello) is cancelled and
+        # run to its end, as asyncio.run does, rather than destroyed pending with a warning
+        if leftover := asyncio.all_tasks(self._loop):
+            for task in leftover:
+                task.cancel()
+            self._loop.run_until_complete(asyncio.gather(*leftover, return_exceptions=True))
         self._loop.close()
 
 

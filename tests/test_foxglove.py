@@ -165,19 +165,25 @@ def assert_matches_schema(value, schema: dict, path: str = "") -> None:
         assert isinstance(value, types) and (kind == "boolean" or not isinstance(value, bool)), (path, value)
 
 
+@contextmanager
+def serving(bridge: FoxgloveBridge):
+    """The bridge publishing on a thread of its own while the block runs."""
+    stop = threading.Event()
+    loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge")
+    loop.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        loop.join(timeout=10)
+
+
 @pytest.fixture(scope="module")
 def rig():
     with service_and_camera(SCENE, KEY, "fox") as (service, session, camera):
         with Dashboard(session=session, image_keys=[KEY], max_frame_fps=20) as board:
-            with FoxgloveBridge(board, port=0, image_hz=10) as bridge:
-                stop = threading.Event()
-                loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge")
-                loop.start()
-                try:
-                    yield service, bridge, camera, board
-                finally:
-                    stop.set()
-                    loop.join(timeout=10)
+            with FoxgloveBridge(board, port=0, image_hz=10) as bridge, serving(bridge):
+                yield service, bridge, camera, board
 
 
 @contextmanager
@@ -272,25 +278,18 @@ def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path
 
     service, _, camera, board = rig
     path = tmp_path / "flight.mcap"
-    stop = threading.Event()
-    with FoxgloveBridge(board, port=0, record=path) as recorder:
-        loop = threading.Thread(target=recorder.serve, args=(stop,), name="foxglove-recorder")
-        loop.start()
-        try:
-            camera.hold.set()
-            seq = camera.last_seq
-            board.start(KEY, SCENE.box(camera.index_of(seq)), seq, sid="rec1", node=service.node)
-            deadline = time.monotonic() + 20
-            while time.monotonic() < deadline and not any(s["box"] for s in board.sessions_json()[0]
-                                                          if s["sid"] == "rec1"):
-                time.sleep(0.1)
-            camera.hold.clear()
-            time.sleep(3.0)
-            board.stop("rec1", node=service.node)
-            time.sleep(0.5)
-        finally:
-            stop.set()
-            loop.join(timeout=10)
+    with FoxgloveBridge(board, port=0, record=path) as recorder, serving(recorder):
+        camera.hold.set()
+        seq = camera.last_seq
+        board.start(KEY, SCENE.box(camera.index_of(seq)), seq, sid="rec1", node=service.node)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not any(s["box"] for s in board.sessions_json()[0]
+                                                      if s["sid"] == "rec1"):
+            time.sleep(0.1)
+        camera.hold.clear()
+        time.sleep(3.0)
+        board.stop("rec1", node=service.node)
+        time.sleep(0.5)
     with pytest.raises(FileExistsError, match="^cannot record to .*flight.mcap: File exists"):
         FoxgloveBridge(board, port=0, record=path)             # never overwrites a recording
     # a bridge that cannot serve (its port taken) leaves no empty recording, which would refuse the retry
@@ -320,10 +319,7 @@ def test_the_topics_of_a_key_go_with_its_last_session(rig):
     the session's and withdrawn after it (its rectangle taken off first), not left in the viewer's list for good."""
     service, _, camera, rig_board = rig
     with Dashboard(session=rig_board.session) as board, FoxgloveBridge(board, port=0) as bridge, \
-            foxglove_client(bridge.port) as fox:
-        stop = threading.Event()
-        loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge-keys")
-        loop.start()
+            foxglove_client(bridge.port) as fox, serving(bridge):
         try:
             camera.hold.set()
             seq = camera.last_seq
@@ -339,8 +335,6 @@ def test_the_topics_of_a_key_go_with_its_last_session(rig):
             assert fox.pump_until(lambda: not fox.channels, timeout=15), fox.channels
             assert not fox.received(f"/{KEY}/tracks")[-1].points, "the rectangle was taken off before"
         finally:
-            stop.set()
-            loop.join(timeout=10)
             camera.hold.clear()
 
 
@@ -358,24 +352,121 @@ def test_a_camera_sending_frames_that_are_no_images_holds_up_no_other(caplog):
     short = good.model_copy(update={"data": good.data[:-10]})
     with Dashboard(options, image_keys=["a/broken", "b/fine"]) as board, \
             zenoh.open(make_config(ZenohOptions(connect=options.listen, listen=()))) as cameras, \
-            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox:
-        stop = threading.Event()
-        loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge-broken")
-        loop.start()
-        try:
-            fox.subscribe("/a/broken/image")
-            fox.subscribe("/b/fine/image")
-            for seq in range(40):
-                cameras.put("a/broken", encode(short.model_copy(update={"seq": seq})))
-                cameras.put("b/fine", encode(good.model_copy(update={"seq": seq})))
-                fox.pump_until(lambda: False, timeout=0.05)
-            assert fox.pump_until(lambda: len(fox.received("/b/fine/image")) >= 5), "the fine camera is shown"
-            assert not fox.received("/a/broken/image")
-        finally:
-            stop.set()
-            loop.join(timeout=10)
+            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge):
+        fox.subscribe("/a/broken/image")
+        fox.subscribe("/b/fine/image")
+        for seq in range(40):
+            cameras.put("a/broken", encode(short.model_copy(update={"seq": seq})))
+            cameras.put("b/fine", encode(good.model_copy(update={"seq": seq})))
+            fox.pump_until(lambda: False, timeout=0.05)
+        assert fox.pump_until(lambda: len(fox.received("/b/fine/image")) >= 5), "the fine camera is shown"
+        assert not fox.received("/a/broken/image")
     warnings = [r for r in caplog.records if "a/broken" in r.getMessage()]
     assert len(warnings) == 1 and "230390" in warnings[0].getMessage(), warnings
+
+
+def test_a_camera_stamping_past_2106_holds_up_no_other():
+    """The wire takes stamps up to 2**63 ns, Foxglove's Timestamp seconds up to 2**32 - 1: such a frame failed
+    every image and box message after it, the other cameras' included. It is now shown at the last second."""
+    import zenoh
+
+    from tacf_clients.zconfig import ZenohOptions, make_config
+    from tacf_schemas.codec import encode
+    from tacf_schemas.images import encode_frame
+
+    options = no_service_options()
+    good = encode_frame(SCENE.frame(0), 0, "bgr8")
+    with Dashboard(options, image_keys=["a/future", "b/fine"]) as board, \
+            zenoh.open(make_config(ZenohOptions(connect=options.listen, listen=()))) as cameras, \
+            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge):
+        fox.subscribe("/a/future/image")
+        fox.subscribe("/b/fine/image")
+        for seq in range(20):
+            cameras.put("a/future", encode(good.model_copy(update={"seq": seq, "stamp_ns": 5 * 10**18})))
+            cameras.put("b/fine", encode(good.model_copy(update={"seq": seq, "stamp_ns": 1_700_000_000 * 10**9})))
+            fox.pump_until(lambda: False, timeout=0.05)
+        assert fox.pump_until(lambda: len(fox.received("/b/fine/image")) >= 5), "the fine camera is shown"
+        assert fox.pump_until(lambda: fox.received("/a/future/image")), "and the one from the future"
+        assert fox.received("/a/future/image")[-1].timestamp.seconds == 2**32 - 1
+        assert fox.received("/b/fine/image")[-1].timestamp.seconds == 1_700_000_000
+
+
+def test_a_viewer_who_subscribes_to_a_paused_camera_gets_its_last_frame_boxes_and_session(rig):
+    """Messages went out only on a change: a viewer who subscribed after the camera paused got no image, no
+    rectangle and no session state until the next one, which a paused camera never sends."""
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+
+    service, _, _, rig_board = rig
+    key, sid = "test/foxglove/paused", "fox-paused"
+    camera = HoldingPublisher(rig_board.session, SceneSource(SCENE), key, 20, "jpeg")
+    camera.start()
+    topics = (f"/{key}/image", f"/{key}/tracks", f"/tacf/{service.node}/{sid}")
+    with Dashboard(session=rig_board.session, image_keys=[key]) as board, FoxgloveBridge(board, port=0) as bridge, \
+            serving(bridge):
+        try:
+            with foxglove_client(bridge.port) as first:
+                assert first.pump_until(lambda: board.frame(key) is not None)
+                seq = camera.last_seq
+                ok, info = first.call("/tacf/start", {"image_key": key, "box": list(SCENE.box(0)), "seq": seq,
+                                                      "sid": sid, "node": service.node})
+                assert ok, info
+                for topic in topics:
+                    first.subscribe(topic)
+                assert first.pump_until(lambda: any(m.points for m in first.received(topics[1])), timeout=20)
+                camera.close()                                     # the camera pauses
+                first.pump_until(lambda: False, timeout=1.5)       # its last frame and box go out
+            with foxglove_client(bridge.port) as late:
+                for topic in topics:
+                    late.subscribe(topic)
+                assert late.pump_until(lambda: all(late.received(topic) for topic in topics), timeout=5), \
+                    [len(late.received(topic)) for topic in topics]
+                assert late.received(topics[1])[-1].points, "the rectangle on the last frame"
+                assert late.received(topics[2])[-1]["sid"] == sid
+        finally:
+            camera.close()
+            board.stop(sid, node=service.node)
+
+
+def test_the_tracks_of_a_key_the_board_cannot_watch_go_with_its_last_session(rig):
+    """With MAX_IMAGE_KEYS keys watched already, a session's key gets a tracks topic but no image topic: that
+    tracks topic was never withdrawn, and such topics piled up as sessions came and went."""
+    from tacf_clients.dashboard import MAX_IMAGE_KEYS
+
+    service, _, camera, rig_board = rig
+    others = [f"test/other/{i}" for i in range(MAX_IMAGE_KEYS)]
+    with Dashboard(session=rig_board.session, image_keys=others) as board, \
+            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge):
+        def ours() -> set[str]:
+            return {c["topic"] for c in fox.channels.values() if not c["topic"].startswith("/test/other/")}
+
+        seq = camera.last_seq
+        ok, info = fox.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
+                                            "seq": seq, "sid": "fox-unwatched", "node": service.node})
+        assert ok, info
+        assert fox.pump_until(lambda: ours() == {f"/{KEY}/tracks", f"/tacf/{service.node}/fox-unwatched"}), ours()
+        ok, info = fox.call("/tacf/stop", {"sid": "fox-unwatched"})
+        assert ok, info
+        assert fox.pump_until(lambda: not ours(), timeout=15), ours()
+
+
+def test_closing_with_a_connection_in_its_handshake_finishes_the_recording_at_once(tmp_path):
+    """An idle TCP connection (a port scan, a health check) made close() wait out the handshake's 10 s, or fail
+    after them with the MCAP file left without its end and the SDK's server still up."""
+    import socket
+
+    path = tmp_path / "short.mcap"
+    with Dashboard(no_service_options()) as board:
+        bridge = FoxgloveBridge(board, port=0, record=path)
+        idle = socket.create_connection(("127.0.0.1", bridge.port))
+        time.sleep(0.3)                                       # accepted: the server waits for its request
+        try:
+            started = time.monotonic()
+            bridge.close()
+            assert time.monotonic() - started < 3
+        finally:
+            idle.close()
+    assert path.read_bytes().endswith(b"\x89MCAP0\r\n"), "the recording is finished"
 
 
 @pytest.mark.parametrize("request_bytes, expected", [

@@ -1,9 +1,10 @@
 """The relay in front of foxglove-sdk's server on its own, against a real WebSocket server that stands in for the
-SDK's (tests/test_foxglove.py runs it in front of the real one): names, messages both ways, and shutting down with
-a viewer that has stopped reading."""
+SDK's (tests/test_foxglove.py runs it in front of the real one): names, messages both ways, the web pages it lets
+in, and shutting down with a viewer that has stopped reading or a connection that never finished its handshake."""
 from __future__ import annotations
 
 import asyncio
+import socket
 import threading
 import time
 from contextlib import contextmanager
@@ -15,7 +16,7 @@ from websockets.asyncio.server import serve  # noqa: E402
 from websockets.exceptions import ConnectionClosed, InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from tacf_clients.foxglove_relay import SubprotocolRelay  # noqa: E402
+from tacf_clients.foxglove_relay import SubprotocolRelay, origin_allowed  # noqa: E402
 
 BLOCK = bytes(256 * 1024)
 
@@ -83,5 +84,64 @@ def test_a_viewer_that_stopped_reading_holds_up_neither_the_relay_nor_its_shutdo
                 with pytest.raises(ConnectionClosed):
                     while True:
                         stalled.recv(timeout=5)
+        finally:
+            relay.close()
+
+
+@pytest.mark.parametrize("origin, allowed", [
+    (None, True),                                   # a program (the SDKs, Node.js): browsers always send one
+    ("http://127.0.0.1:8080", True), ("http://localhost:3000", True), ("https://[::1]", True),
+    ("https://app.foxglove.dev", True),             # Foxglove's web app, connecting to ws://127.0.0.1:8765
+    ("file://", True), ("app://lichtblick", True),  # desktop apps: no web page sends these
+    ("https://evil.example", False), ("http://127.0.0.1.evil.example", False),
+    ("http://10.0.0.2:8080", False),                # a Lichtblick served elsewhere: only with --allow-origin
+    ("null", False),                                # any site's sandboxed frame
+])
+def test_which_web_pages_are_let_in(origin, allowed):
+    assert origin_allowed(origin) is allowed
+    assert origin_allowed(origin, ["*"])
+    assert origin_allowed(origin, [origin]) if origin else True
+
+
+def test_another_web_site_in_the_operators_browser_is_refused():
+    """Any page a browser shows may open a WebSocket to 127.0.0.1: it used to be let in, and could watch the
+    cameras and stop the sessions (the dashboard refuses such pages; the relay did not)."""
+    with upstream_server(flood=False) as upstream_port:
+        relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0, allow_origins=["http://10.0.0.2:8080"])
+        url = f"ws://127.0.0.1:{relay.port}"
+        try:
+            for headers in ({}, {"Host": "evil.example:8765"}):              # the second: after DNS rebinding
+                with pytest.raises(InvalidStatus, match="403"):
+                    with connect(url, subprotocols=["foxglove.websocket.v1"], origin="https://evil.example",
+                                 additional_headers=headers, open_timeout=5):
+                        pass
+            for origin in ("http://localhost:5173", "http://10.0.0.2:8080", None):
+                with connect(url, subprotocols=["foxglove.websocket.v1"], origin=origin, open_timeout=5) as ws:
+                    ws.send("hello")
+                    assert ws.recv(timeout=5) == "hello"
+        finally:
+            relay.close()
+
+
+def test_a_connection_that_never_finished_its_handshake_does_not_hold_up_the_shutdown():
+    """A port scan, a TCP health check or a half-sent request: the server waited out the handshake's 10 s on
+    close (and the bridge's close, given 10 s, failed before finishing its recording)."""
+    with upstream_server(flood=False) as upstream_port:
+        relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0)
+        try:
+            idle = socket.create_connection(("127.0.0.1", relay.port))
+            half = socket.create_connection(("127.0.0.1", relay.port))
+            half.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+            time.sleep(0.3)
+            started = time.monotonic()
+            relay.close()
+            assert time.monotonic() - started < 3
+            for sock in (idle, half):
+                sock.settimeout(5)
+                try:
+                    assert sock.recv(1) == b"", "the connection was dropped"
+                except ConnectionResetError:
+                    pass                                                    # dropped with a reset: as good
+                sock.close()
         finally:
             relay.close()
