@@ -150,6 +150,8 @@ class _Subscriptions(foxglove.websocket.ServerListener):
     def on_unsubscribe(self, client, channel) -> None:   # also on disconnect and on a channel's removal
         with self._lock:
             self._count[channel.topic] = max(0, self._count[channel.topic] - 1)
+            if not self._count[channel.topic]:
+                self._new.discard(channel.topic)     # nobody left to owe it to (and a removed topic goes)
 
     def __contains__(self, topic: str) -> bool:
         with self._lock:
