@@ -267,6 +267,9 @@ class TrackingClient:
         raise errors[0] if errors else UnknownSession(f"unknown session {sid!r}")
 
     def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float):
+        """`op` on one service: `node` is an id, never "*" (a start or stop on every service at once)."""
+        with as_invalid_id():
+            keys.validate_id(node, "node id")
         replies = self._query(node, op, request, reply_model, deadline)
         if not replies:
             raise NoService(f"no tracking service {node!r} answered on {keys.control_key(node, op)}")

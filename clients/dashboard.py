@@ -33,6 +33,7 @@ from tacf_clients.errors import TacfError
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas.codec import DecodeError, decode
+from tacf_schemas.images import FrameError, check_frame
 from tacf_schemas.keys import validate_image_key
 from tacf_schemas.limits import MAX_CARRIED_FRAMES
 from tacf_schemas.models import BoxResult, Frame, Health, SessionInfo, catch_up_subset
@@ -58,7 +59,9 @@ _generations = itertools.count(1)
 @dataclass
 class ChartPoint:
     """One sample of a session's charts, taken from each Health (about 1 Hz)."""
-    t_ms: int                       # wall-clock time of the health report, ms since the epoch
+    # when the dashboard received the health report, ms since the epoch: the page cuts the charts by the
+    # dashboard's clock, and an edge box's (without NTP) may be minutes off it
+    t_ms: int
     fps: float
     pme: float | None
     processing_ms: float
@@ -169,7 +172,8 @@ class FrameWatcher:
                 started = time.monotonic()
                 try:
                     frame = decode(sample.payload.to_bytes(), Frame)
-                except DecodeError as exc:
+                    check_frame(frame)                 # its size and header: a raw frame too short is no image
+                except (DecodeError, FrameError) as exc:
                     self.rejected += 1
                     log.debug("dropped a malformed frame on %s: %s", self.key, exc)
                     continue
@@ -396,10 +400,11 @@ class Dashboard:
             else:
                 view.health, view.state, view.health_received_ns = item, item.state, time.time_ns()
                 pme = item.pme if item.pme is not None else (view.box.pme if view.box is not None else None)
-                view.points.append(ChartPoint(item.stamp_ns // 1_000_000, item.fps, pme, item.processing_ms_mean,
+                received_ms = view.health_received_ns // 1_000_000
+                view.points.append(ChartPoint(received_ms, item.fps, pme, item.processing_ms_mean,
                                               item.frame_age_ms))
                 view.points_total += 1
-                horizon_ms = item.stamp_ns // 1_000_000 - self.history_s * 1000
+                horizon_ms = received_ms - self.history_s * 1000
                 while view.points and view.points[0].t_ms < horizon_ms:
                     view.points.popleft()
             view.version += 1

@@ -7,7 +7,9 @@ The page can start and stop sessions and shows every camera, so it is not left o
   must name a loopback address or a host given with `--allow-host`.
 - Served on any other address, a token is required, one is made up when none is given (as Jupyter does), and
   the printed URL carries it. A browser that opens `/?token=T` gets it as an HttpOnly, SameSite=Strict cookie
-  (which no other site's request carries) and is sent on to the page without it; programs send
+  (which no other site's request carries) and is sent on to the page without it; the cookie's name carries the
+  server's port, since browsers keep a host's cookies for all its ports (two dashboards on one machine would
+  otherwise log each other out); programs send
   `Authorization: Bearer T` (Prometheus: `authorization: {credentials_file: ...}`), or, if they cannot, add
   `?token=T` to what they fetch (VLC on /mjpeg/...).
 Plain HTTP shows the token to anyone on the path: across a network, serve HTTPS (`--certfile`, `--keyfile`; the
@@ -71,8 +73,13 @@ class DashboardAccess:
         return self.token is None or (candidate is not None
                                       and hmac.compare_digest(candidate.encode(), self.token.encode()))
 
-    def presented(self, headers) -> str | None:
-        """The token a request carries: an `Authorization: Bearer` header, else the cookie."""
+    @staticmethod
+    def cookie_name(port: int) -> str:
+        return f"{COOKIE}_{port}"
+
+    def presented(self, headers, port: int) -> str | None:
+        """The token a request carries: an `Authorization: Bearer` header, else the cookie of the server on
+        `port`."""
         scheme, _, value = (headers.get("Authorization") or "").partition(" ")
         if scheme.lower() == "bearer" and value.strip():
             return value.strip()
@@ -80,10 +87,12 @@ class DashboardAccess:
         # every port of this host (other web apps' too)
         for pair in (headers.get("Cookie") or "").split(";"):
             name, sep, value = pair.partition("=")
-            if sep and name.strip() == COOKIE:
+            if sep and name.strip() == self.cookie_name(port):
                 return value.strip()
         return None
 
-    def cookie(self, secure: bool = False) -> str:
-        """The login cookie; `secure` (over HTTPS) keeps browsers from ever sending it over plain HTTP."""
-        return f"{COOKIE}={self.token}; Path=/; HttpOnly; SameSite=Strict" + ("; Secure" if secure else "")
+    def cookie(self, port: int, secure: bool = False) -> str:
+        """The login cookie of the server on `port`; `secure` (over HTTPS) keeps browsers from ever sending it
+        over plain HTTP."""
+        return (f"{self.cookie_name(port)}={self.token}; Path=/; HttpOnly; SameSite=Strict"
+                + ("; Secure" if secure else ""))

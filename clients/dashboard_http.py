@@ -53,6 +53,7 @@ EVENTS_HZ = 10.0                 # per /events connection, hence at most this ra
 KEEPALIVE_S = 15.0               # an SSE comment when nothing changed for this long (proxies, dead peers)
 WRITE_TIMEOUT_S = 10.0           # a browser that does not read for this long is dropped
 MAX_BODY = 64 * 1024
+MAX_DRAINED = 1 << 20            # of a body over MAX_BODY, read this much so that its sender gets the 413, not a reset
 MJPEG_FPS = 10.0
 MAX_SEQ_DIGITS = 20              # a seq is a 64-bit count (and int() refuses a string of over 4300 digits)
 
@@ -218,7 +219,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _admitted(self) -> bool:
         """Whether dashboard_access lets this request in; if not, the refusal (or the token's login) is sent."""
-        access = self.server.access
+        access, port = self.server.access, self.server.server_address[1]
         host = self.headers.get("Host")
         if not access.host_allowed(host):
             self._error(HTTPStatus.FORBIDDEN, "host_not_allowed",
@@ -233,9 +234,9 @@ class DashboardHandler(BaseHTTPRequestHandler):
             rest = urlencode(query, doseq=True)
             self._send(HTTPStatus.SEE_OTHER, b"", None,
                        {"Location": url.path + (f"?{rest}" if rest else ""),
-                        "Set-Cookie": access.cookie(secure=self.server.tls is not None)})
+                        "Set-Cookie": access.cookie(port, secure=self.server.tls is not None)})
             return False
-        if access.is_token(access.presented(self.headers)) or access.is_token(url_token):
+        if access.is_token(access.presented(self.headers, port)) or access.is_token(url_token):
             return True                              # the URL's: a program that cannot send headers (VLC on /mjpeg/)
         self._error(HTTPStatus.UNAUTHORIZED, "unauthorized", "open the address tacf dashboard printed (it carries "
                     "?token=...), or send Authorization: Bearer TOKEN",
@@ -284,7 +285,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
         if seq is not None and not (seq.isascii() and seq.isdigit() and len(seq) <= MAX_SEQ_DIGITS):
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", "seq: expected a frame seq")
             return
-        snap = self.server.dashboard.frame(key, None if seq is None else int(seq))
+        try:
+            snap = self.server.dashboard.frame(key, None if seq is None else int(seq))
+        except ValueError as exc:                  # FrameError: the camera sends frames that are no images
+            self._error(HTTPStatus.BAD_GATEWAY, "bad_frame", f"the newest frame on {key!r} cannot be shown: {exc}")
+            return
         if snap is None:
             watched = key in self.server.dashboard.image_keys()
             self._error(HTTPStatus.NOT_FOUND, "no_frame",
@@ -311,7 +316,10 @@ class DashboardHandler(BaseHTTPRequestHandler):
         self.close_connection = True
         last = None
         while not self._ending():
-            snap = dashboard.frame(key)
+            try:
+                snap = dashboard.frame(key)
+            except ValueError:                     # FrameError: a frame that is no image is left out
+                snap = None
             if snap is not None and (snap.seq, snap.received_ns) != last:
                 last = (snap.seq, snap.received_ns)
                 self.wfile.write(b"--tacfframe\r\nContent-Type: image/jpeg\r\nContent-Length: "
@@ -401,6 +409,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
             length = int(self.headers.get("Content-Length") or 0)
         except ValueError:
             length = -1
+        if length > MAX_BODY:
+            self._discard(min(length, MAX_DRAINED))
         if not 0 < length <= MAX_BODY:
             self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.BAD_REQUEST,
                         "invalid_request", f"a JSON body of 1 to {MAX_BODY} bytes is needed")
@@ -417,6 +427,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", "expected a JSON object")
             return None
         return body
+
+    def _discard(self, length: int) -> None:
+        """Read and drop `length` bytes of the request (fewer if the client stops sending first)."""
+        while length > 0 and (chunk := self.rfile.read(min(length, 65536))):
+            length -= len(chunk)
 
     def _json(self, status: HTTPStatus, body: dict, headers: dict[str, str] | None = None) -> None:
         self._send(status, json.dumps(body).encode(), "application/json",
@@ -461,7 +476,10 @@ def _box(body: dict) -> tuple[float, float, float, float]:
     if not isinstance(box, list) or len(box) != 4 or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
                                                              for v in box):
         raise ValueError("'box': expected [x, y, w, h] numbers")
-    return tuple(float(v) for v in box)  # type: ignore[return-value]
+    try:
+        return tuple(float(v) for v in box)  # type: ignore[return-value]
+    except OverflowError:                          # a JSON integer of hundreds of digits
+        raise ValueError("'box': a number too large") from None
 
 
 def _seq(body: dict) -> int | None:

@@ -57,7 +57,8 @@ def validate_image_key(key: object) -> str:
 
     Rules (ZENOH.md section 5, plus a whitelist): 1-256 characters, 1-16 chunks separated by '/', no empty
     chunk and no leading/trailing '/', chunks of [A-Za-z0-9_.~+=,:-] only (so no '*', '$', '#', '?', '@',
-    whitespace), and not under the service's own `tacf/` prefix.
+    whitespace), no chunk that is `.` or `..` (a URL path resolves them away: the dashboard's /frame/<key> would
+    show another camera), and not under the service's own `tacf/` prefix.
     """
     if not isinstance(key, str) or not key:
         raise InvalidKeyError(f"invalid image key {key!r}: empty or not a string")
@@ -72,6 +73,8 @@ def validate_image_key(key: object) -> str:
         if not _IMAGE_CHUNK_RE.fullmatch(chunk):
             raise InvalidKeyError(f"invalid image key {key!r}: chunk {chunk!r} has a character outside "
                                   f"[A-Za-z0-9_.~+=,:-] (wildcards are not allowed)")
+        if chunk in (".", ".."):
+            raise InvalidKeyError(f"invalid image key {key!r}: a chunk {chunk!r} (URLs of the key would lose it)")
     if chunks[0] in (PREFIX, LIVELINESS_PREFIX):
         raise InvalidKeyError(f"invalid image key {key!r}: the {PREFIX}/ prefix is reserved for the service")
     return key

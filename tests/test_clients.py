@@ -20,6 +20,7 @@ from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo
 from tacf_service.loopback import wait_until
+from camera_rig import no_service_options
 
 pytestmark = pytest.mark.zenoh
 
@@ -216,6 +217,16 @@ def test_a_call_takes_no_longer_than_its_timeout_however_many_queries_it_makes()
                 assert client.status("s", node="slow").sid == "s", "one query within the timeout is answered"
         finally:
             queryable.undeclare()
+
+
+def test_a_call_to_one_service_refuses_the_wildcard_node():
+    """node="*" passed the id check of a key expression, so a start or stop went to every service at once (the
+    dashboard's POST /api/start with "node": "*" started the session on each of them)."""
+    with TrackingClient(no_service_options(), timeout=0.5) as client:
+        for call in (lambda: client.start("cam/a", (1, 2, 3, 4), node="*"), lambda: client.stop("s", node="*"),
+                     lambda: client.reinit("s", (1, 2, 3, 4), node="*"), lambda: client.status("s", node="*")):
+            with pytest.raises(InvalidId, match="node id"):
+                call()
 
 
 def _cli_error(main, argv: list[str], capsys) -> str:

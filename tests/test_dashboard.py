@@ -483,6 +483,82 @@ def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
         assert app.dashboard.image_keys() == []
 
 
+def test_a_box_of_a_number_too_large_and_a_body_too_large_get_their_4xx():
+    """A 400-digit integer in a box raised OverflowError in the handler: no reply at all. A body over the limit
+    got its 413 only once the client stopped sending; one still sending got a reset (a broken pipe) instead."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        base = app.url.rstrip("/")
+        huge = int("9" * 400)
+        for path in ("/api/start", "/api/reinit"):
+            status, body = _post(base + path, {"image_key": KEY, "sid": "s", "box": [huge, 1, 2, 3]})
+            assert status == 400 and "too large" in body["message"], (path, body)
+        connection = http.client.HTTPConnection(*app.server.server_address[:2], timeout=10)
+        try:
+            connection.request("POST", "/api/stop", body=b"x" * 1_000_000, headers={"Content-Type": "application/json"})
+            reply = connection.getresponse()
+            assert reply.status == 413 and json.loads(reply.read())["error"] == "invalid_request"
+        finally:
+            connection.close()
+
+
+def test_a_camera_sending_frames_that_are_no_images_is_counted_and_answered():
+    """A raw frame shorter than its size says was kept as received, then /frame raised in its handler (no
+    reply) and /mjpeg died after its headers. It is now rejected on arrival; a frame whose header is right but
+    whose data is not (a corrupt PNG) gets a 502 that says so, and the MJPEG stream leaves it out."""
+    good_png = encode_frame(SCENE.frame(0), 0, "png")
+    corrupt = bytearray(good_png.data)
+    corrupt[40:] = bytes(len(corrupt) - 40)                     # past the PNG header: the image data
+    raw = encode_frame(SCENE.frame(0), 0, "bgr8")
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=["t/raw", "t/png"]) as app:
+        session.put("t/raw", encode(raw.model_copy(update={"data": raw.data[:100]})))
+        session.put("t/png", encode(good_png.model_copy(update={"data": bytes(corrupt)})))
+        assert _wait(lambda: app.dashboard.frame_counts() == {"t/raw": (0, 1), "t/png": (1, 0)}), \
+            app.dashboard.frame_counts()
+        base = app.url.rstrip("/")
+        assert _get(f"{base}/frame/t/raw")[0] == 404, "no frame yet: the short one was rejected"
+        status, _, body = _get(f"{base}/frame/t/png")
+        assert status == 502 and json.loads(body)["error"] == "bad_frame", body
+        with socket.create_connection(app.server.server_address[:2], timeout=10) as viewer:
+            viewer.sendall(b"GET /mjpeg/t/png HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert viewer.recv(65536).startswith(b"HTTP/1.1 200")
+            session.put("t/png", encode(good_png.model_copy(update={"seq": 1})))
+            received = b""
+            while b"X-Seq: 1" not in received:                    # the stream lives on to the next good frame
+                chunk = viewer.recv(65536)
+                assert chunk, "the stream ended"
+                received += chunk
+            assert b"X-Seq: 0" not in received
+
+
+def test_charts_are_timed_by_the_dashboard_s_clock_not_the_service_s():
+    """Chart points carried the service's health stamp while the page cuts its charts by the dashboard's clock:
+    an edge box an hour behind (no NTP on board) never got a chart."""
+    from tacf_schemas.models import Health
+
+    with zenoh.open(make_config(no_service_options())) as session, DashboardApp(session=session, port=0) as app:
+        health = Health(node="skewed", sid="s", state="tracking", stamp_ns=time.time_ns() - 3600 * 10**9,
+                        fps=10.0, processing_ms_mean=8.0, processing_ms_p95=9.0)
+        assert _wait(lambda: session.put(health_key("skewed", "s"), encode(health)) or
+                     app.dashboard.sessions_json()[1].get("skewed/s"))
+        now_ms = time.time_ns() // 1_000_000
+        assert all(abs(point["t"] - now_ms) < 10_000 for point in app.dashboard.sessions_json()[1]["skewed/s"])
+
+
+def test_two_dashboards_on_one_machine_keep_their_logins_apart():
+    """Browsers keep a host's cookies for all its ports: with one cookie name, logging in to one dashboard
+    logged the browser out of the other."""
+    first, second = DashboardAccess("a" * 20), DashboardAccess("b" * 20)
+    with DashboardApp(no_service_options(), port=0, access=first) as a, \
+            DashboardApp(no_service_options(), port=0, access=second) as b:
+        cookies = {app: first_or_second.cookie(app.server.server_address[1]).split(";")[0]
+                   for app, first_or_second in ((a, first), (b, second))}
+        assert cookies[a].split("=")[0] != cookies[b].split("=")[0]
+        both = {"Cookie": f"{cookies[a]}; {cookies[b]}"}          # what the browser sends to either port
+        assert _get(a.url + "api/state", both)[0] == 200
+        assert _get(b.url + "api/state", both)[0] == 200
+
+
 def test_an_ipv6_host_is_served():
     try:
         socket.create_server(("::1", 0), family=socket.AF_INET6).close()
@@ -546,7 +622,8 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         except urllib.error.HTTPError as exc:
             assert exc.code == 303 and exc.headers["Location"] == "/?view=grid"
             cookie = exc.headers["Set-Cookie"]
-        assert cookie.startswith(f"{COOKIE}={token};") and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+        port = app.server.server_address[1]
+        assert cookie.startswith(f"{COOKIE}_{port}={token};") and "HttpOnly" in cookie and "SameSite=Strict" in cookie
         # A refused POST's body is never read as the next request on the same connection: the connection ends.
         smuggled = f"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {token}\r\n\r\n".encode()
         with socket.create_connection(app.server.server_address[:2], timeout=10) as raw:
@@ -558,7 +635,7 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         assert status == 200 and b"TACF ground station" in page
         # another app on this host (any port) with a cookie SimpleCookie finds malformed
         assert _get(base + "/api/state", {"Cookie": 'prefs={"theme":"dark"}; ' + cookie.split(";")[0]})[0] == 200
-        assert _get(base + "/", {"Cookie": f"{COOKIE}=wrong-wrong-wrong-wrong"})[0] == 401
+        assert _get(base + "/", {"Cookie": f"{COOKIE}_{port}=wrong-wrong-wrong-wrong"})[0] == 401
         with pytest.raises(urllib.error.HTTPError) as again:   # the printed address opened again, logged in already
             opener.open(urllib.request.Request(app.url, headers={"Cookie": cookie.split(";")[0]}), timeout=10)
         assert again.value.code == 303 and again.value.headers["Location"] == "/", "the token leaves the address bar"
@@ -994,6 +1071,40 @@ def test_the_page_follows_services_coming_and_going(browser):
             service.process.kill()
             assert _wait(lambda: badge() == "", timeout=5), f"a killed service's session is still shown: {badge()}"
             assert _wait(lambda: browser.execute_script(services) == "no service answered", timeout=10)
+
+
+def test_a_box_seconds_old_is_not_drawn_on_the_live_frames_of_a_hung_service(browser):
+    """The card drew the session's newest box on every new frame, however old: with the service hung (SIGSTOP,
+    a link gone silent) and the camera going on, it sat green, PME and all, on a target that had moved on."""
+    import signal
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    from tacf_clients.local_service import LocalService
+
+    key = "test/dashboard/hung"
+    with LocalService(node=f"hung{free_port()}") as service, DashboardApp(service.options, port=0) as app:
+        service.wait_ready(app.dashboard.session)
+        with FramePublisher(app.dashboard.session, key, MovingTargetScene(320, 240, target=48, speed=3.0),
+                            fps=10) as camera:
+            assert _wait(lambda: camera.seq >= 3)
+            seq = camera.seq
+            status, info = _post(app.url + "api/start", {"image_key": key, "box": list(camera.truth[seq]),
+                                                         "seq": seq, "sid": "hung"})
+            assert status == 200, info
+            sid_id = f"{info['node']}/hung"
+            _open_page(browser, app)
+            assert _wait(lambda: (c := _canvas_state(browser, sid_id)) and c["count"] > 5, timeout=40)
+            os.kill(service.process.pid, signal.SIGSTOP)
+            try:
+                time.sleep(3.0)
+                shown = browser.execute_script("return window.tacf.feeds.get(arguments[0]).seq", f"{key}#{sid_id}")
+                drawn = _canvas_state(browser, sid_id)
+                assert shown >= drawn["frameSeq"] + 10, f"the last box was drawn on frame {drawn['frameSeq']}, " \
+                    f"the card shows frame {shown}"
+            finally:
+                os.kill(service.process.pid, signal.SIGCONT)
 
 
 def test_a_box_starts_on_the_key_it_was_drawn_on_when_the_key_list_changes_meanwhile(stack, browser):

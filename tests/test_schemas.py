@@ -228,14 +228,15 @@ def test_sanitise_id():
     validate_id(sanitise_id("x" * 300))
 
 
-@pytest.mark.parametrize("good", ["uav1/camera/front", "cam", "a-b_c.d/e:1"])
+@pytest.mark.parametrize("good", ["uav1/camera/front", "cam", "a-b_c.d/e:1", "cam/v1.2", "cam/.../x", ".cam"])
 def test_valid_image_keys(good):
     assert validate_image_key(good) == good
 
 
 @pytest.mark.parametrize("bad", ["", "/cam", "cam/", "a//b", "cam/*", "cam/**", "ca$*m", "cam#1", "cam?x",
                                  "cam 1", "@admin/x", "tacf/edge/x", "é", "a" * 300, "/".join("a" * 20), None,
-                                 "uav1/cam\n", "uav1\n/cam"])   # a key read from a file without strip()
+                                 "uav1/cam\n", "uav1\n/cam",   # a key read from a file without strip()
+                                 "cam/./front", "cam/../front", ".."])  # a URL's path would resolve them away
 def test_invalid_image_keys(bad):
     with pytest.raises(InvalidKeyError):
         validate_image_key(bad)

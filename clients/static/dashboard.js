@@ -11,6 +11,7 @@ const FRAME_BACKOFF_MAX_MS = 5000;   // the slowest poll of a feed that keeps fa
 const STALE_MS = 4000;               // health comes about once a second: silent this long, a session is shown stale
 const STATUS_MS = 10000;             // how long "session X started" stays
 const BOX_HISTORY = 64;    // boxes kept per session: a frame poll lags the boxes by a few of them at most
+const BOX_FRESH_MS = 1500;           // a box older than this is drawn only on its own frame, not on newer ones
 const CHART_REDRAW_MS = 1000;
 const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f7", fps: "#ffb74d",
                   grid: "#2c3644", text: "#8a96a8" };
@@ -120,11 +121,15 @@ function sessionFeed(id) {
     if (feed) feed.stop();
     feed = new FrameFeed(session.image_key, () => {
       const s = state.sessions.get(id);
-      return s && s.box && Date.now() - (s.boxAt || 0) < 1500 ? s.box.seq : null;
+      return s && s.box && boxIsFresh(s) ? s.box.seq : null;
     });
     state.feeds.set(name, feed);
   }
   return feed;
+}
+
+function boxIsFresh(session) {
+  return Date.now() - (session.boxAt || 0) < BOX_FRESH_MS;
 }
 
 // Canvas pixels are image pixels: the canvas is resized to the frame, CSS scales it to the card.
@@ -302,9 +307,10 @@ function paintCard(id) {
   if (paintDraft(card.frame)) return;
   const feed = sessionFeed(id);
   if (!paintFrame(card.frame, feed)) return;
-  // Boxes arrive faster than frames are polled: draw the box computed on the frame shown, if it is known.
+  // Boxes arrive faster than frames are polled: draw the box computed on the frame shown, if it is known, else
+  // the newest if it is fresh; an old one (the service hung, frames going on) would sit green on a moving target.
   // After a start or re-init from a dashboard, the box it gave until the tracker's first box on a later frame.
-  const box = state.boxes.get(id)?.get(feed.seq) || session.box;
+  const box = state.boxes.get(id)?.get(feed.seq) || (session.box && boxIsFresh(session) ? session.box : null);
   const init = !box && session.init && feed.seq >= session.init.seq ? session.init : null;
   if (!box && !init) return;
   const colour = init ? COLOURS.draft : box.ok ? COLOURS.ok : COLOURS.lost;
