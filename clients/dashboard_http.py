@@ -316,6 +316,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
         self.close_connection = True
         last = None
         while not self._ending():
+            if key not in dashboard.image_keys():
+                return                             # its last session stopped: the stream ends, not freezes
             try:
                 snap = dashboard.frame(key)
             except ValueError:                     # FrameError: a frame that is no image is left out

@@ -231,6 +231,28 @@ def test_a_start_beyond_the_key_limit_succeeds_and_keys_no_session_uses_are_drop
                     client.stop(info.sid)
 
 
+def test_an_mjpeg_stream_ends_when_its_key_is_no_longer_watched(stack):
+    """A key watched for a session is dropped after its last session: its MJPEG stream (VLC, a wall screen) stayed
+    open with no frame for good, a frozen picture that looked live."""
+    _, client, _, service = stack
+    key = "test/dashboard/mjpeg-gone"
+    with DashboardApp(service.options, port=0) as app:
+        base = app.url.rstrip("/")
+        status, body = _post(base + "/api/start", {"image_key": key, "box": [10, 10, 40, 40], "sid": "mjpeg-gone"})
+        assert status == 200, body
+        try:
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as viewer:
+                viewer.sendall(f"GET /mjpeg/{key} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+                assert viewer.recv(65536).startswith(b"HTTP/1.1 200")
+                assert _post(base + "/api/stop", {"sid": "mjpeg-gone"})[0] == 200
+                assert _wait(lambda: key not in app.dashboard.image_keys())
+                viewer.settimeout(5)
+                assert viewer.recv(65536) == b"", "the stream ended"
+        finally:
+            if any(info.sid == "mjpeg-gone" for info in client.list()):
+                client.stop("mjpeg-gone")
+
+
 def test_event_stream_is_latest_only_and_rate_capped(stack):
     """Boxes arrive at ~20 Hz; a browser gets at most ~10 messages a second, each session once per message."""
     app, client, camera, service = stack
