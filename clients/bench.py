@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import os
 import sys
 import threading
@@ -208,15 +209,23 @@ def _is_worker(pid: int) -> bool:
 
 
 def _percentile(values: list[float], q: float) -> float | None:
+    """The nearest-rank percentile: the smallest value with at least a fraction q of the values at or below it."""
     if not values:
         return None
     ordered = sorted(values)
-    return round(ordered[min(len(ordered) - 1, int(q * len(ordered)))], 1)
+    return round(ordered[max(0, math.ceil(q * len(ordered)) - 1)], 1)
+
+
+def _pause(seconds: float, stop: threading.Event) -> None:
+    """Wait `seconds`; KeyboardInterrupt once `stop` is set (SIGINT, SIGTERM, SIGHUP), so that the run's `finally`
+    stops the service it started (in a session of its own, no signal to the bench reaches it)."""
+    if stop.wait(seconds):
+        raise KeyboardInterrupt
 
 
 def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, profile: str | None,
-              progress: bool = True) -> dict:
-    """One benchmark run with len(feeds) feeds; the JSON-ready report."""
+              progress: bool = True, stop: threading.Event | None = None) -> dict:
+    """One benchmark run with len(feeds) feeds; the JSON-ready report. KeyboardInterrupt once `stop` is set."""
     from tqdm import tqdm
 
     from tacf_clients.client import TrackingClient
@@ -225,8 +234,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
     from tacf_schemas import BoxResult, Frame
 
     n = len(feeds)
-    service = LocalService(node=NODE, extra_args=("--max-sessions", str(n), "--spare-workers", "0")).start()
-    session = open_session(service.options)
+    stop = stop or threading.Event()
     received: list[tuple[int, BoxResult]] = []
     lock = threading.Lock()
 
@@ -235,9 +243,13 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         with lock:
             received.append((now, box))
 
-    publisher = None
+    service = LocalService(node=NODE, extra_args=("--max-sessions", str(n), "--spare-workers", "0"))
+    publisher = session = None
     try:
-        service.wait_ready(session)
+        service.start()
+        session = open_session(service.options)
+        if not service.wait_ready(session, cancel=stop):
+            raise KeyboardInterrupt
         client = TrackingClient(session=session, node=NODE, timeout=30.0)
         subscription = client.subscribe(on_box=on_box)
         publisher = FeedPublisher(session, feeds, fps).start()
@@ -250,8 +262,8 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
             with lock:
                 if len({b.sid for _, b in received}) == n:
                     break
-            time.sleep(0.1)
-        time.sleep(warmup)
+            _pause(0.1, stop)
+        _pause(warmup, stop)
         service_pid = service.process.pid
         children = _descendants(service_pid)
         workers = [pid for pid in children if _is_worker(pid)]
@@ -267,14 +279,15 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
                     over_time["rss_mb"].append(round(_total_mb(processes, "status", "VmRSS:")))
                     over_time["pss_mb"].append(round(_total_mb(processes, "smaps_rollup", "Pss:")))
                     over_time["open_fds"].append(sum(map(_open_fds, processes)))
-                time.sleep(min(0.2, seconds - elapsed))
+                next_sample = len(over_time["seconds"]) * seconds / 20
+                _pause(max(0.0, min(0.2, next_sample - elapsed, seconds - elapsed)), stop)
                 bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
         last_seq = [len(s) - 1 for s in publisher.sent]
         cpu_percent = 100 * (sum(map(_cpu_seconds, processes)) - cpu_before) / (time.monotonic() - wall_before)
         rss = _mean(_memory_mb(pid, "status", "VmRSS:") for pid in workers)
         pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
         pss_total = round(_total_mb(processes, "smaps_rollup", "Pss:"), 1)
-        time.sleep(2.0)     # let the boxes of the window's last frames arrive
+        _pause(2.0, stop)   # let the boxes of the window's last frames arrive
         with lock:
             sid_index = {f"feed{i}": i for i in range(n)}
             window = [(t, b) for t, b in received
@@ -285,7 +298,8 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
     finally:
         if publisher is not None:
             publisher.stop()
-        session.close()
+        if session is not None:
+            session.close()
         service.stop()
 
     latency = [(t - b.stamp_ns) / 1e6 for t, b in window]
@@ -303,6 +317,10 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
 
 
 def cmd_bench_service(args: argparse.Namespace) -> int:
+    from tacf_clients.cli import stop_on_signals
+    from tacf_clients.errors import TacfError
+    from tacf_clients.local_service import LocalServiceError
+
     root = args.root or DEFAULT_DATA
     if not root.is_dir():
         log.error("no sequences: %s does not exist (pass ROOT)", root)
@@ -312,12 +330,20 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
     except FileNotFoundError as exc:
         log.error("%s", exc)
         return 2
-    reports = []
-    for count in args.feeds:
-        reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile,
-                                 progress=not args.no_progress))
-        log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
-                 reports[-1]["dropped"], reports[-1]["frames_sent"])
+    reports, failed = [], False
+    with stop_on_signals() as stop:
+        for count in args.feeds:
+            try:
+                reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile,
+                                         progress=not args.no_progress, stop=stop))
+            except (LocalServiceError, TacfError) as exc:      # the reports of the counts run so far are kept
+                log.error("%d feeds: %s", count, str(exc).splitlines()[0])
+                failed = True
+                break
+            log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
+                     reports[-1]["dropped"], reports[-1]["frames_sent"])
+    if not reports:
+        return 1
     text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -325,4 +351,4 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
         log.info("wrote %s", args.json)
     else:
         sys.stdout.write(text)
-    return 0
+    return 1 if failed else 0

@@ -14,6 +14,7 @@ import threading
 from contextlib import contextmanager
 
 from tacf.argument_types import box, integer, port, positive_number, quality, seconds
+from tacf.config import PROFILES      # plain data: `tacf demo --profile` is checked before a service starts
 
 mavlink_id = integer(1, 255, "a MAVLink id")
 frame_seq = integer(0, what="a frame seq")
@@ -118,7 +119,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="frames per second to publish: a video file or folder is replayed at this rate, a camera or "
                         "URL thinned to it (default: a video file's own rate, else 20)")
     p.add_argument("--encoding", choices=ENCODING_CHOICES, default="jpeg")
-    p.add_argument("--profile", help="tracker profile")
+    p.add_argument("--profile", choices=PROFILES, help="tracker profile (default: the service's default)")
     p.add_argument("--every", type=integer(1), default=None, metavar="N",
                    help="print every Nth box (default: about 3 lines a second)")
     p.set_defaults(func=cmd_demo)

@@ -25,9 +25,10 @@ from tacf_clients.errors import TacfError
 from tacf_clients.local_service import LocalService, LocalServiceError
 from tacf_clients.publisher import FramePublisher
 from tacf_clients.scene import Scene, SceneSource
-from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, SourceFrame, open_source,
-                                  paced_frames)
+from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, SourceError, SourceFrame,
+                                  open_source, paced_frames)
 from tacf_clients.zconfig import open_session
+from tacf_schemas.images import FrameError
 from tacf_schemas.models import BoxResult, Health
 
 log = logging.getLogger(__name__)
@@ -54,11 +55,14 @@ class DemoOptions:
 
 @dataclass
 class DemoReport:
+    """What the demo saw. boxes, lost, seconds and ious count the boxes on frames published once the camera
+    moved: those on the held first frame, which is copied until the first box comes, would inflate the rate and
+    the overlap."""
     ok: bool = False
     sid: str | None = None
     boxes: int = 0
     lost: int = 0
-    seconds: float = 0.0
+    seconds: float = 0.0                  # from the first box counted to the last
     ious: list[float] = field(default_factory=list)
     last_health: Health | None = None
     service_exit: int | None = None
@@ -67,7 +71,7 @@ class DemoReport:
 
     @property
     def box_fps(self) -> float:
-        return self.boxes / self.seconds if self.seconds > 0 else 0.0
+        return (self.boxes - 1) / self.seconds if self.seconds > 0 else 0.0
 
     @property
     def mean_iou(self) -> float | None:
@@ -158,6 +162,8 @@ class HoldingPublisher:
         try:
             for frame in paced_frames(self.source, self.fps, self.stop, hold=self.hold):
                 self._put(frame)
+        except (FrameError, SourceError) as exc:     # what the source gives cannot be sent: the demo says so
+            self.error = exc
         except BaseException as exc:  # reported by the demo, never lost on this thread
             self.error = exc
             log.exception("demo publisher failed")
@@ -262,8 +268,10 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
         publisher.start()
         printer.line(f"publishing {source.name} on {options.image_key!r} at {fps:.0f} fps ({options.encoding})")
         try:
-            while publisher.last_seq < 0 and not publisher.ended.is_set():
+            while publisher.last_seq < 0 and not publisher.ended.is_set() and not stop.is_set():
                 time.sleep(0.01)
+            if publisher.last_seq < 0:
+                return                   # stopped, or no frame could be sent: the publisher's error says why
             with client.results(node=options.node) as results:
                 info = client.start(options.image_key, box, seq=publisher.last_seq, profile=options.profile,
                                     sid="demo")
@@ -280,6 +288,8 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
             printer.line(f"error: {report.error}", error=True)
         finally:
             publisher.close()
+            if isinstance(publisher.error, (FrameError, SourceError)):     # the source is at fault, not the demo
+                raise publisher.error
             if publisher.error is not None and report.error is None:
                 report.error = f"publisher: {publisher.error}"
 
@@ -287,7 +297,8 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
 def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: GroundTruth | None,
             printer: Printer, report: DemoReport, stop: threading.Event) -> None:
     """Print results until the time is up, the source ends or `stop` is set."""
-    deadline = tracking_started = failed_since = None
+    deadline = counted_from = first_counted = failed_since = None
+    seen = 0
     first_box_timeout = time.monotonic() + options.start_timeout
     while not stop.is_set():
         now = time.monotonic()
@@ -311,17 +322,22 @@ def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: G
         elif isinstance(item, BoxResult) and item.sid == report.sid:
             if deadline is None:             # first box: the camera starts moving
                 publisher.hold.clear()
+                counted_from = publisher.last_seq + 1
                 deadline = time.monotonic() + options.seconds
-                tracking_started = time.monotonic()
-            report.boxes += 1
-            report.lost += not item.ok
-            report.seconds = time.monotonic() - tracking_started
             overlap = None
             index = publisher.index_of(item.seq)
             if truth is not None and index is not None and (gt := truth.box(index)) is not None:
                 overlap = box_iou(tuple(item.box), gt)
-                report.ious.append(overlap)
-            printer.box(item, report.boxes, overlap)
+            if item.seq >= counted_from:
+                if first_counted is None:
+                    first_counted = now
+                report.boxes += 1
+                report.lost += not item.ok
+                report.seconds = now - first_counted
+                if overlap is not None:
+                    report.ious.append(overlap)
+            seen += 1
+            printer.box(item, seen, overlap)
 
 
 def _summary(printer: Printer, report: DemoReport, has_truth: bool) -> None:

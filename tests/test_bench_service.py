@@ -2,17 +2,34 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from tacf.cli import main
+from tacf_clients import local_service
+from tacf_clients.bench import _percentile
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
 
-pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"benchmark sequences not found at {DATA}")
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"benchmark sequences not found at {DATA}")
 
 
+def test_percentiles_are_nearest_rank():
+    """int(q n) as the index was a rank too high: p99 of 100 latencies was their maximum."""
+    values = [float(v) for v in range(1, 101)]
+    assert (_percentile(values, 0.5), _percentile(values, 0.95), _percentile(values, 0.99)) == (50, 95, 99)
+    assert _percentile(values, 1.0) == 100 and _percentile([7.0], 0.99) == 7 and _percentile([], 0.5) is None
+    assert _percentile([float(v) for v in range(1, 21)], 0.95) == 19
+
+
+@needs_data
 def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
     out = tmp_path / "bench.json"
     assert main(["bench", "service", str(DATA), "--feeds", "2", "--fps", "5", "--seconds", "4", "--warmup", "1",
@@ -37,14 +54,72 @@ def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
     assert all(name.startswith(("UAV123", "DTB70")) for name in report["sequences"])   # the 1280x720 ones
 
 
+@needs_data
 def test_bench_service_without_sequences_is_a_clear_error(tmp_path, caplog):
     assert main(["bench", "service", str(tmp_path / "nowhere")]) == 2
     assert "does not exist" in caplog.text
 
 
-def test_bench_service_refuses_a_bad_warmup_or_profile_before_starting_a_service():
-    for bad in (["--warmup", "-1"], ["--fps", "nan"], ["--profile", "bogus"], ["--json", str(DATA)]):
+@needs_data
+def test_bench_service_refuses_a_bad_warmup_or_profile_before_starting_a_service(tmp_path):
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    for bad in (["--warmup", "-1"], ["--fps", "nan"], ["--profile", "bogus"], ["--json", str(DATA)],
+                ["--json", str(a_file / "out.json")]):       # written only after the run, lost with it
         # argparse: a usage error naming what is wrong (a NaN --fps passed a `<= 0` check and ran)
         with pytest.raises(SystemExit) as refused:
             main(["bench", "service", str(DATA), *bad])
         assert refused.value.code == 2
+
+
+def _serve_processes(node: str) -> list[int]:
+    """Pids of `tacf serve ... --node NODE` processes on this machine."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            command = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"serve" in command and b"--node" in command and command[command.index(b"--node") + 1] == node.encode():
+            found.append(int(entry.name))
+    return found
+
+
+@needs_data
+def test_bench_service_stops_its_service_on_sigterm_and_sighup():
+    """The service runs in a session of its own: only the bench can stop it. Only Ctrl-C used to reach the
+    bench's clean-up; SIGTERM (a CI job's timeout) and SIGHUP (the terminal closed) left `tacf serve`, its fork
+    server and its workers running."""
+    assert not _serve_processes("bench"), "a bench service is already running"
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        bench = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(DATA), "--seconds", "60",
+                                  "--no-progress"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and not _serve_processes("bench"):
+                time.sleep(0.2)
+            assert _serve_processes("bench"), "the bench started its service"
+            time.sleep(1.0)
+            bench.send_signal(sig)
+            _, err = bench.communicate(timeout=30)
+            assert bench.returncode == 130 and "interrupted" in err, (sig, bench.returncode, err[-500:])
+            assert not _serve_processes("bench"), f"{sig.name}: the service outlived the bench"
+        finally:
+            if bench.poll() is None:
+                bench.kill()
+                bench.wait()
+            for pid in _serve_processes("bench"):          # what a failure left behind
+                os.kill(pid, signal.SIGKILL)
+
+
+@needs_data
+def test_a_service_that_cannot_start_is_a_one_line_error(monkeypatch, caplog):
+    """A failure in a run (here the service's port taken, as a race after free_port() can do) was a traceback, and
+    the reports of the feed counts already run were lost."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        monkeypatch.setattr(local_service, "free_port", lambda: taken.getsockname()[1])
+        assert main(["bench", "service", str(DATA), "--seconds", "1", "--no-progress"]) == 1
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert len(errors) == 1 and errors[0].startswith("1 feeds: tacf serve exited with code"), errors

@@ -11,6 +11,7 @@ import threading
 import time
 
 import cv2
+import numpy as np
 import pytest
 import zenoh
 
@@ -33,6 +34,8 @@ def test_demo_on_the_generated_scene_follows_the_target():
     assert report.error is None
     assert report.service_exit == 0, "the service stops cleanly on SIGTERM"
     assert report.boxes >= 15, text
+    # boxes on the held first frame, copied until the first box came, were counted too: 22 a second at 20 fps
+    assert report.box_fps <= 20 * 1.05, text
     assert report.followed is not None and report.followed >= 0.9, text
     assert report.mean_iou > 0.6, text
     assert report.last_health is not None and report.last_health.state in ("tracking", "lost")
@@ -147,6 +150,24 @@ def test_demo_on_a_bad_source_is_a_usage_error_on_stderr(source, reason):
     assert done.returncode == 2 and done.stdout == "", done.stdout + done.stderr
     last = done.stderr.splitlines()[-1]         # (FFmpeg says first, on its own, why it could not connect)
     assert last.startswith("tacf demo: ") and reason in last and "Traceback" not in done.stderr, done.stderr
+
+
+def test_a_source_whose_frames_cannot_be_sent_is_a_usage_error_and_no_session_starts(tmp_path):
+    """A frame beyond the wire's limits: the publisher failed with a traceback, the demo started a session on
+    frame -1 anyway and reported the service's refusal of that, exit 1."""
+    folder = tmp_path / "wide"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "1.png"), np.zeros((16, 8200, 3), np.uint8))
+    done = subprocess.run(_demo(str(folder)), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.splitlines()[-1] == "tacf demo: frame size 8200x16 exceeds the limits (8192x8192, " \
+        "16777216 pixels)", done.stderr
+    assert "Traceback" not in done.stderr and "session" not in done.stdout, done.stdout + done.stderr
+
+
+def test_an_unknown_profile_is_refused_before_a_service_starts():
+    done = subprocess.run(_demo("--profile", "bogus"), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "invalid choice: 'bogus'" in done.stderr and done.stdout == "", done.stderr
 
 
 def test_ctrl_c_ends_the_demo_quietly_with_130():

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import re
 import sys
 from dataclasses import replace
@@ -23,10 +24,16 @@ RESULTS_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")  # `--results NAM
 
 
 def report_file(text: str) -> Path:
-    """`--json OUT` of a benchmark: a folder is refused when the command is parsed, not after the run it would lose."""
+    """`--json OUT` of a benchmark: a path that cannot be written is refused when the command is parsed, not after
+    the run it would lose (the missing folders on the way are made when it is written)."""
     path = Path(text)
     if path.is_dir():
         raise argparse.ArgumentTypeError(f"{text} is a folder; give a file name")
+    folder = next(p for p in path.absolute().parents if p.exists())
+    if not folder.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: {folder} is a file, not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise argparse.ArgumentTypeError(f"{text}: cannot write in {folder}")
     return path
 
 
