@@ -34,10 +34,12 @@ class PublishStats:
     bytes: int              # payload bytes published
     seconds: float          # wall time of the run
     last_seq: int | None    # seq of the last frame published
+    span: float = 0.0       # from the first frame put to the last
 
     @property
     def fps(self) -> float:
-        return self.frames / self.seconds if self.seconds > 0 else 0.0
+        """Frames per second between the first frame and the last (not over the set-up before the first)."""
+        return (self.frames - 1) / self.span if self.span > 0 else 0.0
 
 
 def to_channels(image: np.ndarray, encoding: str) -> np.ndarray:
@@ -118,8 +120,8 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
         raise ValueError(f"max_frames must be at least 1, got {max_frames}")
     stop = stop or threading.Event()
     frames = nbytes = 0
-    last_seq = None
-    started = time.monotonic()
+    last_seq = first_put = None
+    started = last_put = time.monotonic()
     rate = paced_rate(source, fps)
     log.info("publishing %s on %r as %s at %s fps", source.name, key, encoding,
              "device" if rate is None else f"{rate:.3g}")
@@ -127,6 +129,8 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
         for src in paced_frames(source, fps, stop):
             # Live sources: the time the device delivered the frame; replayed ones: now, their "capture" time.
             frame = publisher.put(src.image, src.stamp_ns if source.live else None)
+            last_put = time.monotonic()
+            first_put = first_put or last_put
             frames, nbytes, last_seq = frames + 1, nbytes + len(frame.data), frame.seq
             if on_frame is not None:
                 on_frame(frame, src)
@@ -134,6 +138,6 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
                 log.info("first frame: %dx%d, %d bytes", frame.width, frame.height, len(frame.data))
             if frames == max_frames:
                 break
-    stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq)
+    stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq, last_put - (first_put or last_put))
     log.info("published %d frames (%.1f fps, %.1f MB)", stats.frames, stats.fps, stats.bytes / 1e6)
     return stats

@@ -295,6 +295,13 @@ def test_publish_video_file_bgr8_matches_the_decoded_video(tmp_path, collector):
         assert np.array_equal(decode_frame(frame), image)
 
 
+def test_the_rate_reported_is_the_rate_the_frames_went_out_at(collector):
+    """It was frames / (set-up + (n - 1) periods): five frames at 10 fps read 11.3 fps."""
+    with _publisher_session(collector.port) as session, open_source("scene") as source:
+        stats = publish(session, source, KEY, fps=10, max_frames=5)
+    assert stats.frames == 5 and stats.fps == pytest.approx(10, rel=0.05), stats
+
+
 def test_publish_image_folder_jpeg_loops_with_increasing_seq(tmp_path, collector):
     images = _frames(3)
     folder = _write_folder(tmp_path / "img", images)
