@@ -338,28 +338,37 @@ def test_the_topics_of_a_key_go_with_its_last_session(rig):
             camera.hold.clear()
 
 
-def test_a_camera_sending_frames_that_are_no_images_holds_up_no_other(caplog):
-    """A PNG whose header is right but whose data is not cannot be shown: that key gets no images (one
-    warning), the other keys' images go on (keys are published in order: "a/..." came first and stopped the ones
-    after it). (A raw frame shorter than its size says is refused on arrival by the board.)"""
+@contextmanager
+def two_cameras(first: str, second: str):
+    """A bridge (no service) on a board watching two image keys, a session to publish frames on them, and a
+    Foxglove client subscribed to both keys' images: yields (put, fox), put(key, frame) sending one frame."""
     import zenoh
 
     from tacf_clients.zconfig import ZenohOptions, make_config
     from tacf_schemas.codec import encode
-    from tacf_schemas.images import encode_frame
 
     options = no_service_options()
+    with Dashboard(options, image_keys=[first, second]) as board, \
+            zenoh.open(make_config(ZenohOptions(connect=options.listen, listen=()))) as cameras, \
+            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge):
+        fox.subscribe(f"/{first}/image")
+        fox.subscribe(f"/{second}/image")
+        yield lambda key, frame: cameras.put(key, encode(frame)), fox
+
+
+def test_a_camera_sending_frames_that_are_no_images_holds_up_no_other(caplog):
+    """A PNG whose header is right but whose data is not cannot be shown: that key gets no images (one
+    warning), the other keys' images go on (keys are published in order: "a/..." came first and stopped the ones
+    after it). (A raw frame shorter than its size says is refused on arrival by the board.)"""
+    from tacf_schemas.images import encode_frame
+
     good = encode_frame(SCENE.frame(0), 0, "bgr8")
     png = encode_frame(SCENE.frame(0), 0, "png")
     corrupt = png.model_copy(update={"data": png.data[:40] + bytes(len(png.data) - 40)})   # past the header
-    with Dashboard(options, image_keys=["a/broken", "b/fine"]) as board, \
-            zenoh.open(make_config(ZenohOptions(connect=options.listen, listen=()))) as cameras, \
-            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge):
-        fox.subscribe("/a/broken/image")
-        fox.subscribe("/b/fine/image")
+    with two_cameras("a/broken", "b/fine") as (put, fox):
         for seq in range(40):
-            cameras.put("a/broken", encode(corrupt.model_copy(update={"seq": seq})))
-            cameras.put("b/fine", encode(good.model_copy(update={"seq": seq})))
+            put("a/broken", corrupt.model_copy(update={"seq": seq}))
+            put("b/fine", good.model_copy(update={"seq": seq}))
             fox.pump_until(lambda: False, timeout=0.05)
         assert fox.pump_until(lambda: len(fox.received("/b/fine/image")) >= 5), "the fine camera is shown"
         assert not fox.received("/a/broken/image")
@@ -370,22 +379,13 @@ def test_a_camera_sending_frames_that_are_no_images_holds_up_no_other(caplog):
 def test_a_camera_stamping_past_2106_holds_up_no_other():
     """The wire takes stamps up to 2**63 ns, Foxglove's Timestamp seconds up to 2**32 - 1: such a frame failed
     every image and box message after it, the other cameras' included. It is now shown at the last second."""
-    import zenoh
-
-    from tacf_clients.zconfig import ZenohOptions, make_config
-    from tacf_schemas.codec import encode
     from tacf_schemas.images import encode_frame
 
-    options = no_service_options()
     good = encode_frame(SCENE.frame(0), 0, "bgr8")
-    with Dashboard(options, image_keys=["a/future", "b/fine"]) as board, \
-            zenoh.open(make_config(ZenohOptions(connect=options.listen, listen=()))) as cameras, \
-            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge):
-        fox.subscribe("/a/future/image")
-        fox.subscribe("/b/fine/image")
+    with two_cameras("a/future", "b/fine") as (put, fox):
         for seq in range(20):
-            cameras.put("a/future", encode(good.model_copy(update={"seq": seq, "stamp_ns": 5 * 10**18})))
-            cameras.put("b/fine", encode(good.model_copy(update={"seq": seq, "stamp_ns": 1_700_000_000 * 10**9})))
+            put("a/future", good.model_copy(update={"seq": seq, "stamp_ns": 5 * 10**18}))
+            put("b/fine", good.model_copy(update={"seq": seq, "stamp_ns": 1_700_000_000 * 10**9}))
             fox.pump_until(lambda: False, timeout=0.05)
         assert fox.pump_until(lambda: len(fox.received("/b/fine/image")) >= 5), "the fine camera is shown"
         assert fox.pump_until(lambda: fox.received("/a/future/image")), "and the one from the future"
