@@ -278,12 +278,12 @@ function cardFor(session) {
            badge: $(".state", root) };
   $(".sid", root).textContent = session.sid;
   $(".node", root).textContent = "on " + session.node;
+  // the card's id is node/sid: its session's sid and node never change, even if it goes while a box is drawn
   enableDrawing(card.frame, () => sessionFeed(session.id), async (box, seq) => {
-    const s = state.sessions.get(session.id);
     setReinit(null);
     try {
-      await post("/api/reinit", { sid: s.sid, node: s.node, box, seq });
-    } catch (err) { toast(`re-init ${s.sid}: ${err.message}`); }
+      await post("/api/reinit", { sid: session.sid, node: session.node, box, seq });
+    } catch (err) { toast(`re-init ${session.sid}: ${err.message}`); }
   });
   state.cards.set(session.id, card);
   $("#cards").appendChild(root);
