@@ -15,9 +15,10 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from tacf.zenoh_options import zenoh_error_text
 from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
 
-from .config import ZenohOptions, service_config, worker_endpoints
+from .config import ZenohOptions, service_config, worker_config, worker_endpoints
 from .control import ControlServer
 from .frames import FrameHistory
 from .manager import SessionManager
@@ -74,6 +75,7 @@ class TrackingService:
         try:
             self._session = zenoh.open(service_config(options.zenoh))
             _refuse_a_taken_node(self._session, self.node)
+            _check_workers_can_connect(options.zenoh, endpoints)
             self._history = FrameHistory(self._session)
             self.manager = SessionManager(self._session, self.node, self._history, options.zenoh, endpoints,
                                           max_sessions=options.max_sessions, store=self._store,
@@ -134,6 +136,9 @@ def serve(options: ServiceOptions) -> int:
     except zenoh.ZError as exc:     # settings Zenoh refused (a malformed endpoint, a port taken): a usage error
         log.error("cannot start the service: Zenoh%s", options.zenoh.refusal(exc))
         return 2
+    except WorkerConnectError as exc:
+        log.error("cannot start the service: %s", exc)
+        return 2
     except Exception as exc:
         log.error("cannot start the service: %s", exc)
         return 1
@@ -158,6 +163,24 @@ def _refuse_a_taken_node(session, node: str) -> None:
         raise RuntimeError(f"another tacf service already runs as node {node!r} on this network; give this one its "
                            "own --node (a service that has just died keeps its token until its link drops: up to "
                            "10 s on a lost network)")
+
+
+class WorkerConnectError(ValueError):
+    """The worker processes' settings do not let them into the service (a usage error)."""
+
+
+def _check_workers_can_connect(zenoh_options: ZenohOptions, endpoints: list[str]) -> None:
+    """Open a session as a worker does, then close it. The settings only workers use (the CA that checks the
+    service's certificate, their mutual-TLS certificate, the password they present) used to fail in every worker,
+    again and again, while the service said it was ready and accepted starts."""
+    import zenoh
+
+    try:
+        zenoh.open(worker_config(zenoh_options, endpoints)).close()
+    except zenoh.ZError as exc:
+        where = f" with the settings of {zenoh_options.config_file}" if zenoh_options.config_file else ""
+        raise WorkerConnectError(f"its worker processes cannot connect to it at {', '.join(endpoints)}{where}: "
+                                 f"{zenoh_error_text(exc)}") from None
 
 
 def _quietly(fn) -> None:

@@ -15,6 +15,9 @@ from tacf.zenoh_options import ZenohOptions, base_config
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
 _UNSPECIFIED_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
+# TLS and QUIC to an IPv6 literal fail in zenoh 1.x whatever the certificate says (the bracketed address is not
+# taken for an IP address): a worker reaches a [::] listener as localhost, which make-certs.sh certifies
+_UNSPECIFIED_HOSTS_SECURE = {"0.0.0.0": "127.0.0.1", "[::]": "localhost"}
 _ENDPOINT_RE = re.compile(r"^(?P<proto>[a-z0-9]+)/(?P<host>\[[^\]]*\]|[^:/]+):(?P<port>\d+)(?P<rest>[#?].*)?$")
 
 
@@ -58,7 +61,8 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
         m = _ENDPOINT_RE.match(endpoint)
         if not m or m.group("port") == "0":
             continue
-        host = _UNSPECIFIED_HOSTS.get(m.group("host"), m.group("host"))
+        unspecified = _UNSPECIFIED_HOSTS_SECURE if m.group("proto") in ("tls", "quic") else _UNSPECIFIED_HOSTS
+        host = unspecified.get(m.group("host"), m.group("host"))
         endpoints.append(f"{m.group('proto')}/{host}:{m.group('port')}{m.group('rest') or ''}")
     if endpoints:
         return endpoints

@@ -181,6 +181,37 @@ def test_the_cli_takes_the_configs(etc, endpoint, tracked):
     assert boxes_grow(tracked)
 
 
+def test_make_certs_takes_ipv6_addresses_and_keeps_keys_private_on_a_rerun(tmp_path):
+    """An IPv6 address became a DNS name (useless to a client connecting by address), and a re-run left keys
+    whose permissions had been opened up readable by all (umask only covers new files)."""
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command to make certificates")
+    certs = tmp_path / "certs"
+    make = ["sh", str(DOCS / "make-certs.sh"), str(certs), "edge.local", "10.0.0.5", "2001:db8::5"]
+    subprocess.run(make, check=True, capture_output=True)
+    names = subprocess.run(["openssl", "x509", "-in", str(certs / "service.pem"), "-noout", "-ext",
+                            "subjectAltName"], check=True, capture_output=True, text=True).stdout
+    assert "DNS:edge.local" in names and "IP Address:10.0.0.5" in names and "IP Address:2001:DB8:" in names, names
+    (certs / "service.key").chmod(0o644)
+    subprocess.run(make, check=True, capture_output=True)
+    assert all(key.stat().st_mode & 0o077 == 0 for key in certs.glob("*.key"))
+
+
+def test_a_service_whose_workers_cannot_log_in_refuses_to_start(etc):
+    """Settings only the workers use (here the password they present, changed in users.txt but not in the service's
+    file) used to fail in every worker, again and again, while the service said it was ready and accepted starts."""
+    config = derive(etc / "service.json5", etc / "service-badpassword.json5",
+                    {"transport/auth/usrpwd/password": "not-the-one-in-users-txt"})
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--zenoh-config", str(config), "--listen",
+                           endpoint, "--node", "badpassword", "--spare-workers", "0"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert f"cannot start the service: its worker processes cannot connect to it at {endpoint} with the settings " \
+        f"of {config}" in done.stderr, done.stderr[-2000:]
+    assert "ready" not in done.stderr
+
+
 def test_mutual_tls_with_access_control_by_certificate_common_name(etc):
     """The mutual-TLS variant of the README: every side presents a certificate of make-certs.sh, and the access
     control's subjects are certificate common names instead of user names."""

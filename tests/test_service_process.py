@@ -153,6 +153,10 @@ def test_default_zenoh_config_is_loopback_only():
     assert json.loads(conf.get_json("mode")) == "peer"
     assert worker_endpoints(ZenohOptions()) == ["tcp/127.0.0.1:7447"]
     assert worker_endpoints(ZenohOptions(listen=("tcp/0.0.0.0:9000",))) == ["tcp/127.0.0.1:9000"]
+    assert worker_endpoints(ZenohOptions(listen=("tcp/[::]:9000",))) == ["tcp/[::1]:9000"]
+    # TLS to an IPv6 literal fails in zenoh 1.x whatever the certificate names: the workers could never connect
+    assert worker_endpoints(ZenohOptions(listen=("tls/[::]:9000", "tls/0.0.0.0:9001"))) == \
+        ["tls/localhost:9000", "tls/127.0.0.1:9001"]
     assert worker_endpoints(ZenohOptions(connect=("tcp/10.0.0.1:7447",))) == ["tcp/10.0.0.1:7447"]
     with pytest.raises(ValueError):
         worker_endpoints(ZenohOptions(listen=("tcp/127.0.0.1:0",)))

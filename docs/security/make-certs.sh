@@ -17,7 +17,8 @@ umask 077
 san="DNS:localhost,IP:127.0.0.1"
 for name in "$@"; do
     case $name in
-        *[!0-9.]*) san="$san,DNS:$name" ;;   # anything but digits and dots is a host name
+        *:*) san="$san,IP:$name" ;;          # an IPv6 address
+        *[!0-9.]*) san="$san,DNS:$name" ;;   # anything else but digits and dots is a host name
         *) san="$san,IP:$name" ;;
     esac
 done
@@ -44,4 +45,5 @@ leaf viewer viewer clientAuth "DNS:viewer"
 leaf camera camera clientAuth "DNS:camera"
 rm -f ca.srl
 chmod 644 ./*.pem
+chmod 600 ./*.key    # umask made new files private; keys of an earlier run may have been opened up since
 echo "certificates in $(pwd): ca.pem service.pem ground.pem viewer.pem camera.pem (keys: *.key)"
