@@ -277,6 +277,9 @@ def cmd_publish(args: argparse.Namespace) -> int:
     reconnected = f", {source.reconnects} reconnections" if source.reconnects else ""
     print(f"published {stats.frames} frames in {stats.seconds:.1f} s ({stats.fps:.1f} fps, "
           f"{stats.bytes / 1e6:.1f} MB{reconnected}) on {args.key}")
+    if not stats.matched:
+        print(f"tacf publish: no subscriber ever listened on {args.key}: the frames reached nobody (no session "
+              "follows the key, or access control keeps them from the network)", file=sys.stderr)
     return 0
 
 

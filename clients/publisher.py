@@ -35,6 +35,7 @@ class PublishStats:
     seconds: float          # wall time of the run
     last_seq: int | None    # seq of the last frame published
     span: float = 0.0       # from the first frame put to the last
+    matched: bool = False   # a subscriber listened on the key at some point (else the frames reached nobody)
 
     @property
     def fps(self) -> float:
@@ -121,6 +122,7 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
     stop = stop or threading.Event()
     frames = nbytes = 0
     last_seq = first_put = None
+    matched = False
     started = last_put = time.monotonic()
     rate = paced_rate(source, fps)
     log.info("publishing %s on %r as %s at %s fps", source.name, key, encoding,
@@ -131,6 +133,7 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
             frame = publisher.put(src.image, src.stamp_ns if source.live else None)
             last_put = time.monotonic()
             first_put = first_put or last_put
+            matched = matched or publisher.matched
             frames, nbytes, last_seq = frames + 1, nbytes + len(frame.data), frame.seq
             if on_frame is not None:
                 on_frame(frame, src)
@@ -138,6 +141,7 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
                 log.info("first frame: %dx%d, %d bytes", frame.width, frame.height, len(frame.data))
             if frames == max_frames:
                 break
-    stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq, last_put - (first_put or last_put))
+    stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq, last_put - (first_put or last_put),
+                         matched)
     log.info("published %d frames (%.1f fps, %.1f MB)", stats.frames, stats.fps, stats.bytes / 1e6)
     return stats

@@ -340,12 +340,26 @@ def test_publish_stop_event_and_encodings(tmp_path, collector):
     assert frames[1].width == 320 and frames[1].height == 240
 
 
+def test_frames_that_reached_nobody_are_said_so():
+    """A camera publishing where no subscriber ever listened (no session on the key, or access control keeping its
+    frames from the network: the README's viewer.json5 on a camera) was told "published 20 frames" and nothing
+    else."""
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", "scene", "--frames", "5", "--key", "nobody/listens",
+           "--connect", f"tcp/127.0.0.1:{free_port()}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "published 5 frames" in done.stdout
+    assert done.stderr.splitlines()[-1] == "tacf publish: no subscriber ever listened on nobody/listens: the frames " \
+        "reached nobody (no session follows the key, or access control keeps them from the network)", done.stderr
+
+
 def test_publish_command_line_on_an_image_folder(tmp_path, collector):
     folder = _write_folder(tmp_path / "img", _frames(5))
     cmd = [sys.executable, "-m", "tacf.cli", "publish", str(folder), "--key", KEY, "--fps", "50",
            "--encoding", "png", "--connect", f"tcp/127.0.0.1:{collector.port}", "--wait-subscriber", "5"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
+    assert "no subscriber ever listened" not in done.stderr
     frames = collector.wait(5)
     assert [f.seq for f in frames] == list(range(5)) and frames[0].encoding == "png"
     assert "published 5 frames" in done.stderr + done.stdout
