@@ -100,6 +100,7 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
     import zenoh
 
     conf = options if isinstance(options, zenoh.Config) else make_config(options)
+    _check_files(conf)
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
@@ -108,3 +109,16 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
             raise ZenohUnavailable(f"no Zenoh node reachable: {reason}") from exc
         raise ZenohSettingsError(f"cannot open a Zenoh session: {reason}") from exc
 
+
+# The files a session's settings name: Zenoh reports one missing on a client's side only as "Unable to connect"
+FILE_SETTINGS = ("transport/link/tls/root_ca_certificate", "transport/link/tls/connect_certificate",
+                 "transport/link/tls/connect_private_key", "transport/link/tls/listen_certificate",
+                 "transport/link/tls/listen_private_key", "transport/auth/usrpwd/dictionary_file")
+
+
+def _check_files(conf) -> None:
+    """ZenohSettingsError naming a file the settings give that is not there."""
+    for key in FILE_SETTINGS:
+        path = json.loads(conf.get_json(key))
+        if isinstance(path, str) and path and not Path(path).is_file():
+            raise ZenohSettingsError(f"{key}: no such file: {path}")

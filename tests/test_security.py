@@ -197,6 +197,18 @@ def test_make_certs_takes_ipv6_addresses_and_keeps_keys_private_on_a_rerun(tmp_p
     assert all(key.stat().st_mode & 0o077 == 0 for key in certs.glob("*.key"))
 
 
+def test_a_client_missing_a_file_its_settings_name_is_told_which(etc, tmp_path):
+    """Zenoh reports a client's missing CA or key only as "Unable to connect": the command said no Zenoh node
+    was reachable (exit 1), as for a network down."""
+    missing = tmp_path / "missing.pem"
+    config = derive(etc / "ground.json5", tmp_path / "ground-missing-ca.json5",
+                    {"transport/link/tls/root_ca_certificate": str(missing)})
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "list", "--zenoh-config", str(config), "--connect",
+                           f"tls/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip() == f"tacf list: transport/link/tls/root_ca_certificate: no such file: {missing}"
+
+
 def test_a_service_whose_workers_cannot_log_in_refuses_to_start(etc):
     """Settings only the workers use (here the password they present, changed in users.txt but not in the service's
     file) used to fail in every worker, again and again, while the service said it was ready and accepted starts."""
