@@ -9,9 +9,8 @@ The page can start and stop sessions and shows every camera, so it is not left o
   the printed URL carries it. A browser that opens `/?token=T` gets it as an HttpOnly, SameSite=Strict cookie
   (which no other site's request carries) and is sent on to the page without it; the cookie's name carries the
   server's port, since browsers keep a host's cookies for all its ports (two dashboards on one machine would
-  otherwise log each other out); programs send
-  `Authorization: Bearer T` (Prometheus: `authorization: {credentials_file: ...}`), or, if they cannot, add
-  `?token=T` to what they fetch (VLC on /mjpeg/...).
+  otherwise log each other out). Programs send `Authorization: Bearer T` (Prometheus: `authorization:
+  {credentials_file: ...}`), or, if they cannot, add `?token=T` to what they fetch (VLC on /mjpeg/...).
 Plain HTTP shows the token to anyone on the path: across a network, serve HTTPS (`--certfile`, `--keyfile`; the
 cookie is then Secure) or reach it through an SSH tunnel.
 """
