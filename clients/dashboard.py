@@ -96,6 +96,7 @@ class SessionView:
     # (seq, box) of a start or reinit sent from here, until a box on a later frame: the box to draw meanwhile
     # (on a still camera no box comes, and the box from before a reinit is no longer what the tracker follows)
     init: tuple[int, tuple[float, ...]] | None = None
+    init_stamp_ns: int | None = None        # the stamp of the init frame, when this dashboard had it
 
     @property
     def id(self) -> str:
@@ -393,8 +394,11 @@ class Dashboard:
                 if view.box is not None and item.published_ns < view.box.published_ns:
                     return                                     # reordered: keep the newest
                 if view.init is not None:
-                    if item.seq <= view.init[0]:
-                        return                                 # computed before the start or reinit
+                    # computed before the start or reinit: on an earlier frame, unless the camera restarted its
+                    # seq count meanwhile (a later stamp)
+                    if item.seq <= view.init[0] and (view.init_stamp_ns is None or
+                                                     item.stamp_ns <= view.init_stamp_ns):
+                        return
                     view.init = None
                 view.box, view.box_received_ns = item, time.time_ns()
             else:
@@ -504,11 +508,12 @@ class Dashboard:
     # --- control ----------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: Sequence[float], seq: int | None = None, *, sid: str | None = None,
               profile: str | None = None, overrides: dict | None = None, node: str | None = None) -> SessionInfo:
+        frames = self._drawn_on(image_key, seq)
         info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, overrides=overrides, node=node,
-                                 frames=self._drawn_on(image_key, seq))
+                                 frames=frames)
         with self._changed:
             self._tombstones.pop(f"{info.node}/{info.sid}", None)
-            self._set_init(self._update_from_info(info), info)
+            self._set_init(self._update_from_info(info), info, frames)
             self._changed.notify_all()
         try:
             self._watch(info.image_key, asked=False)
@@ -530,17 +535,20 @@ class Dashboard:
         with self._lock:
             key = next((v.image_key for v in self._sessions.values()
                         if v.sid == sid and (node is None or v.node == node)), None)
-        info = self.client.reinit(sid, box, seq=seq, node=node, frames=self._drawn_on(key, seq))
+        frames = self._drawn_on(key, seq)
+        info = self.client.reinit(sid, box, seq=seq, node=node, frames=frames)
         with self._changed:
-            self._set_init(self._update_from_info(info), info)
+            self._set_init(self._update_from_info(info), info, frames)
             self._changed.notify_all()
         return info
 
     @staticmethod
-    def _set_init(view: SessionView, info: SessionInfo) -> None:
-        """The box of a start or reinit reply replaces the view's last box (call with the lock held)."""
+    def _set_init(view: SessionView, info: SessionInfo, frames: list[Frame]) -> None:
+        """The box of a start or reinit reply replaces the view's last box (call with the lock held); `frames`
+        are those the request carried, the init frame's stamp among them when the service used one."""
         view.box = view.box_received_ns = None
         view.init = None if info.init_seq is None else (info.init_seq, tuple(info.box))
+        view.init_stamp_ns = next((f.stamp_ns for f in frames if f.seq == info.init_seq), None)
         view.version += 1
 
     # --- readers ----------------------------------------------------------------------------------------------

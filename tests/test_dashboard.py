@@ -253,6 +253,45 @@ def test_an_mjpeg_stream_ends_when_its_key_is_no_longer_watched(stack):
                 client.stop("mjpeg-gone")
 
 
+def test_boxes_show_after_the_camera_restarts_its_seq_count_before_the_first_box(stack):
+    """A box on a frame up to the one a start was made on is the old tracker's, and was dropped until a box came
+    from a later frame. A camera that restarted counting from 0 meanwhile sent only lower seqs: no box was shown
+    until its count passed the old one. Its frames' later stamps now tell them apart."""
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+
+    _, client, _, service = stack
+    key, sid = "test/dashboard/restarting", "restarted"
+    with DashboardApp(service.options, port=0, image_keys=[key]) as app:
+        board = app.dashboard
+        camera = HoldingPublisher(board.session, SceneSource(SCENE), key, 20, "jpeg")
+        camera.publisher.next_seq = 100_000                # a camera up for a while
+        camera.start()
+        restarted = None
+        try:
+            assert _wait(lambda: (f := board.frame(key)) is not None and f.seq >= 100_002)
+            camera.close()                                  # it goes down; the box is drawn on its last frame
+            seq = board.frame(key).seq
+            status, body = _post(app.url + "api/start", {"image_key": key, "box": list(SCENE.box(0)), "seq": seq,
+                                                         "sid": sid})
+            assert status == 200 and body["init_seq"] == seq, body
+            restarted = HoldingPublisher(board.session, SceneSource(SCENE), key, 20, "jpeg")   # back, from seq 0
+            restarted.start()
+
+            def shown_box():
+                session = next((s for s in board.sessions_json()[0] if s["sid"] == sid), None)
+                return session and session["box"]
+
+            assert _wait(lambda: shown_box() is not None, timeout=30), "the restarted camera's boxes are shown"
+            assert shown_box()["seq"] < 100_000
+        finally:
+            camera.close()
+            if restarted is not None:
+                restarted.close()
+            if any(info.sid == sid for info in client.list()):
+                client.stop(sid)
+
+
 def test_event_stream_is_latest_only_and_rate_capped(stack):
     """Boxes arrive at ~20 Hz; a browser gets at most ~10 messages a second, each session once per message."""
     app, client, camera, service = stack
