@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from tacf.zenoh_options import zenoh_error_text
 from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
 
-from .config import ZenohOptions, service_config, worker_config, worker_endpoints
+from .config import ZenohOptions, own_endpoints, service_config, worker_config, worker_endpoints
 from .control import ControlServer
 from .frames import FrameHistory
 from .manager import SessionManager
@@ -75,7 +75,8 @@ class TrackingService:
         try:
             self._session = zenoh.open(service_config(options.zenoh))
             _refuse_a_taken_node(self._session, self.node)
-            _check_workers_can_connect(options.zenoh, endpoints)
+            if own_endpoints(options.zenoh):    # a router the workers would reach instead may come up later
+                _check_workers_can_connect(options.zenoh, endpoints)
             self._history = FrameHistory(self._session)
             self.manager = SessionManager(self._session, self.node, self._history, options.zenoh, endpoints,
                                           max_sessions=options.max_sessions, store=self._store,

@@ -46,13 +46,12 @@ def service_config(options: ZenohOptions):
     return conf
 
 
-def worker_endpoints(options: ZenohOptions) -> list[str]:
-    """Endpoints a worker process on this host connects to: the service's listen endpoints with unspecified
-    hosts mapped to loopback; without any, the service's own connect endpoints (a router)."""
-    mode = options.mode or "peer"
+def own_endpoints(options: ZenohOptions) -> list[str]:
+    """The service's listen endpoints as a process on this host reaches them (unspecified hosts mapped to
+    loopback); [] when it listens on none with a fixed port."""
     listen = list(_listen_endpoints(options))
     if not listen and options.config_file:
-        listen = _configured_list(options.config_file, "listen/endpoints", mode)
+        listen = _configured_list(options.config_file, "listen/endpoints", options.mode or "peer")
     endpoints = []
     for endpoint in listen:
         if endpoint.startswith("unixsock-stream/"):     # a socket file on this host: reached as it is
@@ -64,11 +63,17 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
         unspecified = _UNSPECIFIED_HOSTS_SECURE if m.group("proto") in ("tls", "quic") else _UNSPECIFIED_HOSTS
         host = unspecified.get(m.group("host"), m.group("host"))
         endpoints.append(f"{m.group('proto')}/{host}:{m.group('port')}{m.group('rest') or ''}")
-    if endpoints:
+    return endpoints
+
+
+def worker_endpoints(options: ZenohOptions) -> list[str]:
+    """Endpoints a worker process on this host connects to: the service's own (own_endpoints); without any, the
+    service's connect endpoints (a router)."""
+    if endpoints := own_endpoints(options):
         return endpoints
     connect = list(options.connect or ())
     if not connect and options.config_file:
-        connect = _configured_list(options.config_file, "connect/endpoints", mode)
+        connect = _configured_list(options.config_file, "connect/endpoints", options.mode or "peer")
     if connect:
         return connect
     raise ValueError("worker processes need an endpoint of the service: give --listen with a fixed port "
