@@ -462,6 +462,24 @@ def test_serve_refuses_a_bad_setting_in_one_line(option, value, capsys):
     assert exit_.value.code == 2
     assert capsys.readouterr().err.splitlines()[-1].startswith(f"tacf serve: error: argument {option}: '{value}'")
 
+def test_serve_starts_before_the_router_its_workers_go_through():
+    """The workers' login is checked at start when they connect to the service's own listeners; with no listener
+    of its own they go through a router, which may come up after the service: that must not stop it starting."""
+    process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "serve", "--connect",
+                                f"tcp/127.0.0.1:{free_port()}", "--node", NODE, "--spare-workers", "0"],
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        ready = next((line for line in process.stderr if "ready" in line or "cannot start" in line), "")
+        assert "ready" in ready, ready
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        process.stderr.close()
+
+
 def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
     import socket
     with socket.socket() as busy:
