@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import re
-from pathlib import Path
 
 from tacf.zenoh_options import ZenohOptions, base_config
 
@@ -51,7 +50,7 @@ def own_endpoints(options: ZenohOptions) -> list[str]:
     loopback); [] when it listens on none with a fixed port."""
     listen = list(_listen_endpoints(options))
     if not listen and options.config_file:
-        listen = _configured_list(options.config_file, "listen/endpoints", options.mode or "peer")
+        listen = _configured_list(options, "listen/endpoints")
     endpoints = []
     for endpoint in listen:
         if endpoint.startswith("unixsock-stream/"):     # a socket file on this host: reached as it is
@@ -73,7 +72,7 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
         return endpoints
     connect = list(options.connect or ())
     if not connect and options.config_file:
-        connect = _configured_list(options.config_file, "connect/endpoints", options.mode or "peer")
+        connect = _configured_list(options, "connect/endpoints")
     if connect:
         return connect
     raise ValueError("worker processes need an endpoint of the service: give --listen with a fixed port "
@@ -94,8 +93,11 @@ def worker_config(options: ZenohOptions, endpoints: list[str]):
     return conf
 
 
-def _configured_list(config_file: str | Path, key: str, mode: str) -> list[str]:
-    value = json.loads(base_config(config_file).get_json(key))
+def _configured_list(options: ZenohOptions, key: str) -> list[str]:
+    """The config file's endpoint list at `key`; a per-mode list ({router: [...], peer: [...]}) is read for the mode
+    the service runs in: --mode, or else the file's own."""
+    conf = base_config(options.config_file)
+    value = json.loads(conf.get_json(key))
     if isinstance(value, dict):
-        value = value.get(mode, [])
+        value = value.get(options.mode or json.loads(conf.get_json("mode")), [])
     return [str(v) for v in value or []]

@@ -431,6 +431,17 @@ def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     assert json.loads(service_config(cli).get_json("listen/endpoints")) == ["tcp/127.0.0.1:1234"]
 
 
+def test_per_mode_endpoints_are_read_for_the_files_mode(tmp_path):
+    """A file in router mode whose endpoints are given per mode: the workers reach the router's listeners (they
+    used to be read for peer mode, whatever the file said)."""
+    path = tmp_path / "zenoh.json5"
+    per_mode = {"router": ["tcp/0.0.0.0:9100"], "peer": ["tcp/0.0.0.0:9200"]}
+    path.write_text(json.dumps({"mode": "router", "listen": {"endpoints": per_mode},
+                                "scouting": {"multicast": {"enabled": False}}}))
+    assert worker_endpoints(ZenohOptions(config_file=str(path))) == ["tcp/127.0.0.1:9100"]
+    assert worker_endpoints(ZenohOptions(config_file=str(path), mode="peer")) == ["tcp/127.0.0.1:9200"]
+
+
 def test_serve_mode_overrides_the_config_files(tmp_path):
     """`tacf serve --zenoh-config FILE --mode peer` ran in the file's mode: peer, the flag's default, was taken
     for no flag at all."""
