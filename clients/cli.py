@@ -31,8 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = subparsers.add_parser("publish", help="publish a video file, image folder, camera or URL as Frames",
                               description="Publish SOURCE as tacf Frames on the Zenoh key K. SOURCE: a video file, "
-                                          "an image folder (or a sequence folder with img/), a camera index, a "
-                                          "stream URL, or 'scene' (the generated demo scene).")
+                                          "an image folder (or a sequence folder with img/), a camera index or "
+                                          "device (/dev/video0), a stream URL, or 'scene' (the generated demo "
+                                          "scene).")
     p.add_argument("source", metavar="SOURCE")
     p.add_argument("--key", "-k", required=True, type=_image_key,
                    help="Zenoh key to publish on, e.g. uav1/camera/front")

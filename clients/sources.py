@@ -109,7 +109,7 @@ class ImageFolderSource(FrameSource):
             for index, path in enumerate(self.paths):
                 if should_stop():          # a pass over unreadable images yields nothing to stop at
                     return
-                image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+                image = _read_image(path)
                 if image is None:
                     log.warning("cannot read %s, skipped", path)
                     continue
@@ -128,12 +128,16 @@ class CaptureSource(FrameSource):
     """
 
     def __init__(self, spec: str | int, loop: bool = False, live: bool | None = None, reconnect: bool = True):
+        """live None: a camera index is live; a URL is, unless it names a recorded clip (a file:// path, a video
+        served over HTTP), which FFmpeg gives a frame count."""
         self.spec, self.name = spec, str(spec)
-        self.live = isinstance(spec, int) if live is None else live
+        self._cap = self._open()
+        if live is None:
+            live = isinstance(spec, int) or not self._cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0
+        self.live = live
         self.loop = loop and not self.live
         self.reconnect = reconnect and self.live
         self.reconnects = 0
-        self._cap = self._open()
         fps = self._cap.get(cv2.CAP_PROP_FPS)
         self.fps = float(fps) if fps and 0 < fps < 1000 else None
 
@@ -190,6 +194,16 @@ class CaptureSource(FrameSource):
         self._cap.release()
 
 
+def _read_image(path: Path) -> np.ndarray | None:
+    """An image file as BGR uint8 (None if unreadable). Deeper images (16-bit thermal frames, float TIFFs) are
+    stretched from their own minimum to their maximum, as a thermal camera's automatic gain does; cutting them to
+    their high byte would leave 12-bit data almost black."""
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
+    if image is None or image.dtype == np.uint8:
+        return image
+    return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)
+
+
 def _is_image(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
 
@@ -198,25 +212,28 @@ def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = Tr
     """Open SOURCE as given on the command line; a live one (camera, URL) reconnects after failures if `reconnect`.
 
     - ``scene`` (or ``scene:WxH``): the generated demo scene (endless, deterministic);
-    - a digit string or an int: camera index;
-    - a string with ``://`` (rtsp://, http://, udp://...): stream URL;
+    - an int, or a digit string that names no file or folder here: camera index;
+    - a string with ``://`` (rtsp://, http://, udp://...): stream URL (a recorded clip's URL plays as a file);
     - an existing folder: image folder (or a sequence folder containing ``img/``);
-    - an existing file: video file.
+    - an existing file: video file;
+    - any other existing path (a camera device such as /dev/video0, a named pipe): live source.
     """
-    if isinstance(spec, int) or (isinstance(spec, str) and spec.isdigit()):
-        return CaptureSource(int(spec), live=True, reconnect=reconnect)
     text = str(spec)
+    path = Path(text).expanduser()
+    if isinstance(spec, int) or (text.isdigit() and not path.exists()):
+        return CaptureSource(int(text), live=True, reconnect=reconnect)
     if text == SCENE_SPEC or text.startswith(SCENE_SPEC + ":"):
         from tacf_clients.scene import Scene, SceneSource
 
         return SceneSource(Scene.from_spec(text))
     if "://" in text:
-        return CaptureSource(text, live=True, reconnect=reconnect)
-    path = Path(text).expanduser()
+        return CaptureSource(text, loop=loop, reconnect=reconnect)
     if path.is_dir():
         return ImageFolderSource(path, loop=loop)
     if path.is_file():
         return CaptureSource(str(path), loop=loop, live=False)
+    if path.exists():
+        return CaptureSource(str(path), live=True, reconnect=reconnect)
     raise FileNotFoundError(f"source {text!r} is neither a file, a folder, a camera index, a URL nor 'scene'")
 
 

@@ -3,6 +3,9 @@ from a real HTTP MJPEG camera on loopback (the format of IP cameras and phone ca
 FFmpeg: a stream that ends, stalls or goes away is reopened, and the publisher's seq runs on across reconnections."""
 from __future__ import annotations
 
+import functools
+import http.server
+import os
 import signal
 import subprocess
 import sys
@@ -208,6 +211,68 @@ def test_open_source_rejects_what_does_not_exist(tmp_path):
     with pytest.raises(ValueError):
         open_source(str(bad))
     assert isinstance(open_source("scene"), SceneSource)
+
+
+def test_a_folder_of_16_bit_images_is_stretched_to_8_bits(tmp_path):
+    """12-bit thermal data in 16-bit PNGs: cv2.IMREAD_COLOR kept the high byte, so frames of 0..4095 came out 0..15."""
+    folder = tmp_path / "thermal"
+    folder.mkdir()
+    ramp = np.tile(np.linspace(0, 4095, 64).astype(np.uint16), (48, 1))
+    cv2.imwrite(str(folder / "000001.png"), ramp)
+    image = next(iter(open_source(str(folder)))).image
+    assert image.dtype == np.uint8 and image.shape == (48, 64, 3)
+    assert image.min() == 0 and image.max() == 255
+
+
+def test_a_folder_named_by_digits_is_a_folder_not_a_camera(tmp_path, monkeypatch):
+    """`tacf publish 7` with a folder ./7 tried camera 7 ("cannot open video source 7")."""
+    _write_folder(tmp_path / "7", _frames(2))
+    monkeypatch.chdir(tmp_path)
+    assert isinstance(open_source("7"), ImageFolderSource)
+
+
+def test_a_named_pipe_is_read_as_a_live_source(tmp_path):
+    """A camera device (/dev/video0) or a named pipe is neither a file nor a folder: it was refused as "neither a
+    file, a folder, a camera index, a URL nor 'scene'"."""
+    clip = _write_video(tmp_path / "clip.avi", _frames(6), fps=25)
+    pipe = tmp_path / "video.pipe"
+    os.mkfifo(pipe)
+    writer = threading.Thread(target=lambda: pipe.write_bytes(clip.read_bytes()), daemon=True)
+    writer.start()
+    with open_source(str(pipe), reconnect=False) as source:
+        assert isinstance(source, CaptureSource) and source.live
+        assert [f.index for f in source] == list(range(6))
+    writer.join(5)
+
+
+@pytest.fixture
+def web_folder(tmp_path):
+    """An HTTP server on loopback serving tmp_path's files."""
+    handler = functools.partial(_QuietFileHandler, directory=str(tmp_path))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+class _QuietFileHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args):
+        pass
+
+
+def test_a_recorded_clip_given_by_url_plays_as_a_file(tmp_path, web_folder):
+    """A video file's URL (http://, file://) was taken for a live camera: sent unpaced, its end taken for a failure
+    and reopened forever, --loop ignored. Now it plays once at its own rate, or loops."""
+    _write_video(tmp_path / "clip.avi", _frames(5), fps=10)
+    for url in (f"{web_folder}/clip.avi", (tmp_path / "clip.avi").as_uri()):
+        with open_source(url) as source:
+            assert isinstance(source, CaptureSource) and not source.live and source.fps == pytest.approx(10)
+            assert [f.index for f in source] == list(range(5)) and source.reconnects == 0
+        with open_source(url, loop=True) as source:
+            frames = source.frames()
+            assert [next(frames).index for _ in range(7)] == [0, 1, 2, 3, 4, 0, 1]
 
 
 def test_pacer_keeps_the_rate_without_bursting():
