@@ -121,6 +121,12 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
                     rows.setdefault((info.node, info.sid), SessionRow(info.node, info.sid)).apply(info)
         except TacfError as exc:
             print(f"(list failed: {exc}; showing live data only)", file=out)
+
+        def draw() -> None:
+            text = render_table(list(rows.values()))
+            out.write((CLEAR if redraw else "") + f"tacf watch  {time.strftime('%H:%M:%S')}\n{text}\n\n")
+            out.flush()
+
         with client.results(sid, node=node, latest_only=True) as stream:
             next_draw = time.monotonic()
             while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -131,9 +137,8 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
                     rows.setdefault((item.node, item.sid), SessionRow(item.node, item.sid)).apply(item)
                 if time.monotonic() < next_draw:
                     continue
-                text = render_table(list(rows.values()))
-                stamp = time.strftime("%H:%M:%S")
-                out.write((CLEAR if redraw else "") + f"tacf watch  {stamp}\n{text}\n\n")
-                out.flush()
+                draw()
                 next_draw = time.monotonic() + interval
+        if not stop.is_set():
+            draw()          # what --duration ends on: the first table may have come before any box
     return 0

@@ -27,19 +27,26 @@ def expected_files() -> dict[str, str]:
 
 
 def drift(directory: Path = JSON_DIR) -> list[str]:
-    """File names that are missing, stale or extra in `directory`."""
+    """File names that are missing or stale in `directory`, and in schemas/json/ those of no model."""
     expected = expected_files()
     present = {p.name for p in directory.glob("*.json")} if directory.is_dir() else set()
     stale = [n for n, text in expected.items() if n not in present or (directory / n).read_text() != text]
-    return sorted(stale + [n for n in present if n not in expected])
+    return sorted(stale + [p.name for p in _leftovers(directory, expected)])
+
+
+def _leftovers(directory: Path, expected: dict[str, str]) -> list[Path]:
+    """schemas/json/'s files of models that are gone; a folder given with --dir may hold JSON files of its own."""
+    if directory.resolve() != JSON_DIR:
+        return []
+    return [p for p in directory.glob("*.json") if p.name not in expected]
 
 
 def write(directory: Path = JSON_DIR) -> list[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     expected = expected_files()
-    for extra in directory.glob("*.json"):
-        if extra.name not in expected:
-            extra.unlink()
+    for leftover in _leftovers(directory, expected):
+        log.info("removed %s (no such model)", leftover)
+        leftover.unlink()
     paths = []
     for name, text in expected.items():
         path = directory / name

@@ -184,6 +184,19 @@ def test_watch_prints_live_rows(net):
     assert "tacf watch" in out.getvalue()
 
 
+def test_watch_ends_on_a_table_of_what_it_received(net):
+    """With --duration no longer than --interval, the only table came before any box: SEQ and BOX "-"."""
+    out = io.StringIO()
+    thread = threading.Thread(target=watch, kwargs=dict(options=net.options, interval=60, duration=3, out=out))
+    thread.start()
+    net.wait_matched(box_key("edge1", "w2"))
+    net.put(_box("w2", 17))
+    thread.join(timeout=10)
+    assert not thread.is_alive()
+    last_table = out.getvalue().rstrip().split("tacf watch")[-1]
+    assert "w2" in last_table and "17" in last_table and "(64, 48, 32, 24)" in last_table
+
+
 def test_watch_ends_on_time_and_on_stop_whatever_the_interval(net):
     """A refresh period longer than --duration, or than the wait for Ctrl-C, does not hold the watch: with no
     session sending anything it used to sleep a whole interval before looking at either."""

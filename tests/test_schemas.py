@@ -19,7 +19,7 @@ from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Fr
                           parse_liveliness_key,
                           parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
                           validate_id, validate_image_key)
-from tacf_schemas.export import JSON_DIR, drift
+from tacf_schemas.export import JSON_DIR, drift, write
 from tacf_schemas.images import FrameError, decode_frame, encode_frame, jpeg_size, png_size
 from tacf_schemas.limits import MAX_FRAME_PIXELS
 from wire_cases import BEYOND_SCHEMA, CASES
@@ -27,6 +27,14 @@ from wire_cases import BEYOND_SCHEMA, CASES
 
 def test_json_schemas_match_models():
     assert drift() == [], "run `python -m tacf_schemas.export` to regenerate schemas/json"
+
+
+def test_exporting_to_another_folder_keeps_its_own_files(tmp_path):
+    """`python -m tacf_schemas.export --dir DIR` deleted every JSON file in DIR that was not a model's schema."""
+    (tmp_path / "package.json").write_text('{"keep": true}')
+    write(tmp_path)
+    assert (tmp_path / "package.json").read_text() == '{"keep": true}'
+    assert drift(tmp_path) == [] and (tmp_path / "Frame.json").is_file()
 
 
 def test_models_import_light():
