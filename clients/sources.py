@@ -12,8 +12,11 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -21,6 +24,7 @@ import numpy as np
 from tacf.eval.datasets.base import natural_key
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 DEFAULT_FPS = 30.0
@@ -35,6 +39,32 @@ RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.5, 5.0
 
 def never_stop() -> bool:
     return False
+
+
+STOPPED = object()      # what call_unless_stopped returns when the caller stopped waiting
+
+
+def call_unless_stopped(call: Callable[[], T], should_stop: Callable[[], bool] = never_stop,
+                        poll_s: float = 0.1) -> T | object:
+    """call() on a daemon thread, waited for until it returns (its value, or its exception raised here) or until
+    `should_stop()` (then STOPPED). FFmpeg's blocking calls cannot be cut short: a stream that does not answer holds
+    one for up to OPEN_TIMEOUT_MS or READ_TIMEOUT_MS, which a stop or Ctrl-C must not wait for; the call is left to
+    end on its own thread."""
+    result: Future = Future()
+
+    def run() -> None:
+        try:
+            result.set_result(call())
+        except BaseException as exc:        # raised in the caller's thread below
+            result.set_exception(exc)
+
+    threading.Thread(target=run, name="tacf-capture", daemon=True).start()
+    while True:
+        try:
+            return result.result(timeout=poll_s)
+        except FutureTimeout:
+            if should_stop():
+                return STOPPED
 
 
 def sleep_unless(seconds: float, should_stop: Callable[[], bool], slice_s: float = 0.1) -> bool:
@@ -125,19 +155,23 @@ class CaptureSource(FrameSource):
     """cv2.VideoCapture: a video file (replayable, loops by reopening), a camera index or a stream URL (live).
 
     A live source reconnects after a failure unless `reconnect` is False; `reconnects` counts the reopenings.
+    Whatever may block (opening anything, reading anything but a local file) runs through call_unless_stopped, so
+    that a stop or Ctrl-C ends the source at once.
     """
 
     def __init__(self, spec: str | int, loop: bool = False, live: bool | None = None, reconnect: bool = True):
         """live None: a camera index is live; a URL is, unless it names a recorded clip (a file:// path, a video
         served over HTTP), which FFmpeg gives a frame count."""
         self.spec, self.name = spec, str(spec)
-        self._cap = self._open()
+        self._cap = call_unless_stopped(self._open)
+        self._abandoned = False         # a read left blocked on its thread still uses the capture
         if live is None:
             live = isinstance(spec, int) or not self._cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0
         self.live = live
         self.loop = loop and not self.live
         self.reconnect = reconnect and self.live
         self.reconnects = 0
+        self._reads_may_block = self.live or "://" in self.name
         fps = self._cap.get(cv2.CAP_PROP_FPS)
         self.fps = float(fps) if fps and 0 < fps < 1000 else None
 
@@ -153,9 +187,14 @@ class CaptureSource(FrameSource):
         return cap
 
     def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
+        """The frames; a source left reading on another thread (stopped mid-read) has none to give any more."""
         index = 0
-        while not should_stop():
-            ok, image = self._cap.read()
+        while not should_stop() and not self._abandoned:
+            read = call_unless_stopped(self._cap.read, should_stop) if self._reads_may_block else self._cap.read()
+            if read is STOPPED:
+                self._abandoned = True
+                return
+            ok, image = read
             if ok and image is not None:
                 yield SourceFrame(index, image, time.time_ns())
                 index += 1
@@ -167,7 +206,7 @@ class CaptureSource(FrameSource):
             elif self.loop and index > 0:
                 self._cap.release()
                 try:
-                    self._cap = self._open()
+                    self._cap = call_unless_stopped(self._open)
                 except ValueError:                   # the file went away or changed under the loop
                     raise SourceError(f"cannot reopen {self.name} to play it again") from None
                 index = 0
@@ -180,18 +219,22 @@ class CaptureSource(FrameSource):
         pause = RECONNECT_FIRST_S
         while not sleep_unless(pause, should_stop):
             try:
-                self._cap = self._open()
+                cap = call_unless_stopped(self._open, should_stop)
             except ValueError:
                 pause = min(2 * pause, RECONNECT_MAX_S)
                 log.warning("cannot reopen %s, next attempt in %.1f s", self.name, pause)
                 continue
+            if cap is STOPPED:                  # the capture, if it ever opens, is released when collected
+                break
+            self._cap = cap
             self.reconnects += 1
             log.info("video source %s reopened (reconnection %d)", self.name, self.reconnects)
             return True
         return False
 
     def close(self) -> None:
-        self._cap.release()
+        if not self._abandoned:
+            self._cap.release()
 
 
 def _read_image(path: Path) -> np.ndarray | None:

@@ -7,6 +7,7 @@ import functools
 import http.server
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -578,6 +579,41 @@ def test_stopping_ends_a_reconnecting_source_promptly(camera):
         started = time.monotonic()
         assert next(frames, None) is None
         assert time.monotonic() - started < 1.5
+
+
+def test_stopping_ends_a_stalled_stream_without_waiting_for_ffmpeg(camera):
+    """A read of a stream gone silent blocks in FFmpeg until READ_TIMEOUT_MS (5 s): a stop used to wait for it."""
+    cam = camera(frames_per_connection=3, stall=True)
+    stop = threading.Event()
+    with open_source(cam.url) as source:
+        frames = source.frames(should_stop=stop.is_set)
+        assert len([next(frames) for _ in range(3)]) == 3
+        threading.Timer(0.5, stop.set).start()
+        started = time.monotonic()
+        assert next(frames, None) is None
+        assert time.monotonic() - started < 1.5
+        assert next(source.frames(), None) is None       # the read left on its thread keeps the capture
+
+
+def test_ctrl_c_ends_publish_while_a_stream_does_not_answer(tmp_path):
+    """A server that accepts and never answers holds FFmpeg's open for OPEN_TIMEOUT_MS (10 s): Ctrl-C used to wait
+    for it, then reported "cannot open video source" (exit 2)."""
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        url = f"http://127.0.0.1:{server.getsockname()[1]}/video.mjpg"
+        proc = subprocess.Popen([sys.executable, "-m", "tacf.cli", "publish", url, "--key", KEY,
+                                 "--connect", f"tcp/127.0.0.1:{free_port()}"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            server.settimeout(30)
+            connection, _ = server.accept()          # FFmpeg is opening the stream
+            proc.send_signal(signal.SIGINT)
+            started = time.monotonic()
+            _, err = proc.communicate(timeout=20)
+            connection.close()
+        finally:
+            proc.kill()
+    assert time.monotonic() - started < 2
+    assert proc.returncode == 130, err
 
 
 def test_without_reconnect_a_stream_ends_with_its_connection(camera):
