@@ -6,8 +6,10 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -19,7 +21,7 @@ import tacf
 from tacf.cli import main
 from tacf.config import TrackerConfig
 from tacf.eval import metrics, trackers
-from tacf.eval.runner import track_frames
+from tacf.eval.runner import run_job, track_frames
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = DATA / "sequences"
@@ -302,8 +304,6 @@ def test_eval_with_two_worker_processes(evaluated, tmp_path):
 
 @needs_data
 def test_ctrl_c_stops_an_eval_and_its_workers_quietly(tmp_path):
-    import signal
-
     command = [sys.executable, "-m", "tacf.cli", "eval", str(SEQUENCES), "--sequences", "UAV123_10fps/*",
                "--trackers", "opencv-csrt", "--out", str(tmp_path), "--workers", "2", "--no-progress"]
     # a process group of its own, as a terminal's foreground job, with SIGINT not ignored
@@ -326,6 +326,35 @@ def test_ctrl_c_stops_an_eval_and_its_workers_quietly(tmp_path):
         time.sleep(0.1)
     assert group() == []                                     # no worker left behind
     assert not list(tmp_path.rglob("*.part"))
+
+
+def run_job_or_die(job):
+    """run_job, in a worker that dies as the out-of-memory killer ends a process when its job is sequence `die`."""
+    if job.seq.name == "die":
+        os.kill(os.getpid(), signal.SIGKILL)
+    return run_job(job)
+
+
+def test_eval_reports_the_pairs_of_a_worker_that_died_as_failed_and_finishes(tmp_path, monkeypatch, caplog):
+    """A pool worker killed in the middle of a job made `tacf eval --workers 2` wait for ever."""
+    from tacf.eval import runner
+
+    data = write_synthetic_dataset(tmp_path, 4)
+    for name in ("die", "live"):
+        shutil.copytree(data / "synthetic" / "drift", data / name)
+    monkeypatch.setattr(runner, "run_job", run_job_or_die)   # the workers unpickle it from this module
+    rcs = []
+    run = threading.Thread(target=lambda: rcs.append(main(["eval", str(data), "--trackers", "identity", "--workers",
+                                                            "2", "--out", str(tmp_path / "out"), "--no-progress"])),
+                           daemon=True)
+    run.start()
+    run.join(timeout=120)
+    assert not run.is_alive(), "the run waits for ever for the job of the worker that died"
+    assert rcs == [1]
+    assert f"identity on die failed: {runner.WORKER_DIED}" in caplog.text
+    for name in ("live", "synthetic/drift"):   # each ended before the worker died, or failed with it
+        assert (tmp_path / "out" / "identity" / f"{name}.txt").is_file() or \
+            f"identity on {name} failed: {runner.WORKER_DIED}" in caplog.text
 
 
 def test_eval_bad_input_exits_2(tmp_path):
@@ -420,8 +449,6 @@ def test_track_that_cannot_start_leaves_an_existing_box_file_alone(tmp_path):
 def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
     """Ctrl-C in a command that does not handle it itself (here `tacf track` half way through a long video): exit
     code 130 and one line on stderr; the boxes tracked so far stay in the --out file."""
-    import signal
-
     frames, box = synthetic_frames(20)
     video = tmp_path / "long.mp4"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (160, 120))

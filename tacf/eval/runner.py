@@ -21,6 +21,8 @@ import re
 import signal
 import time
 from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
 
@@ -374,6 +376,12 @@ class JobOutcome:
     error: str | None = None
 
 
+def failed_outcome(job: Job, error: str) -> JobOutcome:
+    """The outcome of a pair that failed with `error`, followed by the start of the pair's runs if not one-pass."""
+    start = job.start.describe()
+    return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{error} ({start})" if start else error)
+
+
 def run_job(job: Job) -> JobOutcome:
     """Run one (tracker, sequence) pair and record it; errors are returned, not raised."""
     try:
@@ -385,9 +393,9 @@ def run_job(job: Job) -> JobOutcome:
         write_run(job.out_dir, job.tracker, job.seq.name, run)
         return JobOutcome(job.tracker, job.seq.name, len(run.boxes), float(run.times.sum()))
     except Exception as exc:  # noqa: BLE001 - one failed pair must not stop the others
-        start = f" ({job.start.describe()})" if job.start.describe() else ""
-        log.exception("%s on %s%s failed", job.tracker, job.seq.name, start)
-        return JobOutcome(job.tracker, job.seq.name, 0, 0.0, f"{type(exc).__name__}: {exc}{start}")
+        outcome = failed_outcome(job, f"{type(exc).__name__}: {exc}")
+        log.exception("%s on %s failed: %s", job.tracker, job.seq.name, outcome.error)
+        return outcome
 
 
 def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool = False,
@@ -429,8 +437,14 @@ def pending_jobs(trackers: list[str], sequences: list[Sequence], out_dir: Path, 
     return jobs
 
 
+# A dead worker breaks the whole pool: ProcessPoolExecutor fails every pair not done by then, not only its own.
+WORKER_DIED = ("a worker process died (killed, say by the out-of-memory killer, or crashed in native code) before "
+               "this pair was done")
+
+
 def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[JobOutcome]:
-    """Run jobs in this process (workers <= 1) or in a spawn-context pool, with a tqdm progress bar."""
+    """Run jobs in this process (workers <= 1) or in a pool of spawned processes, with a tqdm progress bar; the
+    outcomes come in the order the jobs end. When a worker dies, the pairs not done fail (`WORKER_DIED`)."""
     from tqdm import tqdm
 
     outcomes = []
@@ -442,14 +456,35 @@ def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[J
                 outcomes.append(run_job(job))
                 bar.update()
         else:
-            ctx = multiprocessing.get_context("spawn")
             # Ctrl-C reaches the whole process group: this process alone stops the run, ending the workers
-            with ctx.Pool(min(workers, len(jobs)), initializer=signal.signal,
-                          initargs=(signal.SIGINT, signal.SIG_IGN)) as pool:
-                for outcome in pool.imap_unordered(run_job, jobs):
-                    bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
-                    outcomes.append(outcome)
-                    bar.update()
+            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+                                     initializer=signal.signal, initargs=(signal.SIGINT, signal.SIG_IGN)) as pool:
+                futures = {pool.submit(run_job, job): job for job in jobs}
+                try:
+                    for future in as_completed(futures):
+                        outcome = _pool_outcome(future, futures[future])
+                        bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
+                        outcomes.append(outcome)
+                        bar.update()
+                except BaseException:   # Ctrl-C: leaving the pool would wait for the jobs running
+                    _terminate_workers(pool)
+                    raise
     finally:
         bar.close()
     return outcomes
+
+
+def _pool_outcome(future: Future, job: Job) -> JobOutcome:
+    try:
+        return future.result()
+    except BrokenProcessPool:
+        return failed_outcome(job, WORKER_DIED)
+
+
+def _terminate_workers(pool: ProcessPoolExecutor) -> None:
+    """End the pool's workers in the middle of their jobs, as Python 3.14's `terminate_workers` does (which reads
+    the same private `_processes`)."""
+    workers = list((pool._processes or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in workers:
+        process.terminate()
