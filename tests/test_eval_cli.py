@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -21,7 +22,7 @@ import tacf
 from tacf.cli import main
 from tacf.config import TrackerConfig
 from tacf.eval import metrics, trackers
-from tacf.eval.runner import run_job, track_frames
+from tacf.eval.runner import read_run, run_job, times_path, track_frames, write_run
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = DATA / "sequences"
@@ -355,6 +356,16 @@ def test_eval_reports_the_pairs_of_a_worker_that_died_as_failed_and_finishes(tmp
     for name in ("live", "synthetic/drift"):   # each ended before the worker died, or failed with it
         assert (tmp_path / "out" / "identity" / f"{name}.txt").is_file() or \
             f"identity on {name} failed: {runner.WORKER_DIED}" in caplog.text
+
+
+def test_times_keep_a_fast_tracker_s_precision_and_files_of_6_decimals_still_read(tmp_path):
+    """Times were written with 6 decimals: 0.25 us a frame was recorded as 0, 1.234567 us as 1 us."""
+    frames, box = synthetic_frames(4)
+    times = np.array([1.234567e-6, 2.5e-7, 0.0123456789, 3.0])
+    write_run(tmp_path, "identity", "seq", replace(track_frames(trackers.IdentityTracker(), frames, box), times=times))
+    np.testing.assert_allclose(read_run(tmp_path, "identity", "seq")[1], times, rtol=1e-8)
+    times_path(tmp_path, "identity", "seq").write_text("0.000002\n0.000001\n0.012346\n3.000000\n")
+    np.testing.assert_array_equal(read_run(tmp_path, "identity", "seq")[1], [2e-6, 1e-6, 0.012346, 3.0])
 
 
 def test_eval_bad_input_exits_2(tmp_path):

@@ -8,7 +8,8 @@ Result tree (got10k layout, docs ECOSYSTEM.md 3.5):
 Runs started from a shifted first box (`tacf eval --shifts`) go to <out>/shifted/<dx><dy>/, runs started at a
 later frame (`tacf eval --tre`) to <out>/tre/<segment>of<segments>/, in the same layout.
 Timing covers the init/update calls only (time.perf_counter), never the image decoding, nor a process's first run
-of each tracker (`warm_up`).
+of each tracker (`warm_up`). Times are written with 9 significant digits, so that a fast tracker's microseconds
+keep their precision (files of 6 decimals, written before, read the same way).
 
 Result folders written by other toolkits (`tacf eval --results NAME=DIR`) are read by `read_imported_run`.
 """
@@ -207,7 +208,7 @@ def _write_atomically(path: Path, rows: np.ndarray, fmt: str, header: str = "") 
 
 def write_run(out_dir: Path, tracker: str, seq_name: str, run: TrackRun) -> None:
     """Times and confidence first, boxes last: the box file's presence marks a complete, resumable result."""
-    _write_atomically(times_path(out_dir, tracker, seq_name), run.times, "%.6f")
+    _write_atomically(times_path(out_dir, tracker, seq_name), run.times, "%.9g")
     _write_atomically(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]),
                       "%.3f,%d", "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame")
     write_boxes(result_path(out_dir, tracker, seq_name), run.boxes, one_based=True)
