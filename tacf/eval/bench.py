@@ -1,21 +1,23 @@
 """`tacf bench tracker`: per-stream speed of a tracker on decoded frames, with OpenCV CSRT measured alongside.
 
-Each sequence is decoded into memory first; only init/update calls are timed (time.perf_counter), in this one
-process with OpenCV limited to one thread. fps = total frames / total tracker seconds; `cores` = the process's
-CPU time over the wall time while a tracker ran (1.0 is one core; more means threads working, or spinning, on
-other cores). Before any timing, every tracker runs once, untimed, on the first frames of the first sequence:
-what a process pays once (loading the compiled fHOG from numba's cache, OpenCV's lazy set-up) is not a cost per
-stream, and would otherwise be charged to whichever sequence comes first.
+Frames are decoded one at a time, as the tracker asks for them; only init/update calls are timed
+(time.perf_counter), in this one process with OpenCV limited to one thread. fps = total frames / total tracker
+seconds; `cores` = the process's CPU time over the wall time of the tracker calls (1.0 is one core; more means
+threads working, or spinning, on other cores). Before its first timed sequence, every tracker runs once, untimed,
+on that sequence's first frames: what a process pays once (loading the compiled fHOG from numba's cache, OpenCV's
+lazy set-up) is not a cost per stream, and would otherwise be charged to whichever sequence comes first.
+A (tracker, sequence) pair that fails (a first box the tracker cannot start on, an image that cannot be read) is
+left out of the speeds and named, with its error, under the tracker's `failed`.
 """
 from __future__ import annotations
 
 import logging
-import time
+from dataclasses import replace
 
 import numpy as np
 
 from .datasets import Sequence
-from .runner import read_frame, track_frames, warm_up
+from .runner import TrackRun, track_sequence, warm_up
 from .trackers import make_tracker
 
 log = logging.getLogger(__name__)
@@ -37,6 +39,10 @@ def _stats(times: np.ndarray) -> dict:
             "frames": int(len(times)), "seconds": total}
 
 
+def _fps(runs: list[TrackRun]) -> float:
+    return _stats(np.concatenate([run.times for run in runs]))["fps"] if runs else float("nan")
+
+
 def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None = None,
           progress: bool = True) -> dict:
     """JSON-ready speed report; trackers[0] is the subject, the others (and opencv-csrt) its peers."""
@@ -45,33 +51,35 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
 
     cv2.setNumThreads(1)
     names = list(dict.fromkeys(list(trackers) + [PEER]))
-    times: dict[str, dict[str, np.ndarray]] = {n: {} for n in names}
-    cpu_and_wall = {n: np.zeros(2) for n in names}
-    if sequences:
-        for name in names:
-            warm_up(name, sequences[0])
+    runs: dict[str, dict[str, TrackRun]] = {n: {} for n in names}
+    failed: dict[str, dict[str, str]] = {n: {} for n in names}
     for seq in tqdm(sequences, desc="bench", unit="seq", disable=not progress):
-        n = len(seq) if max_frames is None else min(len(seq), max_frames)
-        frames = [read_frame(p) for p in seq.frames[:n]]
+        seq = replace(seq, frames=seq.frames[:max_frames], gt=seq.gt[:max_frames])
         for name in names:
-            cpu, wall = time.process_time(), time.perf_counter()
-            run = track_frames(make_tracker(name), frames, seq.gt[0])
-            cpu_and_wall[name] += (time.process_time() - cpu, time.perf_counter() - wall)
-            times[name][seq.name] = run.times
-            log.info("%s %s: %.1f fps", name, seq.name, n / run.times.sum())
-        del frames
+            try:
+                warm_up(name, seq)
+                run = track_sequence(make_tracker(name), seq)
+            except Exception as exc:  # noqa: BLE001 - as in `tacf eval`, one failed pair must not stop the others
+                failed[name][seq.name] = f"{type(exc).__name__}: {exc}"
+                log.warning("%s on %s failed: %s", name, seq.name, failed[name][seq.name])
+                continue
+            runs[name][seq.name] = run
+            log.info("%s %s: %.1f fps", name, seq.name, len(run.times) / run.times.sum())
 
     def report(name: str) -> dict:
-        allt = np.concatenate(list(times[name].values())) if times[name] else np.zeros(0)
+        allt = np.concatenate([run.times for run in runs[name].values()]) if runs[name] else np.zeros(0)
         out = _stats(allt) if len(allt) else {"fps": float("nan"), "frames": 0}
-        cpu, wall = cpu_and_wall[name]
-        out["cores"] = float(cpu / wall) if wall > 0 else float("nan")
-        out["sequences"] = {s: _stats(t) for s, t in times[name].items()}
+        cpu, wall = sum(run.cpu_seconds for run in runs[name].values()), float(allt.sum())
+        out["cores"] = cpu / wall if wall > 0 else float("nan")
+        out["sequences"] = {s: _stats(run.times) for s, run in runs[name].items()}
+        out["failed"] = failed[name]
         return out
 
-    main = report(names[0])
     # CSRT's own speed differs several-fold between OpenCV releases (docs/speed.md): say which one this was.
-    result = {"tracker": names[0], **main, "peers": {n: report(n) for n in names[1:]}, "opencv": cv2.__version__}
-    peer_fps = result["peers"][PEER]["fps"] if PEER != names[0] else main["fps"]
-    result["ratio_to_" + PEER] = main["fps"] / peer_fps if peer_fps and np.isfinite(peer_fps) else float("nan")
+    result = {"tracker": names[0], **report(names[0]), "peers": {n: report(n) for n in names[1:]},
+              "opencv": cv2.__version__}
+    # the ratio compares the sequences both trackers ran: a sequence one of them failed on would weigh on one side
+    both = [s for s in runs[names[0]] if s in runs[PEER]]
+    subject_fps, peer_fps = (_fps([runs[name][s] for s in both]) for name in (names[0], PEER))
+    result["ratio_to_" + PEER] = subject_fps / peer_fps if peer_fps > 0 else float("nan")
     return result
