@@ -376,6 +376,16 @@ def test_eval_bad_input_exits_2(tmp_path):
     assert main(["eval", str(tmp_path), "--trackers", "nope", "--out", str(tmp_path / "o")]) == 2
 
 
+def test_eval_refuses_ranges_for_a_root_not_in_the_uav123_layout(tmp_path, caplog):
+    """--ranges was ignored, without a word, unless the root was in the UAV123 layout."""
+    ranges = tmp_path / "ranges.txt"
+    ranges.write_text("drift drift 1 4\n")
+    assert main(["eval", str(write_synthetic_dataset(tmp_path, 4)), "--trackers", "identity", "--ranges", str(ranges),
+                 "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    assert f"--ranges {ranges}: frame-range tables are for the UAV123 layout" in caplog.text
+    assert "is in the generic layout" in caplog.text and not (tmp_path / "out").exists()
+
+
 def test_eval_refuses_an_out_folder_it_cannot_make_before_running(tmp_path, caplog):
     data = write_synthetic_dataset(tmp_path, 4)
     (tmp_path / "a_file").write_text("")

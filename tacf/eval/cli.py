@@ -73,7 +73,8 @@ def register(subparsers) -> None:
                    help="the paper's ablation: kcc, kcc+sa, kcc+da, kcc+ca, tacf-authors, and tacf, with the gains "
                         "over kcc (ignores --trackers)")
     p.add_argument("--ranges", type=Path, metavar="FILE",
-                   help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines)")
+                   help="UAV123 frame-range table (configSeqs.m or 'name folder first last' lines); UAV123 layout "
+                        "only")
     p.add_argument("--max-frames", type=integer(1), metavar="N",
                    help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
     p.add_argument("--shifts", type=integer(0), default=0, metavar="PX",
@@ -131,8 +132,10 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
     from .datasets import detect_layout, load_sequences
 
     layout = detect_layout(root)
-    kwargs = {"ranges": ranges} if ranges is not None and layout == "uav123" else {}
-    seqs = load_sequences(root, pattern, layout=layout, **kwargs)
+    if ranges is not None and layout != "uav123":
+        raise ValueError(f"--ranges {ranges}: frame-range tables are for the UAV123 layout (data_seq/ + anno/), and "
+                         f"{root} is in the {layout} layout")
+    seqs = load_sequences(root, pattern, layout=layout, ranges=ranges)
     if max_frames is not None:
         seqs = [replace(s, frames=s.frames[:max_frames], gt=s.gt[:max_frames]) for s in seqs]
     log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
