@@ -291,3 +291,13 @@ def test_an_empty_ground_truth_file_skips_its_sequence(tmp_path, caplog):
     (tmp_path / "full" / "groundtruth.txt").write_text("1,1,5,5\n" * 2)
     assert [s.name for s in load_sequences(tmp_path)] == ["full"]
     assert "empty: 2 frames and 0 ground-truth rows, nothing to track; skipped" in caplog.text
+
+
+def test_a_folder_with_ground_truth_but_no_frames_is_named_in_a_warning(tmp_path, caplog):
+    """It was left out without a word, unlike a UAV123 sequence without frames."""
+    write_frames(tmp_path / "jpg" / "img", 2)
+    write_frames(tmp_path / "tiff" / "img", 2, "{:06d}.tif")      # a suffix not read
+    for name in ("jpg", "tiff"):
+        (tmp_path / name / "groundtruth.txt").write_text("1,1,5,5\n" * 2)
+    assert [s.name for s in load_sequences(tmp_path)] == ["jpg"]
+    assert f"tiff: ground truth but no frames (.jpg, .jpeg, .png, .bmp files) in {tmp_path / 'tiff'}" in caplog.text

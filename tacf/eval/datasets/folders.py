@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 
 from ..attributes import read_attribute_list
-from .base import Sequence, list_frames, make_sequence, read_boxes
+from .base import IMAGE_SUFFIXES, Sequence, list_frames, make_sequence, read_boxes
 
 log = logging.getLogger(__name__)
 
@@ -53,16 +53,20 @@ def frames_of(folder: Path) -> list[Path]:
     return list_frames(folder)
 
 
-def sequence_folders(root: Path) -> list[Path]:
-    """Every folder under `root` (including root) that holds a ground-truth file and frames, sorted."""
-    root = Path(root)
+def annotated_folders(root: Path) -> list[Path]:
+    """Every folder under `root` (including root) that holds a ground-truth file, sorted."""
     out = []
     for dirpath, dirnames, _ in os.walk(root):
         folder = Path(dirpath)
         dirnames[:] = sorted(d for d in dirnames if d not in FRAME_FOLDERS and not d.startswith("."))
-        if _gt_files(folder) and frames_of(folder):
+        if _gt_files(folder):
             out.append(folder)
     return sorted(out)
+
+
+def sequence_folders(root: Path) -> list[Path]:
+    """The folders under `root` (including root) that hold a ground-truth file and frames, sorted."""
+    return [folder for folder in annotated_folders(root) if frames_of(folder)]
 
 
 def is_otb(root: Path) -> bool:
@@ -74,10 +78,14 @@ def load(root: Path) -> list[Sequence]:
     """All sequences of a generic or OTB root."""
     root = Path(root)
     seqs = []
-    for folder in sequence_folders(root):
+    for folder in annotated_folders(root):
         rel = folder.relative_to(root).as_posix()
         base = folder.name if rel == "." else rel
         frames = frames_of(folder)
+        if not frames:
+            log.warning("%s: ground truth but no frames (%s files) in %s, its img/ or its color/; skipped", base,
+                        ", ".join(IMAGE_SUFFIXES), folder)
+            continue
         attributes = read_attribute_list(folder / ATTRIBUTES) if (folder / ATTRIBUTES).is_file() else None
         for suffix, gt_path in _gt_files(folder):
             gt = read_boxes(gt_path)
