@@ -11,10 +11,13 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from tacf.cli import main
 from tacf_clients import local_service
-from tacf_clients.bench import _percentile
+from tacf_clients.bench import Feed, FeedPublisher, _percentile
+from tacf_clients.local_service import free_port
+from tacf_clients.zconfig import ZenohOptions, make_config
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
 
@@ -27,6 +30,40 @@ def test_percentiles_are_nearest_rank():
     assert (_percentile(values, 0.5), _percentile(values, 0.95), _percentile(values, 0.99)) == (50, 95, 99)
     assert _percentile(values, 1.0) == 100 and _percentile([7.0], 0.99) == 7 and _percentile([], 0.5) is None
     assert _percentile([float(v) for v in range(1, 21)], 0.95) == 19
+
+
+def _hold_the_gil(seconds: float) -> None:
+    """Stall every other Python thread for `seconds`, as a long GC pause or a SIGSTOP would: a busy loop that never
+    lets the GIL go (no blocking call, and a switch interval longer than the loop)."""
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(seconds + 5)
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            pass
+    finally:
+        sys.setswitchinterval(interval)
+
+
+def test_the_feed_publisher_starts_its_schedule_again_after_a_stall():
+    """Frame k of the run was due at start + k / (N fps) whatever happened: after a stall every overdue frame went
+    out back to back, a burst the service's latest-only slots turned into drops (20 frames after 1 s at 2 x 10
+    fps). After a stall the schedule starts again from then."""
+    feeds = [Feed(f"feed{i}", (b"jpeg",), (0.0, 0.0, 8.0, 8.0)) for i in range(2)]
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        publisher = FeedPublisher(session, feeds, fps=10).start()
+        time.sleep(0.5)
+        _hold_the_gil(1.0)
+        time.sleep(1.0)
+        publisher.stop()
+    stamps = sorted(stamp for sent in publisher.sent for stamp in sent)
+    gaps = [(later - earlier) / 1e6 for earlier, later in zip(stamps, stamps[1:])]      # ms
+    stall = gaps.index(max(gaps))
+    assert gaps[stall] > 900, gaps
+    # the frame held up and the next one (the other feed's) go at once, then one every 50 ms again (a loaded
+    # machine may add a late one)
+    assert sum(gap < 10 for gap in gaps[stall + 1:]) <= 3, [round(gap) for gap in gaps]
+    assert abs(len(publisher.sent[0]) - len(publisher.sent[1])) <= 1, "the feeds take turns"
 
 
 @needs_data
