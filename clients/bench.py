@@ -46,6 +46,11 @@ log = logging.getLogger(__name__)
 FRAME_SIZE = (1280, 720)
 NODE = "bench"
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+# How long every session may take to send its first box (read at each run, so that a test can shorten it). The
+# session starts have already paid for the fork server (the tracker's numba loops loaded, or compiled on a cold
+# cache: 4 s); the first boxes of 12 feeds then came within 3 s on 2 cores. The service kills a worker silent for
+# 15 s and starts another (tacf_service.pool.WORKER_SILENCE_S): this leaves room for three such restarts.
+FIRST_BOX_TIMEOUT_S = 60.0
 
 
 def register_bench(bench_subparsers) -> None:
@@ -220,19 +225,36 @@ def _percentile(values: list[float], q: float) -> float | None:
     return round(ordered[max(0, math.ceil(q * len(ordered)) - 1)], 1)
 
 
-def _pause(seconds: float, stop: threading.Event) -> None:
+def _pause(seconds: float, stop: threading.Event, service) -> None:
     """Wait `seconds`; KeyboardInterrupt once `stop` is set (SIGINT, SIGTERM, SIGHUP), so that the run's `finally`
-    stops the service it started (in a session of its own, no signal to the bench reaches it)."""
+    stops the service it started (in a session of its own, no signal to the bench reaches it); LocalServiceError
+    once the service has exited (a run measured it dead, then reported a service that did not answer)."""
     if stop.wait(seconds):
         raise KeyboardInterrupt
+    service.check_alive()
+
+
+def _described(client, sid: str) -> str:
+    """The session id with its state as its service reports it (and why it failed, if it says), when it answers."""
+    from tacf_clients.errors import TacfError
+
+    try:
+        info = client.status(sid)
+    except TacfError:
+        return sid
+    why = f": {info.health.message}" if info.health is not None and info.health.message else ""
+    restarts = f", worker restarted {info.restarts} times" if info.restarts else ""
+    return f"{sid} ({info.state}{why}{restarts})"
 
 
 def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, profile: str | None,
               progress: bool = True, stop: threading.Event | None = None) -> dict:
-    """One benchmark run with len(feeds) feeds; the JSON-ready report. KeyboardInterrupt once `stop` is set."""
+    """One benchmark run with len(feeds) feeds; the JSON-ready report. KeyboardInterrupt once `stop` is set,
+    LocalServiceError when the service fails, TimeoutError when a session sends no box."""
     from tqdm import tqdm
 
     from tacf_clients.client import TrackingClient
+    from tacf_clients.errors import TacfError
     from tacf_clients.local_service import LocalService
     from tacf_clients.zconfig import open_session
     from tacf_schemas import BoxResult, Frame
@@ -261,13 +283,19 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
             first = Frame(seq=0, stamp_ns=time.time_ns(), encoding="jpeg", width=FRAME_SIZE[0], height=FRAME_SIZE[1],
                           data=feed.jpegs[0])
             client.start(publisher.keys[i], feed.first_box, seq=0, frames=[first], profile=profile, sid=f"feed{i}")
-        deadline = time.monotonic() + 120      # worker processes start cold (--spare-workers 0)
-        while time.monotonic() < deadline:
+        log.info("%d feeds: waiting up to %g s for the first box of every session", n, FIRST_BOX_TIMEOUT_S)
+        deadline = time.monotonic() + FIRST_BOX_TIMEOUT_S
+        while True:
             with lock:
-                if len({b.sid for _, b in received}) == n:
-                    break
-            _pause(0.1, stop)
-        _pause(warmup, stop)
+                without_box = sorted({f"feed{i}" for i in range(n)} - {b.sid for _, b in received})
+            if not without_box:
+                break
+            if time.monotonic() > deadline:
+                quick_client = TrackingClient(session=session, node=NODE, timeout=2.0)   # not 30 s a session
+                raise TimeoutError(f"no box within {FIRST_BOX_TIMEOUT_S:g} s from "
+                                   + ", ".join(_described(quick_client, sid) for sid in without_box))
+            _pause(0.1, stop, service)
+        _pause(warmup, stop, service)
         service_pid = service.process.pid
         children = _descendants(service_pid)
         workers = [pid for pid in children if _is_worker(pid)]
@@ -284,14 +312,14 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
                     over_time["pss_mb"].append(round(_total_mb(processes, "smaps_rollup", "Pss:")))
                     over_time["open_fds"].append(sum(map(_open_fds, processes)))
                 next_sample = len(over_time["seconds"]) * seconds / 20
-                _pause(max(0.0, min(0.2, next_sample - elapsed, seconds - elapsed)), stop)
+                _pause(max(0.0, min(0.2, next_sample - elapsed, seconds - elapsed)), stop, service)
                 bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
         last_seq = [len(s) - 1 for s in publisher.sent]
         cpu_percent = 100 * (sum(map(_cpu_seconds, processes)) - cpu_before) / (time.monotonic() - wall_before)
         rss = _mean(_memory_mb(pid, "status", "VmRSS:") for pid in workers)
         pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
         pss_total = round(_total_mb(processes, "smaps_rollup", "Pss:"), 1)
-        _pause(2.0, stop)   # let the boxes of the window's last frames arrive
+        _pause(2.0, stop, service)   # let the boxes of the window's last frames arrive
         with lock:
             sid_index = {f"feed{i}": i for i in range(n)}
             window = [(t, b) for t, b in received
@@ -299,6 +327,9 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         subscription.close()
         for i in range(n):
             client.stop(f"feed{i}")
+    except TacfError:
+        service.check_alive()       # a service that exited answers nothing: say that it exited
+        raise
     finally:
         if publisher is not None:
             publisher.stop()
@@ -334,25 +365,28 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
     except FileNotFoundError as exc:
         log.error("%s", exc)
         return 2
-    reports, failed = [], False
+    reports, status = [], 0          # the reports of the counts run so far are written whatever ends the runs
     with stop_on_signals() as stop:
         for count in args.feeds:
             try:
                 reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile,
                                          progress=not args.no_progress, stop=stop))
-            except (LocalServiceError, TacfError) as exc:      # the reports of the counts run so far are kept
-                log.error("%d feeds: %s", count, str(exc).splitlines()[0])
-                failed = True
+            except KeyboardInterrupt:
+                print("tacf bench: interrupted", file=sys.stderr)
+                status = 130            # 128 + SIGINT, as tacf.cli answers a Ctrl-C
+                break
+            except (LocalServiceError, TacfError, TimeoutError) as exc:    # a service's: its log's last lines too
+                log.error("%d feeds: %s", count, exc)
+                status = 1
                 break
             log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
                      reports[-1]["dropped"], reports[-1]["frames_sent"])
-    if not reports:
-        return 1
-    text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text)
-        log.info("wrote %s", args.json)
-    else:
-        sys.stdout.write(text)
-    return 1 if failed else 0
+    if reports:
+        text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(text)
+            log.info("wrote %s", args.json)
+        else:
+            sys.stdout.write(text)
+    return status

@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -14,7 +17,7 @@ import pytest
 import zenoh
 
 from tacf.cli import main
-from tacf_clients import local_service
+from tacf_clients import bench, local_service
 from tacf_clients.bench import Feed, FeedPublisher, _percentile
 from tacf_clients.local_service import free_port
 from tacf_clients.zconfig import ZenohOptions, make_config
@@ -149,14 +152,104 @@ def test_bench_service_stops_its_service_on_sigterm_and_sighup():
                 os.kill(pid, signal.SIGKILL)
 
 
+def _errors(caplog) -> list[str]:
+    """The ERROR records logged; the logs they name (kept by LocalService after a failure) are removed."""
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    for error in errors:
+        if found := re.search(r"; log: (\S+)", error):
+            Path(found[1]).unlink(missing_ok=True)
+    return errors
+
+
 @needs_data
-def test_a_service_that_cannot_start_is_a_one_line_error(monkeypatch, caplog):
+def test_a_service_that_cannot_start_is_one_error_with_its_cause(monkeypatch, caplog):
     """A failure in a run (here the service's port taken, as a race after free_port() can do) was a traceback, and
-    the reports of the feed counts already run were lost."""
+    the reports of the feed counts already run were lost. Then it was the first line of the error only, without
+    the cause the service's log gives."""
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         monkeypatch.setattr(local_service, "free_port", lambda: taken.getsockname()[1])
         assert main(["bench", "service", str(DATA), "--seconds", "1", "--no-progress"]) == 1
-    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    errors = _errors(caplog)
     assert len(errors) == 1 and errors[0].startswith("1 feeds: tacf serve exited with code"), errors
+    assert "Address already in use" in errors[0], errors
+
+
+@needs_data
+def test_a_service_killed_during_the_run_is_reported_as_exited_at_once(caplog):
+    """A service killed mid-run was measured dead for the rest of the window, then reported as "no tracking service
+    'bench' answered"."""
+    killed_at = []
+
+    def kill_the_service() -> None:
+        deadline = time.monotonic() + 60
+        while not (pids := _serve_processes("bench")) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(4.0)                     # its session tracking by now
+        killed_at.append(time.monotonic())
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL)
+
+    assert not _serve_processes("bench"), "a bench service is already running"
+    killer = threading.Thread(target=kill_the_service)
+    killer.start()
+    try:
+        status = main(["bench", "service", str(DATA), "--fps", "5", "--seconds", "60", "--warmup", "0",
+                       "--no-progress"])
+    finally:
+        killer.join()
+    reported_after = time.monotonic() - killed_at[0]
+    errors = _errors(caplog)
+    assert status == 1 and len(errors) == 1, errors
+    assert errors[0].startswith("1 feeds: tacf serve exited with code -9"), errors
+    assert reported_after < 10, f"reported {reported_after:.0f} s after the service was killed"
+
+
+# The fork server of `tacf serve` (named in its command line): every worker it forks after its first hangs before
+# running, a worker that never starts.
+HANG_WORKERS_AFTER_THE_FIRST = """
+import os, time
+if b"forkserver" in open("/proc/self/cmdline", "rb").read():
+    forks = []
+    os.register_at_fork(before=lambda: forks.append(1), after_in_child=lambda: len(forks) > 1 and time.sleep(600))
+"""
+
+
+@needs_data
+def test_a_session_that_sends_no_box_fails_the_run_and_names_it(tmp_path, monkeypatch, caplog):
+    """A session that never sent a box (its worker hung) made the bench wait 120 s in silence, then report an
+    empty measurement with exit code 0."""
+    caplog.set_level(logging.INFO)
+    (tmp_path / "sitecustomize.py").write_text(HANG_WORKERS_AFTER_THE_FIRST)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")])))
+    monkeypatch.setattr(bench, "FIRST_BOX_TIMEOUT_S", 8.0)
+    out = tmp_path / "bench.json"
+    assert main(["bench", "service", str(DATA), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup",
+                 "0", "--json", str(out), "--no-progress"]) == 1
+    assert json.loads(out.read_text())["feeds"] == 1, "the report of the count run before is written"
+    assert "2 feeds: waiting up to 8 s for the first box of every session" in caplog.text
+    errors = _errors(caplog)
+    assert errors == ["2 feeds: no box within 8 s from feed1 (starting)"], errors
+
+
+@needs_data
+def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(tmp_path):
+    """Ctrl-C during the second feed count threw the report of the first away."""
+    out = tmp_path / "bench.json"
+    bench_run = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(DATA), "--feeds", "1",
+                                  "2", "--fps", "5", "--seconds", "1", "--warmup", "0", "--json", str(out),
+                                  "--no-progress"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        for line in bench_run.stderr:
+            if "1 feeds: p95" in line:          # the second count starts
+                break
+        bench_run.send_signal(signal.SIGINT)
+        _, err = bench_run.communicate(timeout=30)
+    finally:
+        if bench_run.poll() is None:
+            bench_run.kill()
+            bench_run.wait()
+    assert bench_run.returncode == 130 and "interrupted" in err, err[-500:]
+    assert json.loads(out.read_text())["feeds"] == 1
+    assert not _serve_processes("bench"), "the service outlived the bench"
