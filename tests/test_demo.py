@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -150,6 +151,26 @@ def test_demo_on_a_bad_source_is_a_usage_error_on_stderr(source, reason):
     assert done.returncode == 2 and done.stdout == "", done.stdout + done.stderr
     last = done.stderr.splitlines()[-1]         # (FFmpeg says first, on its own, why it could not connect)
     assert last.startswith("tacf demo: ") and reason in last and "Traceback" not in done.stderr, done.stderr
+
+
+def test_ctrl_c_while_a_stream_opens_ends_the_demo_with_130():
+    """Ctrl-C while FFmpeg waited for a stream that does not answer ended the demo, once FFmpeg gave up (10 s),
+    with exit code 2 and "cannot open video source", as for a bad source."""
+    with socket.socket() as silent:                 # takes connections (the kernel does), never answers
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        silent.settimeout(30)
+        proc = subprocess.Popen(_demo(f"http://127.0.0.1:{silent.getsockname()[1]}/video.mjpg"),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            connection, _ = silent.accept()           # FFmpeg is opening the stream
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=30)
+            connection.close()
+        finally:
+            proc.kill()
+    assert proc.returncode == 130, out + err
+    assert err.splitlines()[-1] == "tacf demo: interrupted" and "cannot open" not in err, err
 
 
 def test_a_source_whose_frames_cannot_be_sent_is_a_usage_error_and_no_session_starts(tmp_path):
