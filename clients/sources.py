@@ -292,11 +292,13 @@ class Pacer:
         """Sleep until the next tick, returning early if `should_stop()`."""
         if not self.period:
             return
+        if self._next is None:
+            self._next = time.monotonic()
+        sleep_unless(self._next - time.monotonic(), should_stop)
+        # Late by more than a period (a stall in the caller or in this very sleep): this tick goes now and the
+        # schedule starts again from it; re-anchoring only on the next call would give two ticks back to back.
         now = time.monotonic()
-        if self._next is None or now - self._next > self.period:
-            self._next = now
-        sleep_unless(self._next - now, should_stop)
-        self._next += self.period
+        self._next = (now if now - self._next > self.period else self._next) + self.period
 
 
 class Thinner:

@@ -289,6 +289,24 @@ def test_pacer_keeps_the_rate_without_bursting():
     assert time.monotonic() - t0 >= 0.03
 
 
+def test_a_pacer_stalled_in_its_sleep_ticks_once_then_keeps_the_period(monkeypatch):
+    """A stall inside the wait (a GC pause, SIGSTOP) made the late tick and the next one go out back to back."""
+    pacer = Pacer(50)
+    pacer.wait()
+    real_sleep_unless = sources.sleep_unless
+
+    def stalled(seconds, should_stop, slice_s=0.1):
+        time.sleep(0.1)
+        return real_sleep_unless(seconds, should_stop, slice_s)
+
+    monkeypatch.setattr(sources, "sleep_unless", stalled)
+    pacer.wait()                        # the tick due 20 ms after the first comes 100 ms late
+    monkeypatch.setattr(sources, "sleep_unless", real_sleep_unless)
+    t0 = time.monotonic()
+    pacer.wait()
+    assert time.monotonic() - t0 >= 0.015
+
+
 def test_thinner_keeps_every_third_frame_of_a_30fps_camera():
     thinner = Thinner(10)
     admitted = []
