@@ -486,7 +486,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                                           encoding=args.encoding, profile=args.profile, every=args.every),
                               stop=stop)
         except (ValueError, FileNotFoundError) as exc:     # the source cannot be opened or has no frames
-            if stop.is_set():       # Ctrl-C while FFmpeg tried to open a stream: its timeout ended the wait
+            if stop.is_set():       # Ctrl-C while FFmpeg tried to open a stream
                 print("tacf demo: interrupted", file=sys.stderr)
                 return 130
             print(f"tacf demo: {exc}", file=sys.stderr)

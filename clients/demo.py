@@ -226,7 +226,7 @@ def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = 
     options, stop = options or DemoOptions(), stop or threading.Event()
     report = DemoReport()
     printer = Printer(out or sys.stdout, err or sys.stderr, options.every or 10)
-    source = open_source(options.source)
+    source = open_source(options.source, should_stop=stop.is_set)
     with source:
         truth = GroundTruth.for_source(source)
         box, origin = initial_box(options, source, truth)
@@ -234,7 +234,7 @@ def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = 
             # A video file starts again at frame 0, which the box is on; a camera or stream is not opened twice
             # (one may take a single client), folders and the scene start again by themselves.
             source.close()
-            source = open_source(options.source)
+            source = open_source(options.source, should_stop=stop.is_set)
         fps = options.fps or (None if source.live or isinstance(source, SceneSource) else source.fps) or DEMO_FPS
         if options.every is None:
             printer.every = max(1, round(fps / 3))

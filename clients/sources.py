@@ -159,11 +159,14 @@ class CaptureSource(FrameSource):
     that a stop or Ctrl-C ends the source at once.
     """
 
-    def __init__(self, spec: str | int, loop: bool = False, live: bool | None = None, reconnect: bool = True):
+    def __init__(self, spec: str | int, loop: bool = False, live: bool | None = None, reconnect: bool = True,
+                 should_stop: Callable[[], bool] = never_stop):
         """live None: a camera index is live; a URL is, unless it names a recorded clip (a file:// path, a video
-        served over HTTP), which FFmpeg gives a frame count."""
+        served over HTTP), which FFmpeg gives a frame count. A stop while opening raises SourceError."""
         self.spec, self.name = spec, str(spec)
-        self._cap = call_unless_stopped(self._open)
+        self._cap = call_unless_stopped(self._open, should_stop)
+        if self._cap is STOPPED:
+            raise SourceError(f"stopped while opening {self.name}")
         self._abandoned = False         # a read left blocked on its thread still uses the capture
         if live is None:
             live = isinstance(spec, int) or not self._cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0
@@ -251,8 +254,10 @@ def _is_image(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
 
 
-def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = True) -> FrameSource:
+def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = True,
+                should_stop: Callable[[], bool] = never_stop) -> FrameSource:
     """Open SOURCE as given on the command line; a live one (camera, URL) reconnects after failures if `reconnect`.
+    A stop while a camera or stream opens raises SourceError.
 
     - ``scene`` (or ``scene:WxH``): the generated demo scene (endless, deterministic);
     - an int, or a digit string that names no file or folder here: camera index;
@@ -264,19 +269,19 @@ def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = Tr
     text = str(spec)
     path = Path(text).expanduser()
     if isinstance(spec, int) or (text.isdigit() and not path.exists()):
-        return CaptureSource(int(text), live=True, reconnect=reconnect)
+        return CaptureSource(int(text), live=True, reconnect=reconnect, should_stop=should_stop)
     if text == SCENE_SPEC or text.startswith(SCENE_SPEC + ":"):
         from tacf_clients.scene import Scene, SceneSource
 
         return SceneSource(Scene.from_spec(text))
     if "://" in text:
-        return CaptureSource(text, loop=loop, reconnect=reconnect)
+        return CaptureSource(text, loop=loop, reconnect=reconnect, should_stop=should_stop)
     if path.is_dir():
         return ImageFolderSource(path, loop=loop)
     if path.is_file():
         return CaptureSource(str(path), loop=loop, live=False)
     if path.exists():
-        return CaptureSource(str(path), live=True, reconnect=reconnect)
+        return CaptureSource(str(path), live=True, reconnect=reconnect, should_stop=should_stop)
     raise FileNotFoundError(f"source {text!r} is neither a file, a folder, a camera index, a URL nor 'scene'")
 
 

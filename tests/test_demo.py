@@ -154,8 +154,8 @@ def test_demo_on_a_bad_source_is_a_usage_error_on_stderr(source, reason):
 
 
 def test_ctrl_c_while_a_stream_opens_ends_the_demo_with_130():
-    """Ctrl-C while FFmpeg waited for a stream that does not answer ended the demo, once FFmpeg gave up (10 s),
-    with exit code 2 and "cannot open video source", as for a bad source."""
+    """Ctrl-C while FFmpeg waited for a stream that does not answer ended the demo once FFmpeg gave up (10 s), with
+    exit code 2 and "cannot open video source", as for a bad source."""
     with socket.socket() as silent:                 # takes connections (the kernel does), never answers
         silent.bind(("127.0.0.1", 0))
         silent.listen()
@@ -165,11 +165,13 @@ def test_ctrl_c_while_a_stream_opens_ends_the_demo_with_130():
         try:
             connection, _ = silent.accept()           # FFmpeg is opening the stream
             proc.send_signal(signal.SIGINT)
+            started = time.monotonic()
             out, err = proc.communicate(timeout=30)
             connection.close()
         finally:
             proc.kill()
     assert proc.returncode == 130, out + err
+    assert time.monotonic() - started < 3, "the open is left to FFmpeg's timeout (10 s) on a thread of its own"
     assert err.splitlines()[-1] == "tacf demo: interrupted" and "cannot open" not in err, err
 
 
