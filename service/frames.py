@@ -22,18 +22,22 @@ DEFAULT_DEPTH = 24
 MAX_BYTES_PER_KEY = 96 * 1024 * 1024
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)     # compared by identity: a camera that restarts its seq count repeats seqs
 class StoredFrame:
     seq: int
+    stamp_ns: int
     width: int
     height: int
     payload: bytes          # the Frame's msgpack bytes as received
 
     @classmethod
+    def from_frame(cls, frame: Frame, payload: bytes) -> "StoredFrame":
+        return cls(frame.seq, frame.stamp_ns, frame.width, frame.height, payload)
+
+    @classmethod
     def from_payload(cls, payload: bytes) -> "StoredFrame":
         """Parse a Frame payload (DecodeError if it is not one)."""
-        frame = decode(payload, Frame)
-        return cls(frame.seq, frame.width, frame.height, payload)
+        return cls.from_frame(decode(payload, Frame), payload)
 
 
 class _KeyHistory:
@@ -117,25 +121,30 @@ class FrameHistory:
                     history.add(stored)
                     self._cond.notify_all()
 
-    def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
-        """The frame with `seq` and every newer one kept (in arrival order); with seq None or not kept,
-        just the newest frame; [] when nothing has arrived."""
+    def _kept(self, key: str) -> list[StoredFrame]:
         with self._cond:
             history = self._keys.get(key)
-            frames = list(history.frames) if history else []
-        if not frames:
-            return []
+            return list(history.frames) if history else []
+
+    def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
+        """The frame with `seq` (the latest to arrive, should a camera have restarted its count) and every one kept
+        after it, in arrival order; with seq None or not kept, just the newest frame; [] when nothing has arrived."""
+        frames = self._kept(key)
         if seq is not None:
-            for i, frame in enumerate(frames):
-                if frame.seq == seq:
+            for i in range(len(frames) - 1, -1, -1):
+                if frames[i].seq == seq:
                     return frames[i:]
         return frames[-1:]
 
-    def frames_newer(self, key: str, seq: int) -> list[StoredFrame]:
-        """The kept frames of `key` with a seq above `seq` (in arrival order)."""
-        with self._cond:
-            history = self._keys.get(key)
-            return [f for f in history.frames if f.seq > seq] if history else []
+    def frames_after(self, key: str, frame: StoredFrame) -> list[StoredFrame]:
+        """The frames of `key` kept after `frame`, in arrival order. A frame not kept (sent with a request, or gone
+        from the history) is placed by seq and stamp: the kept frames after it have a higher seq and a stamp no
+        older (a camera that restarted its count sent the higher seqs of the frames before it)."""
+        frames = self._kept(key)
+        for i, kept in enumerate(frames):
+            if kept is frame:
+                return frames[i + 1:]
+        return [f for f in frames if f.seq > frame.seq and f.stamp_ns >= frame.stamp_ns]
 
     def frame(self, key: str, seq: int) -> StoredFrame | None:
         """The kept frame of `key` with `seq`, if any."""

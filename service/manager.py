@@ -256,6 +256,7 @@ class SessionManager:
         try:
             self._send(session, ("stop",))
             _reap([process] if process else [], time.monotonic() + STOP_GRACE_S)
+            self._drain(session)                # the worker's last Health: the counters the "stopped" one carries
             _close_conn(session)
             self._release_history(session)
             session.state = "stopped"
@@ -405,7 +406,7 @@ class SessionManager:
         box was drawn on, then newer ones, sent with the request) and the newer ones kept; else the newest kept."""
         frames = self._history.frames_from(key, seq)
         if carried and not (frames and frames[0].seq == seq):
-            return list(carried) + self._history.frames_newer(key, carried[-1].seq)
+            return list(carried) + self._history.frames_after(key, carried[-1])
         return frames
 
     def _queue_init(self, session: Session, box: tuple, seq: int | None, released: bool,
@@ -439,7 +440,7 @@ class SessionManager:
             box, pinned, session.init_frames = session.init_box, session.init_frames, []
             generation = session.init_generation
         if pinned:
-            frames = pinned + self._history.frames_newer(session.image_key, pinned[-1].seq)
+            frames = pinned + self._history.frames_after(session.image_key, pinned[-1])
         else:
             frames = self._history.frames_from(session.image_key, None)
         frames = catch_up_subset(frames, CATCHUP_FRAMES)
@@ -675,7 +676,7 @@ def _carried_frames(frames: list[Frame]) -> list[StoredFrame]:
             check_frame(frame)
         except FrameError as exc:
             raise ServiceError("frame_rejected", f"the request's frame {frame.seq} is not an image: {exc}") from None
-    return [StoredFrame(frame.seq, frame.width, frame.height, encode(frame)) for frame in frames]
+    return [StoredFrame.from_frame(frame, encode(frame)) for frame in frames]
 
 
 def _has_live_worker(session: Session) -> bool:

@@ -32,6 +32,7 @@ from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
 from tacf_service.errors import ServiceError
 from tacf_service.frames import StoredFrame
+import tacf_service.health as health
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
@@ -331,6 +332,60 @@ def test_no_box_of_the_replaced_target_after_a_reinit(endpoint, client, feed):
     finally:
         results.close()
         slow.close()
+
+
+def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
+    """With a tracker slower than the feed, stop found a frame in the worker's slot (never counted: received was one
+    more than processed + dropped + rejected), and the service's "stopped" Health, sent after the worker's, carried
+    the counters of a Health a second older."""
+    port = free_port()
+    slow = TrackingService(ServiceOptions(node="slow2", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
+                                                                           connect=(endpoint,)),
+                                          tracker_factory="slow_tracker:slow_tracker", spare_workers=1)).open()
+    results = Collector(client, "slow2", "counted")
+    try:
+        assert wait_until(lambda: "slow2" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
+        assert wait_until(lambda: slow.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+        call(client, "slow2", "start", StartRequest(sid="counted", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
+             timeout=10)
+        assert wait_until(lambda: len(results.results()) >= 6, 10)
+        call(client, "slow2", "stop", StopRequest(sid="counted"), timeout=10)
+        assert wait_until(lambda: [h.message for h in results.health if h.state == "stopped"][-1:] ==
+                          ["stopped by request"], 5)
+        worker_final, service_final = [h for h in results.health if h.state == "stopped"][-2:]
+        for health in (worker_final, service_final):
+            assert health.frames_received == health.frames_processed + health.frames_dropped + \
+                health.frames_rejected, health
+        counters = ("frames_received", "frames_processed", "frames_dropped", "last_seq")
+        assert [getattr(service_final, c) for c in counters] == [getattr(worker_final, c) for c in counters]
+    finally:
+        results.close()
+        slow.close()
+
+
+def test_a_tracker_box_that_is_not_finite_rejects_its_frame_and_the_session_goes_on(endpoint, client, feed):
+    """A plug-in tracker's NaN box failed BoxResult's validation outside any guard: the worker died, was restarted
+    and died again, until the session failed."""
+    port = free_port()
+    buggy = TrackingService(ServiceOptions(node="nan", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
+                                                                         connect=(endpoint,)),
+                                           tracker_factory="nan_tracker:nan_tracker", spare_workers=1)).open()
+    results = Collector(client, "nan", "halves")
+    try:
+        assert wait_until(lambda: "nan" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
+        assert wait_until(lambda: buggy.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+        call(client, "nan", "start", StartRequest(sid="halves", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
+             timeout=10)
+        assert wait_until(lambda: len(results.results()) >= 5, 10)
+
+        def status():
+            return call(client, "nan", "status", StatusRequest(sid="halves"))
+        assert wait_until(lambda: status().health.frames_rejected >= 4, 10)     # the Health of every second
+        info = status()
+        assert (info.state, info.restarts) == ("tracking", 0) and "not finite" in info.health.message
+    finally:
+        results.close()
+        buggy.close()
 
 
 # ---------------------------------------------------------------------------------------------- latest-only
@@ -825,6 +880,45 @@ def test_a_reinit_box_stays_with_its_frame_through_a_worker_restart(service, cli
         results.close()
         publisher.undeclare()
         call(client, NODE, "stop", StopRequest(sid="paired"))
+
+
+def test_health_reads_the_frame_rate_before_its_window_fills_and_p95_by_nearest_rank(monkeypatch):
+    """The first Health of a session at 10 fps read 6.5 (frames over the whole 2 s window, not yet filled), and
+    p95 of 20 times was their maximum."""
+    clock = [100.0]
+    monkeypatch.setattr(health.time, "monotonic", lambda: clock[0])
+    stats = health.HealthStats()
+    for i in range(20):
+        clock[0] = 100.0 + i / 10
+        stats.processed(i, time.time_ns(), processing_ms=i + 1.0, pme=None, ok=True)
+        if i == 9:
+            assert stats.fps() == pytest.approx(10.0)       # 1 s in
+    clock[0] = 102.0
+    assert stats.fps() == pytest.approx(10.0)                # a full window
+    assert stats.snapshot("n", "s", "tracking").processing_ms_p95 == 19.0
+
+
+def test_a_camera_that_restarts_its_count_is_caught_up_through_its_new_frames_only(service, client):
+    """The history kept seq 100..115, then the camera restarted at 0. A start drawn on seq 3 caught up through
+    100..115 as well, whose seqs are higher: boxes went out for frames older than the one the box was drawn on."""
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher("test/cam/restarting")
+    results = Collector(client, NODE, "restarted")
+    try:
+        play_frames(publisher, scene, 100, 101)
+        start(client, service, image_key="test/cam/restarting", box=scene.box(100), seq=100, sid="follower")
+        play_frames(publisher, scene, 101, 116)
+        play_frames(publisher, scene, 0, 6)                    # the camera restarts its count
+        start(client, service, image_key="test/cam/restarting", box=scene.box(3), seq=3, sid="restarted")
+        play_frames(publisher, scene, 6, 12)
+        assert wait_until(lambda: results.results() and results.results()[-1].seq == 11, 10)
+        assert [r.seq for r in results.results() if r.seq >= 100] == []
+        assert call(client, NODE, "status", StatusRequest(sid="restarted")).last_seq == 11
+    finally:
+        results.close()
+        publisher.undeclare()
+        for sid in ("restarted", "follower"):
+            call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 def test_a_feed_that_changes_its_frame_size_goes_on_being_tracked(service, client):
