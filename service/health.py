@@ -1,6 +1,7 @@
 """HealthStats: the counters and timing windows behind a session's Health message."""
 from __future__ import annotations
 
+import math
 import time
 from collections import deque
 
@@ -24,6 +25,7 @@ class HealthStats:
         self.last_stamp_ns: int | None = None
         self._processing_ms: deque[float] = deque(maxlen=TIMING_WINDOW)
         self._processed_at: deque[float] = deque()
+        self._first_processed_at: float | None = None
 
     def received(self, count: int = 1) -> None:
         self.frames_received += count
@@ -43,20 +45,30 @@ class HealthStats:
             self.last_pme = pme
         self._processing_ms.append(processing_ms)
         now = time.monotonic()
+        if self._first_processed_at is None:
+            self._first_processed_at = now
         self._processed_at.append(now)
         while self._processed_at and now - self._processed_at[0] > FPS_WINDOW_S:
             self._processed_at.popleft()
 
     def fps(self) -> float:
+        """Frames processed a second over the last FPS_WINDOW_S. Until a whole window has passed since the first
+        frame, over the time since that one, which is not counted (a window not yet filled made the first Health of
+        a session at 10 fps read 6.5)."""
         now = time.monotonic()
         while self._processed_at and now - self._processed_at[0] > FPS_WINDOW_S:
             self._processed_at.popleft()
-        return len(self._processed_at) / FPS_WINDOW_S
+        if self._first_processed_at is None:
+            return 0.0
+        since_first = now - self._first_processed_at
+        if since_first >= FPS_WINDOW_S:
+            return len(self._processed_at) / FPS_WINDOW_S
+        return (len(self._processed_at) - 1) / since_first if since_first > 0 else 0.0
 
     def snapshot(self, node: str, sid: str, state: str, restarts: int = 0, message: str | None = None) -> Health:
         times = sorted(self._processing_ms)
         mean = sum(times) / len(times) if times else 0.0
-        p95 = times[min(len(times) - 1, int(0.95 * len(times)))] if times else 0.0
+        p95 = times[max(0, math.ceil(0.95 * len(times)) - 1)] if times else 0.0      # nearest rank
         now_ns = time.time_ns()
         age = (now_ns - self.last_stamp_ns) / 1e6 if self.last_stamp_ns else None
         return Health(node=node, sid=sid, state=state, stamp_ns=now_ns, fps=self.fps(),

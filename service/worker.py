@@ -39,6 +39,7 @@ The worker also stops when the pipe breaks (the service died), so no worker outl
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing
 import os
 import signal
@@ -254,14 +255,19 @@ class Worker:
         while not self._stop.is_set():
             self._apply_pending_init()
             payload = self._slot.take(timeout=0.2)
-            if payload is not None and not self._stop.is_set():
-                self._process(payload)
+            if payload is not None:
+                if self._stop.is_set():
+                    self._skipped += 1      # taken as the stop came: dropped, so that the counts add up
+                else:
+                    self._process(payload)
             if time.monotonic() >= next_health:
                 self._publish_health()
                 next_health = time.monotonic() + HEALTH_PERIOD_S
         self._state = "stopped"
+        frames.undeclare()                  # ends the pump's recv(): no frame comes after the last counts
+        self._pump.join(timeout=0.5)
+        self._slot.discard()                # a frame still waiting is dropped
         self._publish_health()
-        frames.undeclare()                  # ends the pump's recv()
         token.undeclare()
 
     def _pump_frames(self, ring) -> None:
@@ -385,6 +391,9 @@ class Worker:
             return
         if self._init_arrived():
             self._skipped += 1              # the box is of the target the reinit replaces: never show it
+            return
+        if not all(math.isfinite(c) for c in result.box):     # a plug-in tracker's bug: no BoxResult can carry it
+            self._reject(f"the tracker gave a box that is not finite on seq {frame.seq}: {tuple(result.box)}")
             return
         self._state = "tracking" if result.ok else "lost"
         self._publish_box(frame, result, (time.perf_counter() - started) * 1e3)

@@ -1,0 +1,28 @@
+"""A tracker factory for the service's tests (`tracker_factory="nan_tracker:nan_tracker"`): the box it was
+initialised with, but NaN on every other frame, as a buggy plug-in tracker might give."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Result:
+    box: tuple
+    ok: bool = True
+    pme: float = 50.0
+    score: float = 1.0
+    scale: float = 1.0
+
+
+class NanTracker:
+    def init(self, frame, box) -> None:
+        self.box, self.frames = tuple(float(c) for c in box), 0
+
+    def update(self, frame) -> Result:
+        self.frames += 1
+        return Result((math.nan,) * 4 if self.frames % 2 else self.box)
+
+
+def nan_tracker(profile: str, overrides: dict) -> NanTracker:
+    return NanTracker()
