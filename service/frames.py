@@ -128,7 +128,7 @@ class FrameHistory:
 
     def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
         """The frame with `seq` (the latest to arrive, should a camera have restarted its count) and every one kept
-        after it, in arrival order; with seq None or not kept, just the newest frame; [] when nothing has arrived."""
+        after it, in arrival order; with seq None or not kept, just the newest frame; [] when none has arrived."""
         frames = self._kept(key)
         if seq is not None:
             for i in range(len(frames) - 1, -1, -1):

@@ -3,6 +3,9 @@ camera apps), read through OpenCV as a stream URL."""
 from __future__ import annotations
 
 import http.server
+import signal
+import socket
+import subprocess
 import threading
 import time
 
@@ -76,3 +79,22 @@ class MjpegCamera:
 
     def close(self) -> None:
         self.down()
+
+
+def interrupted_while_a_stream_opens(command_for_url) -> tuple[subprocess.CompletedProcess, float]:
+    """Run the command `command_for_url(url)` on the URL of a server that takes connections and never answers, send
+    it SIGINT once FFmpeg is opening the stream (the connection came), and return how it ended and how many seconds
+    after the SIGINT."""
+    with socket.create_server(("127.0.0.1", 0)) as silent:
+        proc = subprocess.Popen(command_for_url(f"http://127.0.0.1:{silent.getsockname()[1]}/video.mjpg"),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            silent.settimeout(30)
+            connection, _ = silent.accept()
+            proc.send_signal(signal.SIGINT)
+            started = time.monotonic()
+            out, err = proc.communicate(timeout=30)
+            connection.close()
+        finally:
+            proc.kill()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), time.monotonic() - started

@@ -3,16 +3,8 @@ initialised with, but NaN on every other frame, as a buggy plug-in tracker might
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
-
-@dataclass(frozen=True)
-class Result:
-    box: tuple
-    ok: bool = True
-    pme: float = 50.0
-    score: float = 1.0
-    scale: float = 1.0
+from slow_tracker import Result
 
 
 class NanTracker:

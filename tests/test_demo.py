@@ -5,7 +5,6 @@ from __future__ import annotations
 import io
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,7 +21,7 @@ from tacf_clients.scene import Scene
 from tacf_clients.sources import FrameSource, SourceFrame, open_source
 from tacf_clients.zconfig import ZenohOptions, make_config
 
-from mjpeg_camera import MjpegCamera
+from mjpeg_camera import MjpegCamera, interrupted_while_a_stream_opens
 
 pytestmark = pytest.mark.zenoh
 
@@ -156,23 +155,11 @@ def test_demo_on_a_bad_source_is_a_usage_error_on_stderr(source, reason):
 def test_ctrl_c_while_a_stream_opens_ends_the_demo_with_130():
     """Ctrl-C while FFmpeg waited for a stream that does not answer ended the demo once FFmpeg gave up (10 s), with
     exit code 2 and "cannot open video source", as for a bad source."""
-    with socket.socket() as silent:                 # takes connections (the kernel does), never answers
-        silent.bind(("127.0.0.1", 0))
-        silent.listen()
-        silent.settimeout(30)
-        proc = subprocess.Popen(_demo(f"http://127.0.0.1:{silent.getsockname()[1]}/video.mjpg"),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            connection, _ = silent.accept()           # FFmpeg is opening the stream
-            proc.send_signal(signal.SIGINT)
-            started = time.monotonic()
-            out, err = proc.communicate(timeout=30)
-            connection.close()
-        finally:
-            proc.kill()
-    assert proc.returncode == 130, out + err
-    assert time.monotonic() - started < 3, "the open is left to FFmpeg's timeout (10 s) on a thread of its own"
-    assert err.splitlines()[-1] == "tacf demo: interrupted" and "cannot open" not in err, err
+    done, seconds = interrupted_while_a_stream_opens(_demo)
+    assert done.returncode == 130, done.stdout + done.stderr
+    assert seconds < 3, "the open is left to FFmpeg's timeout (10 s) on a thread of its own"
+    last_line = done.stderr.splitlines()[-1]
+    assert last_line == "tacf demo: interrupted" and "cannot open" not in done.stderr, done.stderr
 
 
 def test_a_source_whose_frames_cannot_be_sent_is_a_usage_error_and_no_session_starts(tmp_path):

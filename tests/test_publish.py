@@ -7,7 +7,6 @@ import functools
 import http.server
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -32,7 +31,7 @@ from tacf_schemas.images import FrameError, decode_frame, encode_frame
 from tacf_schemas.models import Frame
 from tacf_service.loopback import wait_until
 
-from mjpeg_camera import MjpegCamera
+from mjpeg_camera import MjpegCamera, interrupted_while_a_stream_opens
 
 KEY = "test/camera/front"
 
@@ -215,7 +214,7 @@ def test_open_source_rejects_what_does_not_exist(tmp_path):
 
 
 def test_a_folder_of_16_bit_images_is_stretched_to_8_bits(tmp_path):
-    """12-bit thermal data in 16-bit PNGs: cv2.IMREAD_COLOR kept the high byte, so frames of 0..4095 came out 0..15."""
+    """12-bit thermal data in 16-bit PNGs: cv2.IMREAD_COLOR kept the high byte; frames of 0..4095 came out 0..15."""
     folder = tmp_path / "thermal"
     folder.mkdir()
     ramp = np.tile(np.linspace(0, 4095, 64).astype(np.uint16), (48, 1))
@@ -613,25 +612,13 @@ def test_stopping_ends_a_stalled_stream_without_waiting_for_ffmpeg(camera):
         assert next(source.frames(), None) is None       # the read left on its thread keeps the capture
 
 
-def test_ctrl_c_ends_publish_while_a_stream_does_not_answer(tmp_path):
+def test_ctrl_c_ends_publish_while_a_stream_does_not_answer():
     """A server that accepts and never answers holds FFmpeg's open for OPEN_TIMEOUT_MS (10 s): Ctrl-C used to wait
     for it, then reported "cannot open video source" (exit 2)."""
-    with socket.create_server(("127.0.0.1", 0)) as server:
-        url = f"http://127.0.0.1:{server.getsockname()[1]}/video.mjpg"
-        proc = subprocess.Popen([sys.executable, "-m", "tacf.cli", "publish", url, "--key", KEY,
-                                 "--connect", f"tcp/127.0.0.1:{free_port()}"],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            server.settimeout(30)
-            connection, _ = server.accept()          # FFmpeg is opening the stream
-            proc.send_signal(signal.SIGINT)
-            started = time.monotonic()
-            _, err = proc.communicate(timeout=20)
-            connection.close()
-        finally:
-            proc.kill()
-    assert time.monotonic() - started < 2
-    assert proc.returncode == 130, err
+    done, seconds = interrupted_while_a_stream_opens(
+        lambda url: [sys.executable, "-m", "tacf.cli", "publish", url, "--key", KEY,
+                     "--connect", f"tcp/127.0.0.1:{free_port()}"])
+    assert done.returncode == 130 and seconds < 2, (seconds, done.stderr)
 
 
 def test_without_reconnect_a_stream_ends_with_its_connection(camera):

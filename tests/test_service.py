@@ -7,6 +7,7 @@ the workers' fork server and its SIGKILL, too many sessions.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -305,47 +306,51 @@ def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="re"))
 
 
+@contextlib.contextmanager
+def plugin_service(endpoint: str, client, node: str, factory: str):
+    """A second service, linked to the tests' one, whose sessions track with the plug-in tracker `factory`; yielded
+    once clients see it and it has a warm worker."""
+    service = TrackingService(ServiceOptions(node=node, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",),
+                                                                           connect=(endpoint,)),
+                                             tracker_factory=factory, spare_workers=1)).open()
+    try:
+        assert wait_until(lambda: node in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
+        assert wait_until(lambda: service.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+        yield service
+    finally:
+        service.close()
+
+
 def test_no_box_of_the_replaced_target_after_a_reinit(endpoint, client, feed):
     """A reinit that arrives while the worker is inside a frame makes that frame's box one of the old target:
     it is dropped, so that no consumer (a gimbal following the box, a ground station) sees the old target again
     after the reinit was answered. A tracker taking 0.3 s a frame is nearly always inside one."""
-    port = free_port()
-    slow = TrackingService(ServiceOptions(node="slow", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
-                                                                          connect=(endpoint,)),
-                                          tracker_factory="slow_tracker:slow_tracker", spare_workers=1)).open()
     results = Collector(client, "slow", "swap")
     old_box, new_box = (20.0, 20.0, 60.0, 60.0), (300.0, 200.0, 40.0, 30.0)
     try:
-        assert wait_until(lambda: "slow" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
-        assert wait_until(lambda: slow.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
-        call(client, "slow", "start", StartRequest(sid="swap", image_key=feed.key, box=old_box), timeout=10)
-        for _ in range(3):
-            count = len(results.results())
-            assert wait_until(lambda: len(results.results()) > count, 10)
-            call(client, "slow", "reinit", ReinitRequest(sid="swap", box=new_box))
-            answered_ns = time.time_ns()
-            assert wait_until(lambda: any(r.box == new_box for r in results.results()[count:]), 10)
-            time.sleep(0.4)                                 # the frame in progress at the reinit has ended
-            late_old = [r.seq for r in results.results()[count:] if r.box == old_box and r.published_ns > answered_ns]
-            assert late_old == []
-            old_box, new_box = new_box, old_box
+        with plugin_service(endpoint, client, "slow", "slow_tracker:slow_tracker"):
+            call(client, "slow", "start", StartRequest(sid="swap", image_key=feed.key, box=old_box), timeout=10)
+            for _ in range(3):
+                count = len(results.results())
+                assert wait_until(lambda: len(results.results()) > count, 10)
+                call(client, "slow", "reinit", ReinitRequest(sid="swap", box=new_box))
+                answered_ns = time.time_ns()
+                assert wait_until(lambda: any(r.box == new_box for r in results.results()[count:]), 10)
+                time.sleep(0.4)                                 # the frame in progress at the reinit has ended
+                late_old = [r.seq for r in results.results()[count:]
+                            if r.box == old_box and r.published_ns > answered_ns]
+                assert late_old == []
+                old_box, new_box = new_box, old_box
     finally:
         results.close()
-        slow.close()
 
 
 def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
     """With a tracker slower than the feed, stop found a frame in the worker's slot (never counted: received was one
     more than processed + dropped + rejected), and the service's "stopped" Health, sent after the worker's, carried
     the counters of a Health a second older."""
-    port = free_port()
-    slow = TrackingService(ServiceOptions(node="slow2", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
-                                                                           connect=(endpoint,)),
-                                          tracker_factory="slow_tracker:slow_tracker", spare_workers=1)).open()
-    results = Collector(client, "slow2", "counted")
-    try:
-        assert wait_until(lambda: "slow2" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
-        assert wait_until(lambda: slow.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    with plugin_service(endpoint, client, "slow2", "slow_tracker:slow_tracker"), \
+            contextlib.closing(Collector(client, "slow2", "counted")) as results:
         call(client, "slow2", "start", StartRequest(sid="counted", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
              timeout=10)
         assert wait_until(lambda: len(results.results()) >= 6, 10)
@@ -358,22 +363,13 @@ def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
                 health.frames_rejected, health
         counters = ("frames_received", "frames_processed", "frames_dropped", "last_seq")
         assert [getattr(service_final, c) for c in counters] == [getattr(worker_final, c) for c in counters]
-    finally:
-        results.close()
-        slow.close()
 
 
 def test_a_tracker_box_that_is_not_finite_rejects_its_frame_and_the_session_goes_on(endpoint, client, feed):
     """A plug-in tracker's NaN box failed BoxResult's validation outside any guard: the worker died, was restarted
     and died again, until the session failed."""
-    port = free_port()
-    buggy = TrackingService(ServiceOptions(node="nan", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",),
-                                                                         connect=(endpoint,)),
-                                           tracker_factory="nan_tracker:nan_tracker", spare_workers=1)).open()
-    results = Collector(client, "nan", "halves")
-    try:
-        assert wait_until(lambda: "nan" in {lst.node for lst in list_all(client, timeout=1.0)}, 20)
-        assert wait_until(lambda: buggy.manager.idle_spares() >= 1, 60), "no warm worker after 60 s"
+    with plugin_service(endpoint, client, "nan", "nan_tracker:nan_tracker"), \
+            contextlib.closing(Collector(client, "nan", "halves")) as results:
         call(client, "nan", "start", StartRequest(sid="halves", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
              timeout=10)
         assert wait_until(lambda: len(results.results()) >= 5, 10)
@@ -383,9 +379,6 @@ def test_a_tracker_box_that_is_not_finite_rejects_its_frame_and_the_session_goes
         assert wait_until(lambda: status().health.frames_rejected >= 4, 10)     # the Health of every second
         info = status()
         assert (info.state, info.restarts) == ("tracking", 0) and "not finite" in info.health.message
-    finally:
-        results.close()
-        buggy.close()
 
 
 # ---------------------------------------------------------------------------------------------- latest-only
