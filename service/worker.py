@@ -274,6 +274,7 @@ class Worker:
         """Move frames from the RingChannel(1) into the slot; count frames the ring dropped from seq gaps."""
         import zenoh
         last_seq = None
+        missing: set[int] = set()           # the recent seqs counted as dropped by the ring
         while True:
             try:
                 sample = ring.recv()
@@ -283,11 +284,18 @@ class Worker:
             seq = _peek_seq(payload)
             if seq is not None:
                 # only plausible gaps count: a bogus seq must not inflate the counters (past 2**64 msgpack cannot
-                # encode the Health and the worker died); a reordered frame does not move last_seq back (its gap
-                # would be counted twice)
-                if last_seq is not None and 0 < seq - last_seq - 1 <= MAX_SEQ_GAP:
+                # encode the Health and the worker died); a reordered frame does not move last_seq back, and one
+                # that fills a gap is taken off the ring's count (the slot counts it now)
+                if seq in missing:
+                    missing.discard(seq)
+                    self._ring_dropped -= 1
+                elif last_seq is not None and 0 < seq - last_seq - 1 <= MAX_SEQ_GAP:
                     self._ring_dropped += seq - last_seq - 1
+                    missing = {s for s in missing if s > seq - STALE_WINDOW}
+                    missing.update(range(max(last_seq + 1, seq - STALE_WINDOW), seq))
                 if last_seq is None or seq > last_seq or last_seq - seq > STALE_WINDOW:
+                    if last_seq is not None and seq < last_seq:
+                        missing.clear()     # a restarted seq count: the old gaps are not this count's
                     last_seq = seq
             self._slot.put(payload)
 

@@ -185,6 +185,44 @@ def test_duplicated_and_reordered_frames_are_dropped(service, client):
         call(client, NODE, "stop", StopRequest(sid="order"))
 
 
+def test_a_frame_that_fills_a_seq_gap_is_counted_once(service, client):
+    """Seq 4 before seq 3: the gap at 3 is first counted as a frame the ring dropped; when 3 arrives after all
+    (and is dropped as older than 4) it is counted on arrival instead, so received and dropped count it once."""
+    key = "faults/cam/gap"
+    publisher = client.declare_publisher(key)
+    results = SessionResults(client, NODE, "gap")
+    frames = {seq: encode_frame(SCENE.frame(seq), seq, "jpeg", stamp_ns=time.time_ns()) for seq in range(1, 6)}
+
+    def put_and_wait(seq: int) -> None:
+        publisher.put(encode(frames[seq]))
+        assert wait_until(lambda: any(r.seq == seq for r in results.results()), 10)
+
+    def settled_health():
+        time.sleep(1.5)                     # past a health period after the last frame
+        return results.last_health()
+
+    try:
+        start(service, client, image_key=key, box=SCENE.box(1), sid="gap")
+        def initialised():
+            publisher.put(encode(frames[1]))
+            return status(client, "gap").state == "tracking"
+        assert wait_until(initialised, 30, period=0.2)
+        put_and_wait(2)
+        before = settled_health()
+        put_and_wait(4)
+        publisher.put(encode(frames[3]))
+        time.sleep(0.3)
+        put_and_wait(5)
+        after = settled_health()
+        assert [r.seq for r in results.results()] == [2, 4, 5]
+        assert (after.frames_received - before.frames_received, after.frames_processed - before.frames_processed,
+                after.frames_dropped - before.frames_dropped) == (3, 2, 1), (before, after)
+    finally:
+        publisher.undeclare()
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="gap"))
+
+
 # ---------------------------------------------------------------------------------------------- consumers
 
 #: A consumer process whose subscribers never read (a full FIFO) or never return (a blocked callback).
