@@ -266,8 +266,8 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
         client = TrackingClient(session=session, node=options.node, timeout=10.0)
         publisher = HoldingPublisher(session, source, options.image_key, fps, options.encoding)
         publisher.start()
-        printer.line(f"publishing {source.name} on {options.image_key!r} at {fps:.0f} fps ({options.encoding})")
         try:
+            printer.line(f"publishing {source.name} on {options.image_key!r} at {fps:.0f} fps ({options.encoding})")
             while publisher.last_seq < 0 and not publisher.ended.is_set() and not stop.is_set():
                 time.sleep(0.01)
             if publisher.last_seq < 0:

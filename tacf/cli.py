@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 COMMAND_MODULES = (
@@ -47,6 +48,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:       # Ctrl-C where a command does not handle it: a line, not a traceback
         print(f"tacf {args.command}: interrupted", file=sys.stderr)
         return 130                  # 128 + SIGINT, as shells report it
+    except BrokenPipeError:         # `tacf track ... | head`: the reader has all it wants, as for any Unix filter
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # Python's flush at exit would fail again
+        return 141                  # 128 + SIGPIPE, as shells report a filter the pipe stopped
 
 
 if __name__ == "__main__":

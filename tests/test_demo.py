@@ -21,6 +21,7 @@ from tacf_clients.scene import Scene
 from tacf_clients.sources import FrameSource, SourceFrame, open_source
 from tacf_clients.zconfig import ZenohOptions, make_config
 
+from closed_pipe import head
 from mjpeg_camera import MjpegCamera, interrupted_while_a_stream_opens
 
 pytestmark = pytest.mark.zenoh
@@ -63,6 +64,15 @@ def test_demo_command_on_a_sequence_folder(tmp_path):
     assert "from ground truth" in done.stdout
     assert "the source ended" in done.stdout          # 40 frames: the demo stops before its 20 s
     assert "boxes on the target" in done.stdout and "done" in done.stdout
+
+
+@pytest.mark.parametrize("lines", [2, 3])
+def test_demo_read_by_head_ends_quietly(lines):
+    """`tacf demo | head -3` ended with the publisher thread's traceback ("session closed"): its session was
+    closed under it while it ran."""
+    code, read, err = head(["demo"], lines)
+    assert read[0].startswith("[  0.0s] starting the tracking service")
+    assert (code, err) == (141, ""), err
 
 
 def test_demo_stops_cleanly_when_interrupted():

@@ -26,6 +26,8 @@ from tacf.eval import metrics, trackers
 from tacf.eval.datasets import load_sequences
 from tacf.eval.runner import read_run, run_job, times_path, track_frames, write_run
 
+from closed_pipe import head
+
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = DATA / "sequences"
 needs_data = pytest.mark.skipif(not SEQUENCES.is_dir(), reason="../shared/data is absent")
@@ -438,6 +440,17 @@ def test_track_image_folder_and_video(tmp_path):
     assert rc == 0
     rows = check_boxes_file(tmp_path / "boxes_mp4.txt", 20, box)
     assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=4)
+
+
+def test_track_read_by_head_ends_quietly(tmp_path):
+    """`tacf track ... | head` logged "ERROR ... Broken pipe" and exited 2, as for a source it could not read: it
+    ends as Unix filters do, silent, with the status of a filter the pipe stopped."""
+    frame = np.random.default_rng(0).integers(0, 256, (32, 32, 3), np.uint8)
+    for i in range(1, 3001):            # more lines than a pipe holds (64 KB): the command cannot be done first
+        cv2.imwrite(str(tmp_path / f"{i:06d}.png"), frame)
+    code, lines, err = head(["track", str(tmp_path), "--box", "8,8,10,10", "--tracker", "identity"], 2)
+    assert lines[0].startswith("# x,y,w,h,pme,ok") and lines[1].startswith("8.000,8.000,10.000,10.000,")
+    assert (code, err) == (141, ""), err
 
 
 def test_track_bad_arguments(tmp_path, capsys):

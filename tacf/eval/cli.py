@@ -287,6 +287,8 @@ def cmd_track(args: argparse.Namespace) -> int:
         return 2
     try:
         n = track_source(tracker, args.source, args.box, args.out, args.video)
+    except BrokenPipeError:
+        raise                   # stdout's reader left: not an error of the source or the output files
     except (ValueError, FileNotFoundError, OSError) as exc:
         log.error("%s", exc)
         return 2
