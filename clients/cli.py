@@ -101,7 +101,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal")
     p.add_argument("sid", metavar="SID", nargs="?", default="*", help="session id (default: all sessions)")
     p.add_argument("--node", help="only this service")
-    p.add_argument("--interval", type=positive_number, default=0.5, help="refresh period in seconds")
+    p.add_argument("--interval", type=positive_number, default=0.5, help="refresh period in seconds (default 0.5)")
     p.add_argument("--duration", type=positive_number, help="exit after this many seconds")
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_watch)
