@@ -95,7 +95,7 @@ class TrackingService:
     def close(self) -> None:
         """Withdraw the service token, stop answering, stop the workers, close the session. Idempotent."""
         started = time.monotonic()
-        was_open = self._session is not None      # not after a Zenoh session that failed to open, nor twice
+        was_ready = self._token is not None      # not after an open that failed, nor twice
         if self._token is not None:
             _quietly(self._token.undeclare)
             self._token = None
@@ -116,7 +116,7 @@ class TrackingService:
         if self._store is not None:
             self._store.unlock()        # after the manager's last save
             self._store = None
-        if was_open:
+        if was_ready:
             log.info("tacf service %r stopped in %.2f s", self.node, time.monotonic() - started)
 
     def __enter__(self) -> "TrackingService":

@@ -531,6 +531,7 @@ def test_serve_refuses_a_node_id_already_live_where_it_connects():
                              capture_output=True, text=True, timeout=30)
         assert out.returncode == 1, out.stderr[-2000:]
         assert f"another tacf service already runs as node {NODE!r}" in out.stderr
+        assert len(out.stderr.splitlines()) == 1, out.stderr   # not also "stopped in 0.00 s": it never started
         session = zenoh.open(peer_config(connect=[first_endpoint]))
         try:
             assert [lst.node for lst in list_all(session)] == [NODE]
