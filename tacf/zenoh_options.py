@@ -32,7 +32,7 @@ class ZenohOptions:
     listen: endpoints to listen on; empty = the side's default.
     config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
     mode: "peer", "client" or "router"; None keeps the file's mode (or peer without a file).
-    extra: (key path, JSON5 value) pairs, applied last.
+    extra: (key path, JSON5 value) pairs, applied last (a service applies them to its own session, not its workers').
     """
 
     connect: tuple[str, ...] | None = None
