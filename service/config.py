@@ -85,6 +85,7 @@ def worker_config(options: ZenohOptions, endpoints: list[str]):
     # The service's access control guards its own session, the entry point. Applied again in the worker, it
     # would deny the link to the service (which authenticates as no user), and the worker would get no frames.
     conf.insert_json5("access_control/enabled", "false")
+    conf.insert_json5("id", "null")     # a file's fixed Zenoh id is the service's: each worker draws its own
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("listen/endpoints", json.dumps([]))
     conf.insert_json5("connect/endpoints", json.dumps(endpoints))

@@ -518,6 +518,16 @@ def test_serve_refuses_bad_zenoh_settings_in_one_line(argv, reason):
     assert "Json5Err" not in out.stderr and ".rs:" not in out.stderr, out.stderr
 
 
+def test_a_config_file_that_fixes_the_zenoh_id_is_the_service_id_only(tmp_path):
+    """Workers took the file's `id` too: with the service's own id they could not connect to it, and the service
+    refused to start ("its worker processes cannot connect to it ... Timeout!")."""
+    config = tmp_path / "zid.json5"
+    config.write_text('{ id: "aabbccddeeff0011", mode: "peer", scouting: { multicast: { enabled: false } } }')
+    options = ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",), config_file=str(config))
+    with TrackingService(ServiceOptions(node=NODE, zenoh=options, spare_workers=0)) as service:
+        assert service.manager is not None
+
+
 def test_serve_refuses_a_node_id_already_live_where_it_connects():
     """A second service under a live node id (two boxes flashed from one image share a hostname, the default id)
     would answer every query to that node beside the first: a start there started the session on both. It now
