@@ -195,9 +195,9 @@ class FrameWatcher:
             pass                                           # the session closed under us
 
     @property
-    def last_seq(self) -> int | None:
+    def newest_stamp_ns(self) -> int | None:
         with self._lock:
-            return self._frames[-1][0].seq if self._frames else None
+            return self._frames[-1][0].stamp_ns if self._frames else None
 
     def snapshot(self, seq: int | None = None) -> FrameSnapshot | None:
         """The newest frame (with seq <= `seq` when given, else the oldest kept) as JPEG; None before the first."""
@@ -364,6 +364,12 @@ class Dashboard:
         with self._lock:
             watcher = self._watchers.get(key)
         return None if watcher is None else watcher.snapshot(seq)
+
+    def frame_stamp_ns(self, key: str) -> int | None:
+        """The stamp of the newest frame of `key` (None before its first, or when it is not watched)."""
+        with self._lock:
+            watcher = self._watchers.get(key)
+        return None if watcher is None else watcher.newest_stamp_ns
 
     def image_keys(self) -> list[str]:
         with self._lock:

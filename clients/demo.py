@@ -149,7 +149,9 @@ class HoldingPublisher:
 
     @property
     def last_seq(self) -> int:
-        return self.publisher.next_seq - 1
+        """The seq of the last frame sent, once index_of knows it (-1 before the first)."""
+        with self._lock:
+            return next(reversed(self._index_of_seq), -1)
 
     def _put(self, frame: SourceFrame) -> None:
         sent = self.publisher.put(frame.image)

@@ -9,9 +9,10 @@ topics are withdrawn once no session uses it) and session N/S (withdrawn when it
 - `/K/image` (foxglove.CompressedImage): the newest frame of K, at most `image_hz` a second, only while someone
   subscribes; JPEG frames go as they came, raw ones are encoded once.
 - `/K/tracks` (foxglove.ImageAnnotations): the newest box of every session on K, a rectangle (green while the
-  tracker holds the target, red while it reports it lost) labelled with the session id and PME; its timestamp, and
-  each rectangle's and label's, is the stamp of the frame the box was computed on (images carry their frames'
-  stamps too). Each rectangle's metadata carries node, sid, seq, ok and pme.
+  tracker holds the target, red while it reports it lost) labelled with the session id and PME; each rectangle and
+  label, and the message when all its boxes are on one frame (else it has no stamp, which Foxglove would let
+  override theirs), carries the stamp of the frame its box was computed on (images carry their frames' stamps
+  too). Each rectangle's metadata carries node, sid, seq, ok and pme.
 - `/tacf/N/S` (JSON, schema SESSION_SCHEMA): the session as the dashboard's /api/state shows it (box, PME, health:
   fps, latency, frame counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
 With `record` (`--record FILE.mcap`) everything published, images included at the same rate, is also written
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+import secrets
 import ssl
 import threading
 import time
@@ -89,6 +91,13 @@ SESSION_SCHEMA = {"type": "object", "properties": {
 }}
 
 
+def _internal_host() -> str:
+    """A random address of 127.0.0.0/8 for the SDK's own server. That server checks no Origin: a web page that found
+    its address could watch the cameras and call the services past the relay's check. On one of 2**24 addresses
+    (and an ephemeral port) no page can find it; on 127.0.0.1 a page could scan the ports in minutes."""
+    return "127." + ".".join(str(secrets.randbelow(254) + 1) for _ in range(3))
+
+
 def _timestamp(ns: int) -> Timestamp:
     """A frame's stamp as Foxglove's Timestamp; the wire allows stamps past 2106, which it cannot hold (a
     camera with a garbage clock): those are shown at its last second rather than failing every message."""
@@ -96,11 +105,12 @@ def _timestamp(ns: int) -> Timestamp:
     return Timestamp(sec=ns // 1_000_000_000, nsec=ns % 1_000_000_000)
 
 
-def session_annotations(sessions: list[dict]) -> ImageAnnotations:
-    """The boxes of the given sessions (as Dashboard.sessions_json gives them) as one ImageAnnotations, stamped
-    with the newest box's frame. Each rectangle and label also carries its own box's stamp: Foxglove's schema
-    takes the message's stamp when it has one, Lichtblick's (older) reads only the annotations' own."""
-    rectangles, labels, stamps = [], [], []
+def session_annotations(sessions: list[dict], empty_stamp_ns: int) -> ImageAnnotations:
+    """The boxes of the given sessions (as Dashboard.sessions_json gives them) as one ImageAnnotations. Each
+    rectangle and label carries the stamp of its own box's frame. Foxglove lets a message's stamp override them all,
+    so the message has one only when every box is on the same frame (sessions on one key at different rates are
+    not), or none is: the empty message that takes the last boxes off is stamped `empty_stamp_ns`."""
+    rectangles, labels, stamps = [], [], set()
     for session in sessions:
         result = session["box"]
         if result is None:
@@ -116,8 +126,10 @@ def session_annotations(sessions: list[dict]) -> ImageAnnotations:
         labels.append(TextAnnotation(timestamp=stamp, position=Point2(x=x, y=max(y - 2.0, 12.0)), font_size=12.0,
                                      text=f"{session['sid']}  pme {result['pme']:.1f}", text_color=colour,
                                      background_color=LABEL_BACKGROUND))
-        stamps.append(result["stamp_ns"])
-    stamp = _timestamp(max(stamps)) if stamps else Timestamp.now()
+        stamps.add(result["stamp_ns"])
+    if len(stamps) > 1:
+        return ImageAnnotations(points=rectangles, texts=labels)
+    stamp = _timestamp(stamps.pop() if stamps else empty_stamp_ns)
     return ImageAnnotations(timestamp=stamp, points=rectangles, texts=labels)
 
 
@@ -165,8 +177,8 @@ class FoxgloveBridge:
     here). control: offer the start/stop/reinit/list services (default: only on a loopback host). tls: a server
     context to serve wss:// only. record: an MCAP file to write everything to (it must not exist yet).
     allow_origins: web page origins let in besides the default ones (SubprotocolRelay).
-    The SDK's server listens on a loopback port of its own; the public address is a SubprotocolRelay's, which also
-    lets in Lichtblick (foxglove_relay.py).
+    The SDK's server listens on a random loopback address of its own (_internal_host); the public address is a
+    SubprotocolRelay's, which also lets in Lichtblick and checks web pages' origins (foxglove_relay.py).
     """
 
     def __init__(self, board: Dashboard, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT,
@@ -183,14 +195,18 @@ class FoxgloveBridge:
         services = self._services() if self.control else []
         self.server = self.relay = self._recording = None
         try:
-            self.server = foxglove.start_server(
-                name=name, host="127.0.0.1", port=0, context=self.context, server_listener=self._subscriptions,
-                services=services, capabilities=[foxglove.Capability.Services] if services else [],
-                supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG)
-            self.relay = SubprotocolRelay(self.server.port, host=host, port=port, tls=tls,
-                                          allow_origins=allow_origins)
-            log.info("viewers connect to %s:%d; the SDK's server on 127.0.0.1:%d is internal, behind the relay",
-                     host, self.relay.port, self.server.port)
+            self.internal_host = _internal_host()
+            try:
+                self.server = self._start_sdk_server(name, services)
+            except RuntimeError:    # only 127.0.0.1 is loopback here (macOS): 127.0.0.0/8's others cannot be bound
+                log.warning("foxglove: cannot listen on %s; the SDK's server takes a port of 127.0.0.1, which web "
+                            "pages on this machine's browser could find by scanning", self.internal_host)
+                self.internal_host = "127.0.0.1"
+                self.server = self._start_sdk_server(name, services)
+            self.relay = SubprotocolRelay(self.server.port, upstream_host=self.internal_host, host=host, port=port,
+                                          tls=tls, allow_origins=allow_origins)
+            log.info("viewers connect to %s:%d; the SDK's server on %s:%d is internal, behind the relay",
+                     host, self.relay.port, self.internal_host, self.server.port)
             # last: a bridge that cannot serve leaves no empty recording behind, which a retry could not overwrite
             if record is not None:
                 self._recording = _open_recording(record, self.context)
@@ -204,6 +220,13 @@ class FoxgloveBridge:
         self._sent_frames: dict[str, tuple[int, int]] = {}       # key -> (seq, received_ns) last sent
         self._unshowable: set[str] = set()                        # keys whose newest frame is no image
         self._sent_boxes: dict[str, tuple] = {}                   # key -> (sid id, seq, ok) of the boxes last sent
+        self._tracks_stamp_ns: dict[str, int] = {}                # key -> the newest stamp its boxes last carried
+
+    def _start_sdk_server(self, name: str, services: list) -> foxglove.WebSocketServer:
+        return foxglove.start_server(
+            name=name, host=self.internal_host, port=0, context=self.context, server_listener=self._subscriptions,
+            services=services, capabilities=[foxglove.Capability.Services] if services else [],
+            supported_encodings=["json"], message_backlog_size=MESSAGE_BACKLOG)
 
     @property
     def port(self) -> int:
@@ -271,7 +294,13 @@ class FoxgloveBridge:
             self._sent_boxes[key] = boxes
             if key not in self._tracks:
                 self._tracks[key] = ImageAnnotationsChannel(f"/{key}/tracks", context=self.context)
-            self._tracks[key].log(session_annotations(on_key), log_time=now_ns)
+            stamps = [s["box"]["stamp_ns"] for s in on_key if s["box"] is not None]
+            # no boxes left: the empty message belongs to the key's newest frame (else to its last boxes' frame)
+            empty_stamp_ns = self.board.frame_stamp_ns(key)
+            if empty_stamp_ns is None:
+                empty_stamp_ns = self._tracks_stamp_ns.get(key, now_ns)
+            self._tracks[key].log(session_annotations(on_key, empty_stamp_ns), log_time=now_ns)
+            self._tracks_stamp_ns[key] = max(stamps, default=empty_stamp_ns)
         for key in self._tracks.keys() - self._images.keys():
             if not by_key[key]:          # no session left on a key the board does not watch (it watches 32 at most)
                 self._withdraw_tracks(key)
@@ -314,6 +343,7 @@ class FoxgloveBridge:
 
     def _withdraw_tracks(self, key: str) -> None:
         self._sent_boxes.pop(key, None)
+        self._tracks_stamp_ns.pop(key, None)
         tracks = self._tracks.pop(key, None)
         if tracks is not None:
             tracks.close()

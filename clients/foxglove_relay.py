@@ -5,11 +5,11 @@ open fork of Foxglove, connects through @foxglove/ws-protocol's client, which of
 name, `foxglove.websocket.v1`, and closes the connection unless it gets that name back (lichtblick#750): against
 the SDK's server alone it never connects. The messages are the same under both names (that client library served
 everything `tacf foxglove` offers once it was given the name it checks for; README "Foxglove and Lichtblick"). So
-the SDK's server listens on a loopback port of its own, and this relay takes the public address: it accepts either
-name, opens one connection to the SDK's server per client, and passes every message through unchanged both ways.
-It also terminates TLS (wss://), so the SDK's server never needs the certificate. The SDK's port is on loopback
-only and offers nothing the public one does not (the services are registered there only when the public side
-offers them too).
+the SDK's server listens on a loopback address of its own, and this relay takes the public address: it accepts
+either name, opens one connection to the SDK's server per client, and passes every message through unchanged both
+ways. It also terminates TLS (wss://), so the SDK's server never needs the certificate. The SDK's server checks no
+Origin, so it must stay out of web pages' reach: FoxgloveBridge puts it on a random one of 127.0.0.0/8's 2**24
+addresses, which no page can find, where 127.0.0.1's ports could be scanned.
 
 Nothing queues without bound: the relay sends a message on before it reads the next, so a client that reads too
 slowly fills the TCP buffers back to the SDK's server, which then drops that client's oldest messages, as it would
@@ -63,13 +63,13 @@ def origin_allowed(origin: str | None, allow_origins=()) -> bool:
 
 
 class SubprotocolRelay:
-    """Serves ws://host:port (wss:// with `tls`) and relays every connection to ws://127.0.0.1:upstream_port.
+    """Serves ws://host:port (wss:// with `tls`) and relays every connection to ws://upstream_host:upstream_port.
 
     Runs its own asyncio loop on a daemon thread; close() stops it and drops every connection."""
 
-    def __init__(self, upstream_port: int, *, host: str, port: int, tls: ssl.SSLContext | None = None,
-                 allow_origins=()):
-        self.upstream = f"ws://127.0.0.1:{upstream_port}"
+    def __init__(self, upstream_port: int, *, upstream_host: str = "127.0.0.1", host: str, port: int,
+                 tls: ssl.SSLContext | None = None, allow_origins=()):
+        self.upstream = f"ws://{upstream_host}:{upstream_port}"
         self.allow_origins = frozenset(allow_origins)
         # every connection, those still in their handshake too (a port scan, a half-sent request): close() drops
         # them all after CLOSE_TIMEOUT_S, where the server would wait out the handshake's 10 s

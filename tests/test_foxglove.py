@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import json
+import socket
 import struct
 import threading
 import time
@@ -26,7 +27,8 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # 
 from websockets.exceptions import InvalidStatus  # noqa: E402
 from websockets.sync.client import connect  # noqa: E402
 
-from tacf_clients.foxglove_bridge import FoxgloveBridge  # noqa: E402
+from tacf_clients import foxglove_bridge  # noqa: E402
+from tacf_clients.foxglove_bridge import FoxgloveBridge, session_annotations  # noqa: E402
 
 pytestmark = pytest.mark.zenoh
 
@@ -338,6 +340,61 @@ def test_the_topics_of_a_key_go_with_its_last_session(rig):
             camera.hold.clear()
 
 
+def test_a_message_stamp_is_set_only_where_it_cannot_override_a_boxs_own():
+    """Foxglove lets an ImageAnnotations' stamp override its annotations': two sessions on one key at different
+    rates put the slower one's box on the other's frame when the message was stamped with the newest box."""
+    def session(sid: str, stamp_ns: int) -> dict:
+        return {"node": "n", "sid": sid, "box": {"box": [1.0, 2.0, 3.0, 4.0], "ok": True, "pme": 9.0, "seq": 1,
+                                                 "stamp_ns": stamp_ns}}
+
+    def decoded(annotations):
+        schema = annotations.get_schema()
+        return decode_protobuf(schema.name, schema.data, annotations.encode())
+
+    apart = decoded(session_annotations([session("a", 10**9), session("b", 2 * 10**9)], empty_stamp_ns=5))
+    assert not apart.HasField("timestamp")
+    assert [p.timestamp.seconds for p in apart.points] == [t.timestamp.seconds for t in apart.texts] == [1, 2]
+    together = decoded(session_annotations([session("a", 3 * 10**9), session("b", 3 * 10**9)], empty_stamp_ns=5))
+    assert together.timestamp.seconds == 3 and len(together.points) == 2
+    empty = decoded(session_annotations([], empty_stamp_ns=7 * 10**9 + 5))
+    assert (empty.timestamp.seconds, empty.timestamp.nanos, len(empty.points)) == (7, 5, 0)
+
+
+def test_the_message_that_takes_the_last_box_off_is_stamped_with_the_cameras_clock(rig):
+    """It was stamped with the bridge's clock, which no frame carries: a viewer that pairs annotations with images
+    by stamp kept the box on the camera's frames. A camera whose clock is years off shows it."""
+    from tacf_clients.publisher import FramePublisher
+
+    service, _, _, rig_board = rig
+    key, camera_clock_ns = "test/foxglove/old-clock", 1_700_000_000 * 10**9
+    with Dashboard(session=rig_board.session, image_keys=[key]) as board, \
+            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge), \
+            FramePublisher(rig_board.session, key, encoding="jpeg") as camera:
+        def publish() -> None:
+            camera.put(SCENE.frame(0), stamp_ns=camera_clock_ns + camera.next_seq * 10**8)
+            fox.pump_until(lambda: False, timeout=0.05)
+
+        publish()
+        assert fox.pump_until(lambda: board.frame(key) is not None)
+        ok, info = fox.call("/tacf/start", {"image_key": key, "box": list(SCENE.box(0)), "seq": 0,
+                                            "sid": "fox-old-clock", "node": service.node})
+        assert ok, info
+        fox.subscribe(f"/{key}/tracks")
+        for _ in range(100):
+            publish()
+            if any(m.points for m in fox.received(f"/{key}/tracks")):
+                break
+        ok, info = fox.call("/tacf/stop", {"sid": "fox-old-clock"})
+        assert ok, info
+        for _ in range(100):
+            publish()
+            if not fox.received(f"/{key}/tracks")[-1].points:
+                break
+        emptied = fox.received(f"/{key}/tracks")[-1]
+        assert not emptied.points
+        assert 0 <= emptied.timestamp.seconds - 1_700_000_000 < 100, emptied.timestamp
+
+
 @contextmanager
 def two_cameras(first: str, second: str):
     """A bridge (no service) on a board watching two image keys, a session to publish frames on them, and a
@@ -527,7 +584,8 @@ def test_lichtblick_gets_the_protocol_under_its_older_name(rig):
     and passes the same messages; a client offering neither name is refused, as by the SDK's server."""
     service, bridge, _, _ = rig
     with pytest.raises(InvalidStatus):
-        with connect(f"ws://127.0.0.1:{bridge.server.port}", subprotocols=["foxglove.websocket.v1"], open_timeout=5):
+        with connect(f"ws://{bridge.internal_host}:{bridge.server.port}", subprotocols=["foxglove.websocket.v1"],
+                     open_timeout=5):
             pass
     with foxglove_client(bridge.port, "foxglove.websocket.v1") as lichtblick:
         assert lichtblick.ws.subprotocol == "foxglove.websocket.v1"
@@ -568,6 +626,27 @@ def test_services_are_not_offered_off_loopback_unless_asked():
             with FoxgloveBridge(board, host="0.0.0.0", port=0, control=control) as bridge:
                 with foxglove_client(bridge.port) as fox:
                     assert ("services" in fox.server_info["capabilities"]) == offered
+
+
+def test_the_sdks_own_server_is_out_of_reach_of_web_pages_on_127_0_0_1(rig):
+    """The SDK's server checks no Origin and offered the services on 127.0.0.1's ports, which a web page in the
+    operator's browser could scan for: it listens on a random address of 127.0.0.0/8 now."""
+    bridge = rig[1]
+    assert bridge.internal_host.startswith("127.") and bridge.internal_host != "127.0.0.1"
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection(("127.0.0.1", bridge.server.port), timeout=5).close()
+    with connect(f"ws://{bridge.internal_host}:{bridge.server.port}", subprotocols=["foxglove.sdk.v1"],
+                 open_timeout=5) as ws:
+        assert json.loads(ws.recv(timeout=5))["op"] == "serverInfo"
+
+
+def test_where_only_127_0_0_1_is_loopback_the_sdks_server_takes_it_and_says_so(monkeypatch, caplog):
+    monkeypatch.setattr(foxglove_bridge, "_internal_host", lambda: "10.255.255.1")     # bound nowhere here
+    with Dashboard(no_service_options()) as board, FoxgloveBridge(board, port=0) as bridge:
+        assert bridge.internal_host == "127.0.0.1"
+        with foxglove_client(bridge.port) as fox:
+            assert "services" in fox.server_info["capabilities"]
+    assert "cannot listen on 10.255.255.1" in caplog.text
 
 
 def test_tacf_foxglove_serves_wss_with_make_certs_until_sigterm(tmp_path):
