@@ -77,6 +77,7 @@ class Session:
     stopping: bool = False
     holds_history: bool = False         # holds a reference on its image key's frame history (released once)
     saved_frame_seq: int | None = None  # the seq of the frame stored with the persisted table
+    started: bool = False               # its start was answered (or it was restored): only such are persisted
     restart_at: float | None = None
     crashes: deque = field(default_factory=deque)
 
@@ -146,7 +147,8 @@ class SessionManager:
                 continue
             session = Session(sid=saved.sid, image_key=saved.image_key, profile=saved.profile,
                               overrides=dict(saved.overrides), box=tuple(saved.box), created_ns=saved.created_ns,
-                              init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts)
+                              init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts,
+                              started=True)
             with self._lock:
                 self._sessions[session.sid] = session
             self._hold_history(session)
@@ -240,6 +242,8 @@ class SessionManager:
             self._discard(session)
             raise
         self._release_init(session)
+        with self._lock:
+            session.started = True
         self._mark_dirty(save_now=True)
         log.info("started session %s on %s (profile %s, box %s, asked seq %s, init seq %s)", sid, image_key,
                  profile, session.box, request.drawn_on, session.init_seq)
@@ -623,7 +627,8 @@ class SessionManager:
         if not force and now - getattr(self, "_saved_at", 0.0) < SAVE_PERIOD_S:
             return
         with self._lock:
-            sessions = list(self._sessions.values())
+            # a start still running is left out: if shutdown cuts it off, its client is told it failed
+            sessions = [s for s in self._sessions.values() if s.started]
             table = [s.persisted() for s in sessions]
             box_frames = [s.box_frame for s in sessions]
             self._dirty = False

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import cv2
 import msgpack
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -818,6 +819,43 @@ def test_a_slow_save_never_lands_after_a_newer_one(endpoint, client, feed, tmp_p
         assert json.loads(table.read_text())["sessions"] == []
     finally:
         disk.close()
+
+
+def test_a_start_cut_off_by_the_shutdown_is_not_kept_for_the_next_start(tmp_path, monkeypatch):
+    """A start waiting for a new worker when the service is told to stop is refused, but it was in the table that
+    shutdown's last save wrote: the next start brought back, as 'starting', a session its client was told nothing
+    of. Only the starts that were answered are saved."""
+    table = tmp_path / "sessions.json"
+    cut = TrackingService(ServiceOptions(node="cut", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                         state_file=str(table), spare_workers=0)).open()
+    spawning, release = threading.Event(), threading.Event()
+    new_worker = cut.manager.pool.new_worker
+
+    def slow_new_worker():                      # a cold worker on a slow board: seconds
+        spawning.set()
+        release.wait(10)
+        return new_worker()
+    monkeypatch.setattr(cut.manager.pool, "new_worker", slow_new_worker)
+    refusals = []
+
+    def start() -> None:
+        try:
+            cut.manager.start(StartRequest(image_key="test/cam/cut", box=(10.0, 10.0, 20.0, 20.0), sid="cut-off",
+                                           profile=PROFILE, frames=[encode_frame(np.zeros((64, 64, 3), np.uint8),
+                                                                                 0, "png")]))
+        except ServiceError as exc:
+            refusals.append(exc.code)
+    starting = threading.Thread(target=start)
+    starting.start()
+    try:
+        assert spawning.wait(10)
+        cut.close()
+    finally:
+        release.set()
+        starting.join(timeout=15)
+        cut.close()
+    assert refusals == ["unavailable"]
+    assert json.loads(table.read_text())["sessions"] == []
 
 
 def test_nothing_changes_the_table_while_the_service_shuts_down():
