@@ -50,7 +50,7 @@ import zenoh
 from tacf_clients.client import TrackingClient
 from tacf_clients.consumer import BoxConsumer, TrackedBox
 from tacf_clients.errors import DuplicateSession, TacfError, UnknownSession
-from tacf_clients.zconfig import ZenohOptions, open_session
+from tacf_clients.zconfig import ZenohOptions, open_session, zenoh_error_text
 from tacf_schemas import keys
 from tacf_schemas.codec import DecodeError, decode
 from tacf_schemas.models import Frame
@@ -458,12 +458,17 @@ class MavlinkCamera:
         service_thread = getattr(self, "_service_thread", None)
         if service_thread is not None:
             self._calls.put(None)                    # after the calls queued: a start still running ends first
-            service_thread.join(timeout=self.client.timeout * 3)
+            service_thread.join(timeout=self.client.timeout)
         if getattr(self, "_held", False):
-            try:
-                self.client.stop(self.sid)
-            except TacfError as exc:
-                log.warning("could not stop %s: %s", self.sid, exc)
+            if (service_thread is not None and service_thread.is_alive()) or self._unanswered_checks:
+                # a stop would wait out its timeout too: Ctrl-C took 17 s against a hung service
+                log.warning("the service does not answer: %s is left to it (a new tacf mavlink on %s takes it "
+                            "over; tacf stop %s ends it)", self.sid, self.image_key, self.sid)
+            else:
+                try:
+                    self.client.stop(self.sid)
+                except TacfError as exc:
+                    log.warning("could not stop %s: %s", self.sid, exc)
             self._held, self.state = False, "idle"
         # a TCP link whose reconnection failed has no port, and pymavlink's close() would fail on it
         if getattr(self, "mav", None) is not None and self.mav.port is not None:
@@ -473,7 +478,10 @@ class MavlinkCamera:
         if self._frames is not None:
             self._frames.undeclare()
         if self._own_session:
-            self.session.close()
+            try:
+                self.session.close()
+            except zenoh.ZError as exc:          # Zenoh gives up after 10 s on a peer that hangs: closed anyway
+                log.warning("the Zenoh session did not close cleanly: %s", zenoh_error_text(exc))
 
     def __enter__(self) -> "MavlinkCamera":
         return self

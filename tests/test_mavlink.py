@@ -545,6 +545,53 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
         component.close()
 
 
+def test_closing_while_the_service_hangs_ends_without_an_error(caplog):
+    """Ctrl-C with the service hung (stopped here) took 17 s and ended in an uncaught zenoh.ZError: a stop that
+    waited out its timeout, then a session close that Zenoh gave up on. The stop is skipped when the service did
+    not answer, and a close that times out is a warning."""
+    import signal
+
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+    import zenoh
+
+    from tacf_clients.zconfig import make_config
+
+    key, sid = "test/mavlink/hung", "mavlink-hung"
+    service = LocalService(node=f"mavh{free_port()}")
+    with service, zenoh.open(make_config(service.options)) as session:
+        service.wait_ready(session)
+        camera = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
+        camera.start()
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        stop = threading.Event()
+        component = MavlinkCamera(f"udpout:127.0.0.1:{port}", key, options=service.options, sid=sid, timeout=5.0)
+        loop = threading.Thread(target=component.serve, args=(stop,))
+        loop.start()
+        try:
+            assert _receive(gcs, "HEARTBEAT") is not None
+            assert wait_until(lambda: component._frame_header() is not None, 10)
+            assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(0))) == \
+                mav.MAV_RESULT_ACCEPTED
+            os.kill(service.process.pid, signal.SIGSTOP)
+            assert wait_until(lambda: component._unanswered_checks >= 1, 15)
+        finally:
+            stop.set()
+            loop.join(timeout=10)
+            try:
+                started = time.monotonic()
+                component.close()                # raised zenoh.ZError
+                took = time.monotonic() - started
+            finally:
+                os.kill(service.process.pid, signal.SIGCONT)
+                gcs.close()
+                camera.close()
+    assert took < 5.0 + 11.0, took                   # the running check's timeout, and Zenoh's 10 s at most
+    assert f"{sid} is left to it" in caplog.text
+
+
 def test_tacf_mavlink_command_announces_itself_until_sigterm():
     import signal
     import subprocess
