@@ -13,6 +13,7 @@ same file would restore the first one's sessions, and each would overwrite the o
 """
 from __future__ import annotations
 
+import glob
 import json
 import logging
 import os
@@ -79,12 +80,14 @@ class StateStore:
     def _remove_partial_writes(self) -> None:
         """Remove what a service killed in the middle of a write left (its temporary files, frames of up to
         48 MiB among them): this service holds the lock, so no write of another is under way."""
-        for folder, name in ((self.path.parent, self.path.name), (self.frames_dir, "")):
-            for leftover in folder.glob(f"{name}*.tmp") if folder.is_dir() else ():
-                try:
-                    leftover.unlink()
-                except OSError:
-                    pass
+        ours = [p for p in self.path.parent.glob(f"{glob.escape(self.path.name)}.*.tmp")
+                if "." not in p.name[len(self.path.name) + 1:-len(".tmp")]]   # not sessions.json.edge2's
+        frames = self.frames_dir.glob("*.tmp") if self.frames_dir.is_dir() else []
+        for leftover in [*ours, *frames]:
+            try:
+                leftover.unlink()
+            except OSError:
+                pass
 
     def unlock(self) -> None:
         if self._lock_file is not None:

@@ -319,11 +319,14 @@ def test_a_write_cut_short_leaves_nothing_behind_the_next_service(tmp_path):
     leftovers = [tmp_path / "state.json.k2j4.tmp", store.frames_dir / "a.msgpack.x9q1.tmp"]
     for leftover in leftovers:
         leftover.write_bytes(b"cut short")
-    (tmp_path / "other.json.k2j4.tmp").write_bytes(b"not ours")
+    # another service's state files in the same folder (the second one's name used to match `state.json*.tmp`)
+    others = [tmp_path / "other.json.k2j4.tmp", tmp_path / "state.json.edge2.k2j4.tmp"]
+    for other in others:
+        other.write_bytes(b"not ours")
     store.lock()
     try:
         assert not any(p.exists() for p in leftovers)
-        assert (tmp_path / "other.json.k2j4.tmp").exists() and store.load_frame("a") == b"frame"
+        assert all(p.exists() for p in others) and store.load_frame("a") == b"frame"
     finally:
         store.unlock()
 
