@@ -144,7 +144,7 @@ class MavlinkCamera:
                  profile: str | None = None, system: int = 1, component: int = mav.MAV_COMP_ID_CAMERA,
                  baud: int = 57600, signing_key: bytes | None = None, timeout: float = 5.0):
         self.image_key = keys.validate_image_key(image_key)
-        self.sid = keys.validate_id("mavlink-" + keys.sanitise_id(image_key) if sid is None else sid, "session id")
+        self.sid = keys.validate_id(default_sid(image_key) if sid is None else sid, "session id")
         check_link(link)
         self.profile = profile
         self.component = component
@@ -488,6 +488,15 @@ class MavlinkCamera:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def default_sid(image_key: str) -> str:
+    """mavlink-<image key>, made an id; a key too long for one (ids have 64 characters at most) is cut and ends
+    in a digest of the whole key, so that two long keys with one beginning still get two ids."""
+    sid = "mavlink-" + keys.sanitise_id(image_key)
+    if len(sid) <= 64:
+        return sid
+    return sid[:55] + "-" + hashlib.sha256(image_key.encode()).hexdigest()[:8]
 
 
 def _target_camera(message) -> int:

@@ -592,6 +592,18 @@ def test_closing_while_the_service_hangs_ends_without_an_error(caplog):
     assert f"{sid} is left to it" in caplog.text
 
 
+def test_an_image_key_too_long_for_an_id_still_gets_its_own_session_id():
+    """The default sid, mavlink-<key>, was refused for keys over 56 characters, with an error that did not say that
+    --sid would do."""
+    from tacf_clients.mavlink import default_sid
+    from tacf_schemas.keys import validate_id
+
+    assert default_sid("uav1/camera/front") == "mavlink-uav1-camera-front"
+    long_keys = ["fleet/" + "x" * 100 + "/front", "fleet/" + "x" * 100 + "/rear"]
+    sids = [validate_id(default_sid(key)) for key in long_keys]
+    assert len(set(sids)) == 2 and all(len(sid) == 64 for sid in sids)
+
+
 def test_tacf_mavlink_command_announces_itself_until_sigterm():
     import signal
     import subprocess
