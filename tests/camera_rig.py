@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
 from contextlib import contextmanager
 
 import zenoh
@@ -46,3 +47,16 @@ def tacf_command(*args: str, env: dict | None = None):
             process.kill()
             process.wait(timeout=5)
         process.stdout.close()
+
+
+@contextmanager
+def serving(server):
+    """`server.serve(stop)` (a bridge, a MAVLink component) on a thread of its own while the block runs."""
+    stop = threading.Event()
+    loop = threading.Thread(target=server.serve, args=(stop,), name=f"serving-{type(server).__name__}")
+    loop.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        loop.join(timeout=10)

@@ -20,7 +20,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from camera_rig import no_service_options, service_and_camera, tacf_command
+from camera_rig import no_service_options, service_and_camera, serving, tacf_command
 
 pytest.importorskip("foxglove", reason="pip install -e '.[test]' installs foxglove-sdk")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
@@ -165,19 +165,6 @@ def assert_matches_schema(value, schema: dict, path: str = "") -> None:
     else:
         types = {"string": str, "integer": int, "number": (int, float), "boolean": bool}[kind]
         assert isinstance(value, types) and (kind == "boolean" or not isinstance(value, bool)), (path, value)
-
-
-@contextmanager
-def serving(bridge: FoxgloveBridge):
-    """The bridge publishing on a thread of its own while the block runs."""
-    stop = threading.Event()
-    loop = threading.Thread(target=bridge.serve, args=(stop,), name="foxglove-bridge")
-    loop.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        loop.join(timeout=10)
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ import math
 import os
 import threading
 import time
+from contextlib import contextmanager
 
 import pytest
 
@@ -16,7 +17,7 @@ from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
 from tacf_service.loopback import wait_until
-from camera_rig import no_service_options, service_and_camera, tacf_command
+from camera_rig import no_service_options, service_and_camera, serving, tacf_command
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
 os.environ.setdefault("MAVLINK20", "1")
@@ -53,6 +54,31 @@ def rig():
             loop.join(timeout=10)
             component.close()
             gcs.close()
+
+
+@contextmanager
+def _own_service(key: str, *serve_args: str):
+    """A service of its own (`tacf serve` with serve_args), a camera on `key` and a ground station: yields
+    (service, session, gcs, the ground station's port)."""
+    import zenoh
+
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+    from tacf_clients.zconfig import make_config
+
+    service = LocalService(node=f"mav{free_port()}", extra_args=serve_args)
+    with service, zenoh.open(make_config(service.options)) as session:
+        service.wait_ready(session)
+        camera = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
+        camera.start()
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        try:
+            yield service, session, gcs, port
+        finally:
+            gcs.close()
+            camera.close()
 
 
 def _receive(gcs, kind: str, timeout: float = 10.0, where=lambda m: True):
@@ -383,59 +409,38 @@ def test_a_killed_service_turns_the_status_to_error_and_a_restored_one_back_to_a
     """The component used to go on sending ACTIVE with the last box for ever after the service died: a session
     check that got no answer counted as running. Now the box goes within STALE_BOX_S, the status says ERROR once
     the checks go unanswered, and a service restarted with --state brings the session (and ACTIVE) back."""
-    from tacf_clients.demo import HoldingPublisher
     from tacf_clients.mavlink import STALE_BOX_S
-    from tacf_clients.scene import SceneSource
-    import zenoh
-
-    from tacf_clients.zconfig import make_config
 
     key, sid = "test/mavlink/dying", "mavlink-dying"
-    service = LocalService(node=f"mavd{free_port()}", extra_args=("--state", str(tmp_path / "sessions.json")))
-    with service, zenoh.open(make_config(service.options)) as session:
-        service.wait_ready(session)
-        camera = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
-        camera.start()
-        port = free_port()
-        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
-                                         source_component=GCS_COMPONENT, dialect="common")
-        stop = threading.Event()
+    with _own_service(key, "--state", str(tmp_path / "sessions.json")) as (service, session, gcs, port):
         with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, options=service.options, sid=sid,
-                           timeout=2.0) as component:
-            loop = threading.Thread(target=component.serve, args=(stop,))
-            loop.start()
-            try:
-                assert _receive(gcs, "HEARTBEAT") is not None
-                assert wait_until(lambda: component._frame_header() is not None, 10)
-                assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(0))) == \
-                    mav.MAV_RESULT_ACCEPTED
-                assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", where=lambda m: m.target_data), "the box is shown"
+                           timeout=2.0) as component, serving(component):
+            assert _receive(gcs, "HEARTBEAT") is not None
+            assert wait_until(lambda: component._frame_header() is not None, 10)
+            assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(0))) == \
+                mav.MAV_RESULT_ACCEPTED
+            assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", where=lambda m: m.target_data), "the box is shown"
 
-                service.process.kill()
-                service.process.wait(timeout=10)
-                killed = time.monotonic()
-                boxless = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=5, where=lambda m: not m.target_data)
-                assert boxless is not None and time.monotonic() - killed < STALE_BOX_S + 1.5, "the box is gone"
-                error = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=15, where=lambda m:
-                                 m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR)
-                assert error is not None, "a dead service is an error, not an active track"
-                assert not error.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
-                assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=2, where=lambda m:
-                                not m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR) is None, "and stays one"
-                assert component.tracking, "the session is still ours: a stop will stop it once the service is back"
+            service.process.kill()
+            service.process.wait(timeout=10)
+            killed = time.monotonic()
+            boxless = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=5, where=lambda m: not m.target_data)
+            assert boxless is not None and time.monotonic() - killed < STALE_BOX_S + 1.5, "the box is gone"
+            error = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=15, where=lambda m:
+                             m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR)
+            assert error is not None, "a dead service is an error, not an active track"
+            assert not error.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+            assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=2, where=lambda m:
+                            not m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR) is None, "and stays one"
+            assert component.tracking, "the session is still ours: a stop will stop it once the service is back"
 
-                service.start()                          # same port, same state file: the session comes back
-                active = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=30, where=lambda m: m.target_data and
-                                  m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE)
-                assert active is not None, "the restored session's box is shown as ACTIVE again"
-                assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
-                client = TrackingClient(session=session, node=service.node)
-                assert wait_until(lambda: all(info.sid != sid for info in client.list()), 10), "and stopped there"
-            finally:
-                stop.set()
-                loop.join(timeout=10)
-                gcs.close()
-                camera.close()
+            service.start()                          # same port, same state file: the session comes back
+            active = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=30, where=lambda m: m.target_data and
+                              m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE)
+            assert active is not None, "the restored session's box is shown as ACTIVE again"
+            assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+            client = TrackingClient(session=session, node=service.node)
+            assert wait_until(lambda: all(info.sid != sid for info in client.list()), 10), "and stopped there"
 
 
 def test_a_slow_start_is_answered_in_progress_while_the_loop_goes_on_and_a_retransmission_runs_once():
@@ -551,44 +556,23 @@ def test_closing_while_the_service_hangs_ends_without_an_error(caplog):
     not answer, and a close that times out is a warning."""
     import signal
 
-    from tacf_clients.demo import HoldingPublisher
-    from tacf_clients.scene import SceneSource
-    import zenoh
-
-    from tacf_clients.zconfig import make_config
-
     key, sid = "test/mavlink/hung", "mavlink-hung"
-    service = LocalService(node=f"mavh{free_port()}")
-    with service, zenoh.open(make_config(service.options)) as session:
-        service.wait_ready(session)
-        camera = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
-        camera.start()
-        port = free_port()
-        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
-                                         source_component=GCS_COMPONENT, dialect="common")
-        stop = threading.Event()
+    with _own_service(key) as (service, session, gcs, port):
         component = MavlinkCamera(f"udpout:127.0.0.1:{port}", key, options=service.options, sid=sid, timeout=5.0)
-        loop = threading.Thread(target=component.serve, args=(stop,))
-        loop.start()
         try:
-            assert _receive(gcs, "HEARTBEAT") is not None
-            assert wait_until(lambda: component._frame_header() is not None, 10)
-            assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(0))) == \
-                mav.MAV_RESULT_ACCEPTED
-            os.kill(service.process.pid, signal.SIGSTOP)
-            assert wait_until(lambda: component._unanswered_checks >= 1, 15)
+            with serving(component):
+                assert _receive(gcs, "HEARTBEAT") is not None
+                assert wait_until(lambda: component._frame_header() is not None, 10)
+                assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(0))) == \
+                    mav.MAV_RESULT_ACCEPTED
+                os.kill(service.process.pid, signal.SIGSTOP)
+                assert wait_until(lambda: component._unanswered_checks >= 1, 15)
+            started = time.monotonic()
+            component.close()                    # raised zenoh.ZError
+            took = time.monotonic() - started
         finally:
-            stop.set()
-            loop.join(timeout=10)
-            try:
-                started = time.monotonic()
-                component.close()                # raised zenoh.ZError
-                took = time.monotonic() - started
-            finally:
-                os.kill(service.process.pid, signal.SIGCONT)
-                gcs.close()
-                camera.close()
-    assert took < 5.0 + 11.0, took                   # the running check's timeout, and Zenoh's 10 s at most
+            os.kill(service.process.pid, signal.SIGCONT)
+    assert took < 5.0 + 11.0, took               # the running check's timeout, and Zenoh's 10 s at most
     assert f"{sid} is left to it" in caplog.text
 
 
