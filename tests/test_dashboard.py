@@ -637,6 +637,16 @@ def test_an_ipv6_host_is_served():
             assert _get(f"http://{host}:{port}/healthz", {"Authorization": "Bearer " + token})[0] == 200, host
 
 
+def test_no_other_site_may_show_the_dashboard_in_a_frame():
+    """Clickjacking: a page at another site could show the dashboard (on 127.0.0.1, no token) in an invisible
+    frame with a decoy over its Stop button; browsers refuse to frame it now."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        for path in ("", "api/state", "no-such-page"):
+            _, headers, _ = _get(app.url + path)
+            assert headers["X-Frame-Options"] == "DENY", path
+            assert headers["Content-Security-Policy"] == "frame-ancestors 'none'", path
+
+
 def test_on_loopback_only_loopback_host_names_are_answered():
     """DNS rebinding: a page at evil.example whose name now resolves to 127.0.0.1 is same-origin with the
     dashboard in the browser's eyes; its requests carry Host: evil.example and are refused, POSTs included."""
