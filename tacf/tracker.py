@@ -84,6 +84,9 @@ class Tracker:
     """TACF. Frames are HxWx3 BGR uint8 (OpenCV order) or HxW uint8 grayscale."""
 
     def __init__(self, config: TrackerConfig | None = None):
+        if config is not None and not isinstance(config, TrackerConfig):
+            raise TypeError(f"config must be a TrackerConfig (a profile: TrackerConfig.profile('kcc')), "
+                            f"got {type(config).__name__}")
         self.config = config or TrackerConfig.profile()
         self._frame_shape = None
         self._to_learn = None  # (frame, object_response) of a locate() not yet followed by learn()
@@ -199,6 +202,8 @@ class Tracker:
 
     @property
     def box(self) -> tuple[float, float, float, float]:
+        if self._frame_shape is None:
+            raise RuntimeError("no box before init(frame, box)")
         return box_around(self.pos, self.target_hw)
 
     # ------------------------------------------------------------------------------------------------------

@@ -124,6 +124,13 @@ def test_bad_frames_raise_clear_errors(frame, message):
         Tracker().init(frame, (1, 1, 10, 10))
 
 
+def test_a_config_that_is_no_tracker_config_is_a_clear_error():
+    """Tracker("kcc") failed only in init, with "'str' object has no attribute 'fixed_area'"."""
+    for config in ("kcc", {"cell_size": 4}, TrackerConfig.profile):
+        with pytest.raises(TypeError, match="TrackerConfig.profile"):
+            Tracker(config)
+
+
 @pytest.mark.parametrize("box, message", [
     ((10, 10, 0, 5), "positive"),
     ((10, 10, -3, 5), "positive"),
@@ -142,6 +149,8 @@ def test_bad_boxes_raise_clear_errors(box, message):
 def test_update_needs_init_and_a_frame_of_the_same_size():
     with pytest.raises(RuntimeError, match="init"):
         Tracker().update(np.zeros((100, 100, 3), np.uint8))
+    with pytest.raises(RuntimeError, match="init"):      # was AttributeError: no attribute 'pos'
+        Tracker().box
     tracker = Tracker()
     tracker.init(np.zeros((100, 100, 3), np.uint8), (10, 10, 20, 20))
     with pytest.raises(ValueError, match="differs"):
