@@ -13,7 +13,7 @@ import sys
 import threading
 from contextlib import contextmanager
 
-from tacf.argument_types import box, integer, port, positive_number, quality, seconds
+from tacf.argument_types import box, integer, port, positive_number, positive_up_to, quality, seconds
 from tacf.config import PROFILES      # plain data: `tacf demo --profile` is checked before a service starts
 
 mavlink_id = integer(1, 255, "a MAVLink id")
@@ -197,8 +197,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="image key to show from the start, repeatable (the keys of running sessions are added "
                         "by themselves, and more can be added on the page)")
     p.add_argument("--node", help="only this service (default: every service on the network)")
-    p.add_argument("--history", type=positive_number, default=5.0, metavar="MINUTES",
-                   help="minutes of chart history per session (default 5)")
+    # a day of points (about one a second) is what the page's charts draw; 1e307 minutes was 'Infinity' in its JSON
+    p.add_argument("--history", type=positive_up_to(24 * 60), default=5.0, metavar="MINUTES",
+                   help="minutes of chart history per session (default 5, at most 1440: a day)")
     add_zenoh_arguments(p, VIEWER_MODE)
     p.set_defaults(func=cmd_dashboard)
 

@@ -33,6 +33,19 @@ def positive_number(text: str) -> float:
     return value
 
 
+def positive_up_to(maximum: float) -> Callable[[str], float]:
+    """A finite number > 0 and <= maximum."""
+    expected = f"a number > 0 and <= {maximum:g}"
+
+    def parse(text: str) -> float:
+        value = _number(text, expected)
+        if not 0 < value <= maximum:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
+        return value
+
+    return parse
+
+
 def seconds(text: str) -> float:
     """A wait that may be none: a finite number of seconds >= 0."""
     value = _number(text, "a finite number of seconds >= 0")
