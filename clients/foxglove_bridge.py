@@ -219,8 +219,7 @@ class FoxgloveBridge:
         self._sent_versions: dict[str, tuple[int, int]] = {}
         self._sent_frames: dict[str, tuple[int, int]] = {}       # key -> (seq, received_ns) last sent
         self._unshowable: set[str] = set()                        # keys whose newest frame is no image
-        self._sent_boxes: dict[str, tuple] = {}                   # key -> (sid id, seq, ok) of the boxes last sent
-        self._tracks_stamp_ns: dict[str, int] = {}                # key -> the newest stamp its boxes last carried
+        self._sent_boxes: dict[str, tuple] = {}          # key -> (sid id, seq, ok, stamp_ns) of the boxes last sent
 
     def _start_sdk_server(self, name: str, services: list) -> foxglove.WebSocketServer:
         return foxglove.start_server(
@@ -288,19 +287,19 @@ class FoxgloveBridge:
         for key, on_key in by_key.items():
             # a key's annotations change with its boxes (not with health); a key whose last session went away
             # gets one empty message, so that the last rectangle disappears
-            boxes = tuple((s["id"], s["box"]["seq"], s["box"]["ok"]) for s in on_key if s["box"] is not None)
-            if self._sent_boxes.get(key) == boxes and key not in owed_tracks:
+            boxes = tuple((s["id"], s["box"]["seq"], s["box"]["ok"], s["box"]["stamp_ns"])
+                          for s in on_key if s["box"] is not None)
+            sent = self._sent_boxes.get(key)
+            if sent == boxes and key not in owed_tracks:
                 continue
             self._sent_boxes[key] = boxes
             if key not in self._tracks:
                 self._tracks[key] = ImageAnnotationsChannel(f"/{key}/tracks", context=self.context)
-            stamps = [s["box"]["stamp_ns"] for s in on_key if s["box"] is not None]
             # no boxes left: the empty message belongs to the key's newest frame (else to its last boxes' frame)
             empty_stamp_ns = self.board.frame_stamp_ns(key)
             if empty_stamp_ns is None:
-                empty_stamp_ns = self._tracks_stamp_ns.get(key, now_ns)
+                empty_stamp_ns = max((stamp_ns for *_, stamp_ns in sent or ()), default=now_ns)
             self._tracks[key].log(session_annotations(on_key, empty_stamp_ns), log_time=now_ns)
-            self._tracks_stamp_ns[key] = max(stamps, default=empty_stamp_ns)
         for key in self._tracks.keys() - self._images.keys():
             if not by_key[key]:          # no session left on a key the board does not watch (it watches 32 at most)
                 self._withdraw_tracks(key)
@@ -343,7 +342,6 @@ class FoxgloveBridge:
 
     def _withdraw_tracks(self, key: str) -> None:
         self._sent_boxes.pop(key, None)
-        self._tracks_stamp_ns.pop(key, None)
         tracks = self._tracks.pop(key, None)
         if tracks is not None:
             tracks.close()
