@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import zenoh
 
-from tacf_clients.client import NodeWatch, TrackingClient
+from tacf_clients.client import LEAST_LOADED, NodeWatch, TrackingClient
 from tacf_clients.errors import TacfError
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
@@ -514,6 +514,10 @@ class Dashboard:
     # --- control ----------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: Sequence[float], seq: int | None = None, *, sid: str | None = None,
               profile: str | None = None, overrides: dict | None = None, node: str | None = None) -> SessionInfo:
+        """Start a session on `node`; with none (or 'auto'), on this dashboard's service if it has one, else on
+        the least-loaded service: an operator's start must not fail because a second service came up."""
+        if node in (None, LEAST_LOADED):
+            node = self.node or LEAST_LOADED
         frames = self._drawn_on(image_key, seq)
         info = self.client.start(image_key, box, seq=seq, sid=sid, profile=profile, overrides=overrides, node=node,
                                  frames=frames)

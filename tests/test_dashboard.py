@@ -1215,6 +1215,46 @@ def test_a_box_starts_on_the_key_it_was_drawn_on_when_the_key_list_changes_meanw
                     client.stop(info.sid)
 
 
+def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(stack, browser):
+    """With a second service on the network, the page's start named no service and got 409 ambiguous_node. A start
+    with none now goes to the least-loaded service, and the page offers each service by name."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_clients.local_service import LocalService
+
+    app, client, camera, service = stack
+    first = service.node
+    mouse = """const c = document.querySelector('#new-canvas'), r = c.getBoundingClientRect();
+        c.dispatchEvent(new MouseEvent(arguments[0], {bubbles: true, button: 0, clientX: r.left + arguments[1],
+                                                      clientY: r.top + arguments[2]}));"""
+    with LocalService(node=f"second{free_port()}", extra_args=("--connect", service.endpoint)) as other:
+        started = []
+        try:
+            assert _wait(lambda: sorted(app.dashboard.nodes()) == sorted((first, other.node)), timeout=60)
+            status, body = _post(app.url + "api/start", {"image_key": KEY, "box": [20, 20, 40, 40], "sid": "auto"})
+            assert status == 200, body
+            started.append(("auto", body["node"]))
+            assert body["node"] == other.node, body              # 'pre' runs on the first service
+
+            _open_page(browser, app)
+            _select_key(browser, KEY)
+            choices = "return [...document.querySelectorAll('#node-select option')].map((o) => o.textContent)"
+            assert _wait(lambda: browser.execute_script(choices) == ["least loaded", *sorted((first, other.node))]), \
+                browser.execute_script(choices)
+            browser.execute_script("document.querySelector('#node-select').value = arguments[0]", first)
+            browser.find_element(By.ID, "sid-input").send_keys("chosen")
+            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == SCENE.width), "its frames are shown"
+            for event, x, y in (("mousedown", 60, 50), ("mousemove", 120, 100), ("mouseup", 120, 100)):
+                browser.execute_script(mouse, event, x, y)
+            said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
+                         and t, timeout=30)
+            assert said and f"started on {first}" in said, browser.find_element(By.ID, "new-status").text
+            started.append(("chosen", first))
+        finally:
+            for sid, node in started:
+                client.stop(sid, node=node)
+
+
 def test_a_session_started_again_with_its_id_starts_a_new_history(stack, browser):
     """Stopped and started again within one event-stream tick, a session kept the old one's chart points (the
     update could not tell that the session was another)."""

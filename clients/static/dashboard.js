@@ -417,6 +417,19 @@ function renderKeys() {
   followSelectedKey();
 }
 
+// The services a new session may go to: "least loaded" (the value "") first, so that a start needs no choice
+// when a second service comes up; a chosen service that goes falls back to it.
+function renderNodes() {
+  const select = $("#node-select");
+  const nodes = ["", ...Object.keys(state.nodes).sort()];
+  if (nodes.join("\n") === [...select.options].map((o) => o.value).join("\n")) return;
+  const current = select.value;
+  select.replaceChildren(...nodes.map((n) => {
+    const o = document.createElement("option"); o.value = n; o.textContent = n || "least loaded"; return o;
+  }));
+  select.value = nodes.includes(current) ? current : "";
+}
+
 function followSelectedKey() {
   state.newFeed.setKey($("#key-select").value || null);
   scheduleDraw();
@@ -485,7 +498,7 @@ function applyUpdate(data) {
 }
 
 function refresh(newPoints = true) {
-  renderTable(); renderKeys(); scheduleDraw();
+  renderTable(); renderKeys(); renderNodes(); scheduleDraw();
   if (newPoints) paintCharts(serverNow());
 }
 
@@ -551,10 +564,11 @@ function clearNewStatus(sid) {      // "session X started" is news for a while, 
 }
 
 enableDrawing($("#new-canvas"), () => state.newFeed, async (box, seq, key) => {
-  const sid = $("#sid-input").value.trim();
+  const sid = $("#sid-input").value.trim(), node = $("#node-select").value;
   setNewStatus(`starting a session on ${key} at (${box.join(", ")}) of frame ${seq}…`);
   try {
-    const info = await post("/api/start", { image_key: key, box, seq, sid: sid || undefined });
+    const info = await post("/api/start", { image_key: key, box, seq, sid: sid || undefined,
+                                                 node: node || undefined });
     setNewStatus(`session ${info.sid} started on ${info.node} (${info.state})`, info.sid);
     $("#sid-input").value = "";
   } catch (err) { setNewStatus(`start failed: ${err.message}`); toast(`start: ${err.message}`); }
