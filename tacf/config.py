@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import sys
 from dataclasses import dataclass
+
+import numpy as np
 
 PROFILES = ("paper", "authors", "kcc")
 DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; see README "Accuracy"
@@ -23,7 +26,10 @@ DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; s
 LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_step": 2.0,
           "scale_model_max_area": 64.0**2, "context_interval": 1000, "hist_bins": 256,
           "hog_kernel_sigma": 1e6, "hog_output_sigma_factor": 1.0, "cn_output_sigma_factor": 1.0,
-          "lambda1": 1e6, "scale_lambda": 1e6, "cn_poly_a": 1e3}
+          "lambda1": 1e6, "scale_lambda": 1e6, "cn_poly_a": 1e3,
+          # each of these far past its ceiling (1e20, 1e38, 1e39, 1e100) took PME to 0 on every frame: a frozen box
+          "context_penalty_total": 1e3, "context_lambda2": 1e6, "dim_floor": 10.0, "dim_threshold": 10.0,
+          "motion_gain": 100.0, "scale_sigma_factor": 1e3}
 # Floors where > 0 is not enough. The models are float32: 1/lambda overflows under ~3e-39 and lambda over 3.4e38,
 # turning the filters NaN; 1e-12 .. 1e6 leaves wide margins around the paper's 5e-5 and the code's 1e-4 (from ~1
 # up the filters are all regularisation and barely follow the target, but nothing breaks). A label's sigma is
@@ -31,8 +37,12 @@ LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_st
 # underflowed (a NaN label). A challenge floor of 0 (or 1e-200, whose square underflows) gave 0/0 penalties when
 # all four context responses were flat. One histogram bin gives every pixel the same likelihood: the colour window
 # (Staple: the colour response) silently flat. num_scales: see TrackerConfig.num_scales.
+# A negative lambda2 or Color Names offset turned the model NaN for good; a negative motion gain means nothing
+# (-100 cut the PME to 0.6); a dimensional floor of 0 (past a high threshold) can weigh every channel 0.
 FLOORS = {"lambda1": 1e-12, "scale_lambda": 1e-12, "hog_output_sigma_factor": 1e-3, "cn_output_sigma_factor": 1e-3,
-          "context_challenge_floor": 1e-3, "hist_bins": 2, "num_scales": 5}
+          "context_challenge_floor": 1e-3, "hist_bins": 2, "num_scales": 5, "context_lambda2": 0.0,
+          "context_penalty_total": 0.0, "cn_poly_a": 0.0, "motion_gain": 0.0, "dim_floor": 1e-3,
+          "dim_threshold": -10.0, "scale_sigma_factor": 1e-3}
 # Combinations the tracker can run (defaults: 2,500 cells, scales up to 1.6 times the target, 32 bins, sigma 0.5).
 # Under 48 cells a long thin target's cropped response can be a single cell (at 40, targets of 1:20 and 1:50 had
 # one), and a one-cell response never moves the box; 48 gives at least 3 for every aspect ratio up to 1:50.
@@ -52,13 +62,18 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
     name = type(config).__name__
     for f in dataclasses.fields(config):
         v = getattr(config, f.name)
-        expected = {"bool": bool, "int": int, "float": (int, float), "str": str}[f.type]
-        # bool is an int in Python: num_scales=True must not pass as 1, nor a float switch as True
-        if not isinstance(v, expected) or (isinstance(v, bool) and f.type != "bool"):
+        # numpy scalars (a sweep read from an array) count as their Python kinds, and are stored as them so that
+        # to_dict() stays JSON; bool is an int in Python: num_scales=True must not pass as 1, nor 1.0 as True
+        is_bool = isinstance(v, (bool, np.bool_))
+        expected = {"bool": is_bool, "int": isinstance(v, numbers.Integral) and not is_bool,
+                    "float": isinstance(v, numbers.Real) and not is_bool, "str": isinstance(v, str)}[f.type]
+        if not expected:
             raise ValueError(f"{name}.{f.name} must be {f.type}, got {v!r}")
         # an int is a float's value too, but one past the float range (lambda1=10**400) failed in init
-        if f.type == "float" and not abs(v) <= sys.float_info.max:
+        if f.type == "float" and not (abs(v) <= sys.float_info.max if isinstance(v, int) else math.isfinite(v)):
             raise ValueError(f"{name}.{f.name} must be finite, got {v}")
+        if f.type != "str":
+            object.__setattr__(config, f.name, {"bool": bool, "int": int, "float": float}[f.type](v))
     for field in positive:
         if getattr(config, field) <= 0:
             raise ValueError(f"{name}.{field} must be > 0, got {getattr(config, field)}")
@@ -185,9 +200,6 @@ class TrackerConfig:
         """What each field's own bounds let through and the tracker cannot use: a model turned NaN, an area or
         a scale range that takes gigabytes and minutes (overrides arrive from the network)."""
         problems = []
-        for field in ("context_lambda2", "context_penalty_total", "cn_poly_a"):
-            if getattr(self, field) < 0:    # sqrt(lambda2); a negative base to a fractional power
-                problems.append(f"{field} must be >= 0, got {getattr(self, field)}")
         if self.hog_kernel_sigma < MIN_KERNEL_SIGMA:
             problems.append(f"hog_kernel_sigma must be >= {MIN_KERNEL_SIGMA}, got {self.hog_kernel_sigma}")
         # cn_poly_b * log10(1 + cn_poly_a): (1 + a) ** b itself overflows a Python float (b = 1e5)

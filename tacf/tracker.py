@@ -98,25 +98,25 @@ class Tracker:
         cfg = self.config
         frame = check_frame(frame)
         x, y, w, h = check_box(box, frame.shape)
+        image_hw = frame.shape[:2]
+        # Sizes are whole pixels, as the authors' target_sz: the box reported is the rounded one.
+        target_hw = np.maximum(round_half_up([h, w]), 1.0)
+        padding = search_padding(target_hw, cfg.fixed_area)
+        areas = TargetAreas.around(target_hw, padding, image_hw, cfg.fixed_area, cfg.inner_padding)
+        grid = NormalisedGrid.from_areas(areas, cfg.cell_size, cfg.fast_fft)
+        if grid.crop_cells < MIN_CROP_CELLS:   # refused before any state changes: a running target is kept
+            raise ValueError(f"box {(float(x), float(y), float(w), float(h))} in the {frame.shape[1]}x"
+                             f"{frame.shape[0]} image: its search area's response would be {grid.crop_cells} "
+                             f"cell(s) a side, under {MIN_CROP_CELLS}, and the box could not move; use a larger "
+                             f"frame or more filter cells (fixed_area / cell_size**2)")
         self._frame_shape = frame.shape
         self._to_learn = None
         self.frame_number = 1
         self.pos = np.array([y + h / 2, x + w / 2])
-        self.target_hw = np.maximum(round_half_up([h, w]), 1.0)
-        self.base_target_hw = self.target_hw.copy()
+        self.target_hw, self.base_target_hw = target_hw, target_hw.copy()
         self.scale_factor = 1.0
         self.displacement = None  # last frame's motion in image pixels (for the motion term)
-
-        image_hw = frame.shape[:2]
-        self.padding = search_padding(self.target_hw, cfg.fixed_area)
-        self.areas = self._areas_around(self.target_hw)
-        self.grid = NormalisedGrid.from_areas(self.areas, cfg.cell_size, cfg.fast_fft)
-        if self.grid.crop_cells < MIN_CROP_CELLS:
-            self._frame_shape = None  # not initialised: update() asks for init() again
-            raise ValueError(f"box {(float(x), float(y), float(w), float(h))} in the {frame.shape[1]}x"
-                             f"{frame.shape[0]} image: its search area's response would be {self.grid.crop_cells} "
-                             f"cell(s) a side, under {MIN_CROP_CELLS}, and the box could not move; use a larger "
-                             f"frame or more filter cells (fixed_area / cell_size**2)")
+        self.padding, self.areas, self.grid = padding, areas, grid
         grid_hw = self.grid.filter_hw
         self.cosine_window = self.grid.cosine_window()
         # The paper's spatial attention windows the response with hann alone, centred on zero displacement.

@@ -1,4 +1,6 @@
 """The Tracker API: following a generated moving target, every profile and switch, and bad input."""
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -211,8 +213,8 @@ def test_config_refuses_wrong_types_and_memory_bombs():
 
 
 @pytest.mark.parametrize("overrides, message", [
-    (dict(context_lambda2=-1.0), "context_lambda2 must be >= 0"),         # turned the model NaN, for good
-    (dict(cn_poly_a=-1.0, cn_poly_b=0.5), "cn_poly_a must be >= 0"),      # likewise
+    (dict(context_lambda2=-1.0), r"context_lambda2 must be in \[0, 1e\+06\]"),    # turned the model NaN, for good
+    (dict(cn_poly_a=-1.0, cn_poly_b=0.5), r"cn_poly_a must be in \[0, 1000\]"),   # likewise
     (dict(hog_kernel_sigma=1e-6), "hog_kernel_sigma must be >= 0.01"),    # likewise
     (dict(hist_bins=3), "power of two up to 64"),                         # failed in init
     (dict(hist_bins=256), "power of two up to 64"),                       # 16.7 M bins: 9 s and 1 GB for 3 frames
@@ -235,9 +237,17 @@ def test_config_refuses_combinations_the_tracker_cannot_run(overrides, message):
     (dict(cn_output_sigma_factor=1e-300), r"cn_output_sigma_factor must be in \[0.001, 1\], got 1e-300"),
     (dict(cn_poly_a=100.0, cn_poly_b=50.0), r"\(1 \+ cn_poly_a\) \*\* cn_poly_b.* must be <= 1e\+12, got 10\*\*100"),
     (dict(cn_poly_b=1e5), r"\(1 \+ cn_poly_a\) \*\* cn_poly_b.* must be <= 1e\+12, got 10\*\*3.01e\+04"),
-    (dict(cn_poly_a=1e6, cn_poly_b=1.0), r"cn_poly_a must be <= 1000, got 1000000.0"),  # Color Names answered nothing
+    (dict(cn_poly_a=1e6, cn_poly_b=1.0), r"cn_poly_a must be in \[0, 1000\], got 1000000.0"),  # CN answered nothing
     (dict(cn_poly_b=0.0), r"cn_poly_b must be > 0, got 0.0"),                        # likewise
     (dict(context_challenge_floor=0.0), r"context_challenge_floor must be >= 0.001, got 0.0"),  # 0/0 penalties
+    # PME 0 on every frame, the box frozen
+    (dict(context_penalty_total=1e20), r"context_penalty_total must be in \[0, 1000\], got 1e\+20"),
+    (dict(context_lambda2=1e38), r"context_lambda2 must be in \[0, 1e\+06\], got 1e\+38"),
+    (dict(dim_floor=1e39), r"dim_floor must be in \[0.001, 10\], got 1e\+39"),
+    (dict(dim_threshold=-1e39), r"dim_threshold must be in \[-10, 10\], got -1e\+39"),
+    (dict(motion_gain=1e100), r"motion_gain must be in \[0, 100\], got 1e\+100"),
+    (dict(motion_gain=-100.0), r"motion_gain must be in \[0, 100\], got -100.0"),           # PME down to 0.6
+    (dict(scale_sigma_factor=1e-300), r"scale_sigma_factor must be in \[0.001, 1000\]"),   # divisions by zero
     # parts silently switched off
     (dict(hist_bins=1), r"hist_bins must be in \[2, 256\], got 1"),                  # a flat colour window
     (dict(likelihood_floor=5.0), r"likelihood_floor must be in \[0, 1\], got 5.0"),   # features times 5
@@ -254,6 +264,23 @@ def test_config_bounds_keep_the_profiles_and_their_ends():
     TrackerConfig.profile(lambda1=1e-12, scale_lambda=1e6, hog_output_sigma_factor=1e-3, cn_output_sigma_factor=1.0,
                           cn_poly_a=1e3, cn_poly_b=3.9, context_challenge_floor=1e-3, hist_bins=2,
                           likelihood_floor=1.0, num_scales=5, fixed_area=48.0 * 4**2)
+    TrackerConfig.profile(context_penalty_total=1e3, context_lambda2=1e6, dim_floor=10.0, dim_threshold=-10.0,
+                          motion_gain=100.0, scale_sigma_factor=1e3)
+    TrackerConfig.profile(context_penalty_total=0.0, context_lambda2=0.0, dim_floor=1e-3, dim_threshold=10.0,
+                          motion_gain=0.0, scale_sigma_factor=1e-3)
+
+
+def test_config_takes_numpy_scalars_as_the_python_values_they_are():
+    """A sweep read from an array: np.int64 was refused as an int and np.float32 as a float, while np.float64
+    passed (a float subclass). They are stored as Python values, so that to_dict() stays JSON."""
+    config = TrackerConfig.profile(cell_size=np.int64(4), num_scales=np.int32(33), lambda1=np.float32(1e-4),
+                                   subcell_peak=np.bool_(False))
+    assert config == TrackerConfig.profile(lambda1=float(np.float32(1e-4)), subcell_peak=False)
+    assert [type(config.cell_size), type(config.lambda1), type(config.subcell_peak)] == [int, float, bool]
+    json.dumps(config.to_dict())
+    for bad in (dict(num_scales=np.bool_(True)), dict(lambda1=np.bool_(True)), dict(cell_size=np.float64(4.0))):
+        with pytest.raises(ValueError, match="must be (int|float)"):
+            TrackerConfig.profile(**bad)
 
 
 @pytest.mark.parametrize("target_hw", [(300, 6), (600, 12), (5, 250), (40, 40)])
@@ -274,6 +301,23 @@ def test_init_refuses_a_box_whose_response_would_be_one_cell():
         tracker.init(strip, (10, 1, 100, 1))
     with pytest.raises(RuntimeError, match="init"):
         tracker.update(strip)
+
+
+def test_an_init_refused_keeps_the_target_already_followed():
+    """A refused re-init, whatever the reason, leaves the tracker as it was: the one-cell refusal used to drop
+    the running target (box reported as the refused one, update asking for init)."""
+    frames, boxes = moving_target_sequence(6)
+    strip = texture(np.random.default_rng(2), (3, 200, 3), blur=1)
+    tracker = Tracker()
+    tracker.init(frames[0], boxes[0])
+    tracker.update(frames[1])
+    followed = tracker.box
+    for frame, box, message in [(strip, (10, 1, 100, 1), "response would be 1 cell"),
+                                (frames[2], (-500, -500, 20, 20), "outside")]:
+        with pytest.raises(ValueError, match=message):
+            tracker.init(frame, box)
+        assert tracker.box == followed
+    assert box_iou(tracker.update(frames[2]).box, boxes[2]) > 0.5
 
 
 @pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")
