@@ -483,6 +483,21 @@ def test_track_that_cannot_start_leaves_an_existing_box_file_alone(tmp_path):
     check_boxes_file(out, 5, box)
 
 
+def test_track_refuses_a_frame_of_another_size_and_names_it(tmp_path, caplog):
+    """A folder whose third image is smaller: OpenCV's trackers went on (exit 0) while the video writer dropped
+    that frame with a warning, and TACF's error named no file and told the user to call init()."""
+    frames, box = synthetic_frames(5)
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(tmp_path / f"{i:06d}.png"), f if i != 3 else cv2.resize(f, (80, 60)))
+    for tracker in ("opencv-csrt", "identity", "tacf"):
+        caplog.clear()
+        assert main(["track", str(tmp_path), "--box", ",".join(str(v) for v in box), "--tracker", tracker,
+                     "--out", str(tmp_path / "boxes.txt"), "--video", str(tmp_path / "out.mp4")]) == 2, tracker
+        assert f"{tmp_path / '000003.png'} is 80x60, the first frame 160x120" in caplog.text, (tracker, caplog.text)
+        assert "init()" not in caplog.text
+        assert len((tmp_path / "boxes.txt").read_text().splitlines()) == 3      # the header and frames 1-2
+
+
 def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
     """Ctrl-C in a command that does not handle it itself (here `tacf track` half way through a long video): exit
     code 130 and one line on stderr; the boxes tracked so far stay in the --out file."""

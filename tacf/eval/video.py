@@ -2,6 +2,7 @@
 and `tacf eval --videos`: a sequence's frames with every tracker's boxes and the ground truth."""
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import sys
@@ -25,9 +26,10 @@ BOXES_HEADER = ("# x,y,w,h,pme,ok - one line per frame, line 1 = the initial box
                 "none); ok = 1 tracked, 0 target lost")
 
 
-def open_source(source: Path) -> tuple[Iterator[np.ndarray], float]:
-    """(BGR frames, frame rate) of a video file or an image folder (its img/ subfolder if it has one, as a
-    dataset's sequence folder: a stray image beside img/ is no sequence)."""
+def open_source(source: Path) -> tuple[Iterator[tuple[str, np.ndarray]], float]:
+    """((name, BGR frame) pairs, frame rate) of a video file or an image folder (its img/ subfolder if it has one,
+    as a dataset's sequence folder: a stray image beside img/ is no sequence). A frame's name is its image file,
+    or "frame N" (1-based) of a video, for the errors a frame can cause."""
     import cv2
 
     source = Path(source)
@@ -35,7 +37,7 @@ def open_source(source: Path) -> tuple[Iterator[np.ndarray], float]:
         paths = frames_of(source)
         if not paths:
             raise FileNotFoundError(f"{source}: no images (.jpg, .jpeg, .png, .bmp) in the folder")
-        return (read_frame(p) for p in paths), 10.0
+        return ((str(p), read_frame(p)) for p in paths), 10.0
     if not source.is_file():
         raise FileNotFoundError(f"{source}: no such video file or image folder")
     cap = cv2.VideoCapture(str(source))
@@ -43,13 +45,13 @@ def open_source(source: Path) -> tuple[Iterator[np.ndarray], float]:
         raise ValueError(f"{source}: OpenCV cannot open this video")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
 
-    def frames() -> Iterator[np.ndarray]:
+    def frames() -> Iterator[tuple[str, np.ndarray]]:
         try:
-            while True:
+            for number in itertools.count(1):
                 ok, frame = cap.read()
                 if not ok:
                     return
-                yield frame
+                yield f"{source} frame {number}", frame
         finally:
             cap.release()
 
@@ -76,14 +78,21 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out: Path | None 
     mp4v video. Both are opened once the first frame is tracked, so a run that cannot start (no such source, a box
     outside the frame) leaves the files of an earlier run as they were.
 
+    Every frame must have the first one's size: the trackers' boxes are in its pixels, and OpenCV's video writer
+    drops a frame of another size with no more than a warning.
+
     Returns the number of frames processed.
     """
     frames, fps = open_source(source)
     lines = writer = None
     n = 0
     try:
-        for frame in frames:
+        for name, frame in frames:
+            if n > 0 and frame.shape[:2] != first_hw:
+                raise ValueError(f"{name} is {frame.shape[1]}x{frame.shape[0]}, the first frame "
+                                 f"{first_hw[1]}x{first_hw[0]}: a sequence's frames must all have one size")
             if n == 0:
+                first_hw = frame.shape[:2]
                 check_box(box, frame.shape)     # the library tracker's check, for OpenCV's peers too
                 tracker.init(frame, box)
                 cur, ok, pme = tuple(float(v) for v in box), True, math.nan
