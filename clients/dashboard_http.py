@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import mimetypes
 import select
 import socket
@@ -52,6 +53,10 @@ DEFAULT_PORT = 8080
 EVENTS_HZ = 10.0                 # per /events connection, hence at most this rate per session
 KEEPALIVE_S = 15.0               # an SSE comment when nothing changed for this long (proxies, dead peers)
 WRITE_TIMEOUT_S = 10.0           # a browser that does not read for this long is dropped
+# A request's line and headers (and a TLS handshake) must arrive whole within this: the socket timeout restarts on
+# every byte, and a client sending one every few seconds held its thread for good, before any token check.
+HEAD_TIMEOUT_S = 10.0
+MAX_CONNECTIONS = 256            # open at once, a thread each; more are closed as they come (a busy page opens 3-4)
 MAX_BODY = 64 * 1024
 MAX_DRAINED = 1 << 20            # of a body over MAX_BODY, read this much so that its sender gets the 413, not a reset
 MJPEG_FPS = 10.0
@@ -82,9 +87,12 @@ def static_dir() -> Path:
 
 
 class DashboardServer(ThreadingHTTPServer):
-    """One thread per connection (daemon threads: a hanging browser never blocks shutdown)."""
+    """One thread per connection (daemon threads: a hanging browser never blocks shutdown), at most
+    `max_connections` of them; a connection whose request head takes over `head_timeout_s` is cut."""
 
     daemon_threads = True
+    max_connections = MAX_CONNECTIONS
+    head_timeout_s = HEAD_TIMEOUT_S
     allow_reuse_address = True
     # the stdlib's 5: the connections of many viewers (re)connecting at once, beyond it, waited 1 s, 3 s... for
     # their SYN to be sent again
@@ -98,6 +106,10 @@ class DashboardServer(ThreadingHTTPServer):
         self.events_hz = events_hz
         self.static = static_dir()
         self.event_clients = 0
+        self.connections = 0
+        self.connections_refused = 0
+        self._refusal_logged = -math.inf
+        self._heads: dict[socket.socket, float] = {}      # connection -> when its request head must have come
         self._clients_lock = threading.Lock()
         self.stopping = threading.Event()
         if ":" in address[0]:                      # an IPv6 address: the class binds IPv4 only
@@ -111,6 +123,49 @@ class DashboardServer(ThreadingHTTPServer):
             # both stacks whatever net.ipv6.bindv6only says: as for 0.0.0.0, the address printed is 127.0.0.1
             self.socket.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 0)
         super().server_bind()
+
+    def process_request(self, request, client_address) -> None:
+        with self._clients_lock:
+            admitted = self.connections < self.max_connections
+            self.connections += admitted
+            self.connections_refused += not admitted
+        if admitted:
+            super().process_request(request, client_address)
+            return
+        self.shutdown_request(request)        # no reply: a TLS connection could not even be answered unread
+        if time.monotonic() - self._refusal_logged > 10.0:
+            self._refusal_logged = time.monotonic()
+            log.warning("%d connections open, the most this dashboard serves: refusing new ones (%d so far)",
+                        self.max_connections, self.connections_refused)
+
+    def process_request_thread(self, request, client_address) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self._clients_lock:
+                self.connections -= 1
+
+    def expect_head(self, connection: socket.socket, waiting: bool) -> None:
+        """Mark `connection` as waiting for a request head (from now on, head_timeout_s at most), or not."""
+        with self._clients_lock:
+            if waiting:
+                self._heads[connection] = time.monotonic() + self.head_timeout_s
+            else:
+                self._heads.pop(connection, None)
+
+    def service_actions(self) -> None:
+        """Between two polls of serve_forever: cut the connections whose request head is late (their thread's
+        read then returns at once)."""
+        now = time.monotonic()
+        with self._clients_lock:
+            late = [connection for connection, deadline in self._heads.items() if deadline < now]
+            for connection in late:
+                del self._heads[connection]
+        for connection in late:
+            try:
+                connection.shutdown(socket.SHUT_RDWR)
+            except OSError:                    # closed meanwhile
+                pass
 
     def handle_error(self, request, client_address) -> None:
         """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say) is a line, not a trace."""
@@ -151,6 +206,18 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def log_message(self, fmt: str, *args) -> None:
         log.debug("%s %s", self.address_string(), fmt % args)
+
+    def handle_one_request(self) -> None:
+        self.server.expect_head(self.connection, True)
+        try:
+            super().handle_one_request()
+        finally:
+            self.server.expect_head(self.connection, False)
+
+    def parse_request(self) -> bool:
+        parsed = super().parse_request()                    # reads the headers
+        self.server.expect_head(self.connection, False)     # the head came: streams (/events, /mjpeg) run on
+        return parsed
 
     # --- routing --------------------------------------------------------------------------------------------
     def do_GET(self) -> None:
@@ -390,7 +457,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
         dashboard = self.server.dashboard
         ok, _ = dashboard.healthy()
         body = dashboard_metrics.render(dashboard.session_views(), frame_counts=dashboard.frame_counts(),
-                                        nodes=dashboard.nodes(), event_clients=self.server.event_clients, up=ok)
+                                        nodes=dashboard.nodes(), event_clients=self.server.event_clients,
+                                        connections_refused=self.server.connections_refused, up=ok)
         self._send(HTTPStatus.OK, body.encode(), dashboard_metrics.CONTENT_TYPE, {"Cache-Control": "no-cache"})
 
     def _healthz(self) -> None:

@@ -62,9 +62,11 @@ def _number(value: float) -> str:
 
 
 def render(views: Iterable, *, frame_counts: Mapping[str, tuple[int, int]] | None = None,
-           nodes: Mapping[str, int] | None = None, event_clients: int = 0, up: bool = True) -> str:
+           nodes: Mapping[str, int] | None = None, event_clients: int = 0, connections_refused: int = 0,
+           up: bool = True) -> str:
     """The /metrics body. views: SessionView-like objects (node, sid, image_key, state, box, box_received_ns,
-    health); frame_counts: image key -> (received, rejected) by the dashboard; nodes: node -> max_sessions."""
+    health); frame_counts: image key -> (received, rejected) by the dashboard; nodes: node -> max_sessions;
+    connections_refused: HTTP connections closed unserved, the dashboard's limit reached."""
     views = list(views)
     lines: list[str] = []
 
@@ -86,6 +88,9 @@ def render(views: Iterable, *, frame_counts: Mapping[str, tuple[int, int]] | Non
             lines.append(f"tacf_service_max_sessions{_labels({'node': node})} {limit}")
     family("tacf_dashboard_event_clients", "gauge", "Browsers connected to /events.")
     lines.append(f"tacf_dashboard_event_clients {event_clients}")
+    family("tacf_dashboard_connections_refused_total", "counter",
+           "HTTP connections closed unserved: as many were open as the dashboard serves.")
+    lines.append(f"tacf_dashboard_connections_refused_total {connections_refused}")
     if frame_counts:
         family("tacf_dashboard_frames_received_total", "counter",
                "Frames the dashboard read per image key (at most its frame rate cap; the rest are skipped).")

@@ -18,6 +18,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -454,8 +455,6 @@ def test_metrics_count_what_the_dashboard_could_not_decode_on_a_key():
 
 def _request_threads() -> int:
     """The HTTP server's handler threads (ThreadingMixIn names them after process_request_thread)."""
-    import threading
-
     return sum("process_request_thread" in t.name for t in threading.enumerate())
 
 
@@ -489,6 +488,44 @@ def test_many_viewers_connecting_at_once_are_all_answered_at_once():
         finally:
             for viewer in viewers:
                 viewer.close()
+
+
+def test_a_request_head_sent_a_byte_at_a_time_is_cut_off_and_connections_are_capped():
+    """Before any token check: a client sending its request a byte every 0.3 s kept its thread for good (the 10 s
+    timeout restarted on every byte), and nothing capped the connections, so a few thousand such clients took
+    the dashboard's machine down."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        app.server.head_timeout_s = 1.5
+        with socket.create_connection(address, timeout=10) as slow:
+            def dribble():
+                with contextlib.suppress(OSError):
+                    for byte in b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: " + b"a" * 100:
+                        slow.sendall(bytes([byte]))
+                        time.sleep(0.3)
+
+            sender = threading.Thread(target=dribble, daemon=True)
+            started = time.monotonic()
+            sender.start()
+            with contextlib.suppress(ConnectionResetError):
+                assert slow.recv(1024) == b""
+            assert time.monotonic() - started < 3.0, f"cut after {time.monotonic() - started:.1f} s"
+
+        app.server.head_timeout_s, app.server.max_connections = 30.0, 3
+        idle = [socket.create_connection(address, timeout=10) for _ in range(3)]
+        try:
+            assert _wait(lambda: app.server.connections == 3)
+            with socket.create_connection(address, timeout=10) as extra:
+                with contextlib.suppress(OSError):      # closed at once, unserved
+                    extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                with contextlib.suppress(ConnectionResetError):
+                    assert extra.recv(1024) == b""
+        finally:
+            for connection in idle:
+                connection.close()
+        assert _wait(lambda: app.server.connections == 0)
+        status, _, body = _get(app.url + "metrics")
+        assert status == 200 and "tacf_dashboard_connections_refused_total 1" in body.decode()
 
 
 def test_odd_requests_get_a_clear_answer():
@@ -871,8 +908,9 @@ def browser(tmp_path_factory):
 
 
 def _canvas_state(driver, sid_id: str) -> dict | None:
-    """What the page drew last for session `sid_id`: the box, its colour and the canvas pixel on its top edge."""
-    return driver.execute_script("""
+    """What the page drew last for session `sid_id`: the box, its colour and the canvas pixel on its top edge, and
+    the seqs of the box and the frame (the page's BigInts, sent as strings)."""
+    state = driver.execute_script("""
         const id = arguments[0], drawn = window.tacf.drawn[id], card = window.tacf.cards.get(id);
         if (!drawn || !card) return null;
         const [x, y, w, h] = drawn.box;
@@ -881,9 +919,12 @@ def _canvas_state(driver, sid_id: str) -> dict | None:
         const py = Math.floor(Math.min(Math.max(y, 0), card.frame.height - 1));
         const pixel = Array.from(card.frame.getContext('2d').getImageData(px, py, 1, 1).data);
         return {count: drawn.count, box: drawn.box, colour: drawn.colour, pixel: pixel,
-                boxSeq: drawn.boxSeq, frameSeq: drawn.frameSeq,
+                boxSeq: String(drawn.boxSeq), frameSeq: drawn.frameSeq === null ? null : String(drawn.frameSeq),
                 width: card.frame.width, height: card.frame.height};
     """, sid_id)
+    if state is not None:
+        state.update({name: None if state[name] is None else int(state[name]) for name in ("boxSeq", "frameSeq")})
+    return state
 
 
 def _chart_state(driver, sid_id: str) -> dict | None:
@@ -958,9 +999,9 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, guard
     camera.hold.set()                                   # a still camera, so that the target is where we draw
     canvas = browser.find_element(By.ID, "new-canvas")
     browser.execute_script("arguments[0].scrollIntoView({block: 'center'})", canvas)
-    seq = _wait(lambda: (s := browser.execute_script(
-        "const f = window.tacf.newFeed; return f.key === arguments[0] && f.bitmap ? f.seq : null;", KEY)) is not None
-        and camera.index_of(s) is not None and s >= camera.last_seq - 2 and s, timeout=10)
+    newest_shown = "const f = window.tacf.newFeed; return f.key === arguments[0] && f.bitmap ? Number(f.seq) : null;"
+    seq = _wait(lambda: (s := browser.execute_script(newest_shown, KEY)) is not None
+                and camera.index_of(s) is not None and s >= camera.last_seq - 2 and s, timeout=10)
     assert seq is not None, "the new-session view shows the live frame"
     target = SCENE.box(camera.index_of(seq))
     _drag_box(browser, canvas, target)
@@ -1070,6 +1111,49 @@ def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, 
         f"{fetches}"
 
 
+def test_seqs_past_2_to_the_53_are_kept_exact_by_the_page(stack, browser):
+    """A camera counting past 2**53 (in nanoseconds, say): the page read seqs as JS Numbers, which round them to a
+    multiple of 256 up there, so a box drawn was sent with the seq of a frame that never was, and boxes were
+    looked up under rounded seqs."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+
+    app, client, _, service = stack
+    key, sid = "test/dashboard/big-seqs", "big"
+    camera = HoldingPublisher(client.session, SceneSource(SCENE), key, 20, "jpeg")   # holds one frame: still
+    camera.publisher.next_seq = 2**60 + 1
+    camera.start()
+    mouse = """const c = document.querySelector('#new-canvas'), r = c.getBoundingClientRect();
+        c.dispatchEvent(new MouseEvent(arguments[0], {bubbles: true, button: 0, clientX: r.left + arguments[1],
+                                                      clientY: r.top + arguments[2]}));"""
+    shown = "const f = window.tacf.newFeed; return f.key === arguments[0] && f.bitmap ? String(f.seq) : null;"
+    try:
+        assert _wait(lambda: camera.last_seq > 2**60)
+        assert _post(app.url + "api/watch", {"key": key})[0] == 200
+        _open_page(browser, app)
+        _select_key(browser, key)
+        assert _wait(lambda: (s := browser.execute_script(shown, key)) and camera.index_of(int(s)) is not None), \
+            f"the page shows frame {browser.execute_script(shown, key)}, which the camera never sent"
+        browser.find_element(By.ID, "sid-input").send_keys(sid)
+        for event, x, y in (("mousedown", 60, 50), ("mousemove", 120, 100), ("mouseup", 120, 100)):
+            browser.execute_script(mouse, event, x, y)
+        said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
+                     and t, timeout=30)
+        assert said and "started" in said, browser.find_element(By.ID, "new-status").text
+        init_seq = client.status(sid).init_seq
+        assert init_seq is not None and camera.index_of(init_seq) is not None, init_seq
+        drawn = _wait(lambda: (c := _canvas_state(browser, f"{service.node}/{sid}")) and c["frameSeq"] is not None
+                      and c["boxSeq"] > init_seq and c, timeout=30)
+        assert drawn, _canvas_state(browser, f"{service.node}/{sid}")
+        assert camera.index_of(drawn["frameSeq"]) is not None and camera.index_of(drawn["boxSeq"]) is not None, drawn
+    finally:
+        camera.close()
+        if any(info.sid == sid for info in client.list()):
+            client.stop(sid)
+
+
 def test_a_reinit_on_a_still_camera_shows_its_box_on_that_frame(stack, browser):
     """The card drew the box from before the re-init (green, tracking) on the very frame the new box was drawn
     on, for as long as the camera stayed still: no newer box came to replace it."""
@@ -1170,7 +1254,8 @@ def test_a_box_seconds_old_is_not_drawn_on_the_live_frames_of_a_hung_service(bro
             os.kill(service.process.pid, signal.SIGSTOP)
             try:
                 time.sleep(3.0)
-                shown = browser.execute_script("return window.tacf.feeds.get(arguments[0]).seq", f"{key}#{sid_id}")
+                shown = browser.execute_script("return Number(window.tacf.feeds.get(arguments[0]).seq)",
+                                               f"{key}#{sid_id}")
                 drawn = _canvas_state(browser, sid_id)
                 assert shown >= drawn["frameSeq"] + 10, f"the last box was drawn on frame {drawn['frameSeq']}, " \
                     f"the card shows frame {shown}"

@@ -48,10 +48,26 @@ function toast(message) {
   toast.timer = setTimeout(() => { el.hidden = true; }, 6000);
 }
 
+// Frame seqs are 64-bit counts (a camera may count nanoseconds), past the 2^53 that a JS Number holds exactly: the
+// page keeps them as BigInt, read from and written to JSON as plain numbers. In JSON text a field name is followed
+// by its colon only outside strings (inside one its quotes are escaped), so quoting the seq fields' digits is safe.
+const SEQ_FIELDS = /"(seq|init_seq|last_seq)":\s*(\d+)/g, SEQ_NAMES = new Set(["seq", "init_seq", "last_seq"]);
+const BIGINT_MARK = "@tacf-bigint:";
+
+function parseJSON(text) {
+  return JSON.parse(text.replace(SEQ_FIELDS, '"$1":"$2"'),
+                    (key, v) => SEQ_NAMES.has(key) && typeof v === "string" ? BigInt(v) : v);
+}
+
+function toJSON(value) {
+  return String(JSON.stringify(value, (key, v) => typeof v === "bigint" ? BIGINT_MARK + v : v))   // undefined too
+    .replace(new RegExp(`"${BIGINT_MARK}(\\d+)"`, "g"), "$1");
+}
+
 async function post(path, body) {
   const response = await fetch(path, { method: "POST", headers: { "Content-Type": "application/json" },
-                                       body: JSON.stringify(body) });
-  const data = await response.json().catch(() => ({}));
+                                       body: toJSON(body) });
+  const data = await response.text().then(parseJSON).catch(() => ({}));
   if (!response.ok) throw new Error(`${data.error || response.status}: ${data.message || response.statusText}`);
   return data;
 }
@@ -94,7 +110,7 @@ class FrameFeed {
               // no bitmap.close(): a drawing in progress may still hold the previous frame
               this.bitmap = bitmap;
               this.etag = response.headers.get("ETag");
-              this.seq = Number(response.headers.get("X-Seq"));
+              this.seq = BigInt(response.headers.get("X-Seq"));
               this.width = bitmap.width; this.height = bitmap.height;
               this.frames += 1;
               scheduleDraw();
@@ -443,7 +459,7 @@ function mergeSessions(sessions) {
             : s.box ? Date.now() - (s.box.age_ms || 0) : 0;
     s.healthAt = s.health && s.health.received_age_ms != null ? Date.now() - s.health.received_age_ms : null;
     // a new start or re-init: the boxes remembered are the tracker's from before it
-    if (s.init && JSON.stringify(s.init) !== JSON.stringify(old && old.init)) state.boxes.delete(s.id);
+    if (s.init && toJSON(s.init) !== toJSON(old && old.init)) state.boxes.delete(s.id);
     state.sessions.set(s.id, s);
     if (s.box) rememberBox(s.id, s.box);
     cardFor(s);
@@ -530,7 +546,7 @@ function connect() {
     }
   });
   const received = (handler) => (e) => {
-    const data = JSON.parse(e.data);
+    const data = parseJSON(e.data);
     state.events += 1; state.clockOffsetMs = data.t - Date.now();
     handler(data);
   };
