@@ -47,6 +47,9 @@ SILENT_DROP_S = 30.0         # a session of a node that stopped answering (its t
 TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here or whose service's token went are
                              # ignored for this long (or until that service's token is back)
 MAX_IMAGE_KEYS = 32          # watched image keys (each one is a subscriber + a thread)
+# A key asked for by watch() (the page's "watch" box) that no session uses is let go once no one has looked at its
+# frames for this long: else a dashboard up for days reached MAX_IMAGE_KEYS, and new cameras were not shown.
+ASKED_IDLE_S = 60.0
 KEEP = 32                    # the last frames received, for a box to be drawn on its own frame; a 4K bgr8
 KEEP_BYTES = 64 * 2**20      # frame is 25 MB, so the bytes are capped too
 SHOWN_KEEP = 64              # frames shown to a browser, kept by seq: an operator may draw a box for seconds,
@@ -162,6 +165,7 @@ class FrameWatcher:
         self._frames_bytes = 0
         self._jpeg: FrameSnapshot | None = None          # the last non-JPEG frame converted
         self._shown: OrderedDict[int, Frame] = OrderedDict()   # seq -> frame, the frames snapshot() returned
+        self.viewed_at = time.monotonic()                 # the last snapshot() (a page or viewer showing it)
         self._closed = threading.Event()
         self._sub = session.declare_subscriber(key, zenoh.handlers.RingChannel(1))
         self._thread = threading.Thread(target=self._run, name=f"tacf-dashboard-frames-{key}", daemon=True)
@@ -201,6 +205,7 @@ class FrameWatcher:
 
     def snapshot(self, seq: int | None = None) -> FrameSnapshot | None:
         """The newest frame (with seq <= `seq` when given, else the oldest kept) as JPEG; None before the first."""
+        self.viewed_at = time.monotonic()
         with self._lock:
             if not self._frames:
                 return None
@@ -289,7 +294,8 @@ class Dashboard:
         self._sessions: dict[str, SessionView] = {}
         self._tombstones: dict[str, float] = {}
         self._watchers: dict[str, FrameWatcher] = {}
-        self._asked: set[str] = set()                     # keys watched for good (image_keys, watch())
+        self._pinned: set[str] = set()                    # image_keys: watched for good
+        self._asked: dict[str, float] = {}                # key -> when watch() asked for it (monotonic)
         self._nodes: dict[str, int] = {}                  # node -> max_sessions, from the last list round
         self.list_ok_at: float | None = None              # monotonic time of the last list round that ran
         self.list_error: str | None = None
@@ -297,8 +303,9 @@ class Dashboard:
         self.closed = threading.Event()
         self.started = time.monotonic()
         try:
-            for key in image_keys:
-                self.watch(key)
+            self._pinned = {validate_image_key(key) for key in image_keys}
+            for key in self._pinned:
+                self._watch(key, asked=False)
             self._stream = self.client.subscribe(on_box=self._on_result, on_health=self._on_result,
                                                  latest_only=True)
             self._node_watch = self.client.watch_nodes(self._on_node)
@@ -339,12 +346,13 @@ class Dashboard:
 
     # --- image keys -----------------------------------------------------------------------------------------
     def watch(self, key: str) -> bool:
-        """Subscribe to the frames of image key `key` for as long as the dashboard runs (idempotent). True if it
-        is (now) watched; ValueError for an invalid key or when MAX_IMAGE_KEYS are watched already."""
+        """Subscribe to the frames of image key `key` (idempotent), until a session uses it or for as long as
+        its frames are looked at (ASKED_IDLE_S). True if it is (now) watched; ValueError for an invalid key or
+        when MAX_IMAGE_KEYS are watched already."""
         return self._watch(key, asked=True)
 
     def _watch(self, key: str, asked: bool) -> bool:
-        """watch(); asked=False for a session's key, which is dropped once no session uses it."""
+        """watch(); asked=False for a session's key, which is dropped once no session uses it, or a pinned one."""
         key = validate_image_key(key)
         with self._lock:
             if key not in self._watchers:
@@ -356,7 +364,7 @@ class Dashboard:
                 self._changed.notify_all()
                 log.info("watching frames on %s", key)
             if asked:
-                self._asked.add(key)
+                self._asked[key] = time.monotonic()
         return True
 
     def frame(self, key: str, seq: int | None = None) -> FrameSnapshot | None:
@@ -481,8 +489,11 @@ class Dashboard:
                 silent = now - view.seen > SILENT_DROP_S                            # its service went quiet
                 if gone or silent:
                     del self._sessions[sid_id]
-            # sessions come and go: without this the keys of past ones would use up MAX_IMAGE_KEYS
-            used = self._asked | {view.image_key for view in self._sessions.values()}
+            # sessions come and go, and keys asked for are looked at for a while: without this the keys of past
+            # ones would use up MAX_IMAGE_KEYS
+            self._asked = {key: at for key, at in self._asked.items()
+                           if key in self._watchers and now - max(at, self._watchers[key].viewed_at) < ASKED_IDLE_S}
+            used = self._pinned | set(self._asked) | {view.image_key for view in self._sessions.values()}
             unused = [self._watchers.pop(key) for key in list(self._watchers) if key not in used]
             self._changed.notify_all()
         for watcher in unused:

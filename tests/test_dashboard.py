@@ -232,6 +232,24 @@ def test_a_start_beyond_the_key_limit_succeeds_and_keys_no_session_uses_are_drop
                     client.stop(info.sid)
 
 
+def test_a_key_asked_for_is_let_go_once_no_one_looks_at_its_frames(stack, monkeypatch):
+    """Keys asked for with POST /api/watch (the page's "watch") were watched for good: a dashboard up for days
+    reached MAX_IMAGE_KEYS, and new cameras could not be shown. A key looked at stays; one given at start too."""
+    service = stack[3]
+    monkeypatch.setattr(dashboard, "ASKED_IDLE_S", 2.0)
+    looked_at, forgotten = "test/dashboard/looked-at", "test/dashboard/forgotten"
+    with DashboardApp(service.options, port=0, image_keys=[KEY]) as app:
+        base = app.url.rstrip("/")
+        for key in (looked_at, forgotten):
+            assert _post(base + "/api/watch", {"key": key})[0] == 200
+        deadline = time.monotonic() + 2.0 + 3 * dashboard.LIST_PERIOD_S
+        while time.monotonic() < deadline:                  # a page polling one of them
+            assert _get(f"{base}/frame/{looked_at}")[0] == 404           # no frame on it: looked at all the same
+            time.sleep(0.2)
+        assert app.dashboard.image_keys() == sorted([KEY, looked_at])
+        assert _wait(lambda: app.dashboard.image_keys() == [KEY], timeout=2.0 + 3 * dashboard.LIST_PERIOD_S)
+
+
 def test_an_mjpeg_stream_ends_when_its_key_is_no_longer_watched(stack):
     """A key watched for a session is dropped after its last session: its MJPEG stream (VLC, a wall screen) stayed
     open with no frame for good, a frozen picture that looked live."""
