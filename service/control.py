@@ -50,7 +50,10 @@ class ControlServer:
         self._queryable = zenoh_session.declare_queryable(control_key(node, "*"), self._admit)
         lanes = [(self._slow, f"control-{i}") for i in range(threads)]
         lanes += [(self._quick, f"control-quick-{i}") for i in range(QUICK_THREADS)]
-        self._threads = [(lane, threading.Thread(target=self._serve, args=(lane,), name=name)) for lane, name in lanes]
+        # Daemons: close() gives them `timeout` to finish; one stuck past it (a start waiting on a fork server that
+        # hangs) must not keep the process alive after the service has closed.
+        self._threads = [(lane, threading.Thread(target=self._serve, args=(lane,), name=name, daemon=True))
+                         for lane, name in lanes]
         for _, thread in self._threads:
             thread.start()
 
@@ -68,6 +71,10 @@ class ControlServer:
         deadline = time.monotonic() + timeout
         for _, thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
+        stuck = [thread.name for _, thread in self._threads if thread.is_alive()]
+        if stuck:
+            log.warning("control queries still being answered after %.1f s (%s): left behind", timeout,
+                        ", ".join(stuck))
 
     def _admit(self, query) -> None:
         """On Zenoh's callback thread: queue the query in its lane, or refuse it at once when the lane is full."""

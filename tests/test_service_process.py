@@ -18,7 +18,7 @@ zenoh = pytest.importorskip("zenoh")
 
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
-from tacf_schemas import StartRequest, StopRequest, service_liveliness_key
+from tacf_schemas import StartRequest, StopRequest, encode, service_liveliness_key
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
@@ -269,6 +269,34 @@ def test_a_stop_right_after_start_leaves_no_worker_and_no_traceback(tmp_path, en
         assert "Traceback" not in serve.log(), serve.log()
     finally:
         serve.cleanup()
+
+def test_a_frozen_fork_server_does_not_keep_the_service_from_exiting(tmp_path, endpoint, client):
+    """A start waiting on a fork server that hangs (stopped here) held a control thread that was not a daemon, so
+    SIGTERM closed the service and its process never ended."""
+    serve = Serve(tmp_path, endpoint, "--spare-workers", "0")
+    try:
+        assert wait_until(lambda: service_alive(client), 30), serve.log()
+        call(client, NODE, "start", StartRequest(image_key="proc/frozen", box=(10, 10, 40, 40), sid="first"),
+             timeout=30)
+        call(client, NODE, "stop", StopRequest(sid="first"), timeout=10)
+
+        def no_worker_left() -> bool:          # the next start needs a new worker from the fork server
+            return all("resource_tracker" in line or "forkserver" in line
+                       for line in cmdlines(descendants(serve.proc.pid)).values())
+
+        assert wait_until(no_worker_left, 10), cmdlines(descendants(serve.proc.pid))
+        servers = [pid for pid, line in cmdlines(descendants(serve.proc.pid)).items() if "forkserver" in line]
+        assert len(servers) == 1, cmdlines(descendants(serve.proc.pid))
+        os.kill(servers[0], signal.SIGSTOP)
+        stuck = client.get(f"tacf/{NODE}/control/start", timeout=30, handler=zenoh.handlers.FifoChannel(4),
+                           payload=encode(StartRequest(image_key="proc/frozen", box=(10, 10, 40, 40), sid="stuck")))
+        time.sleep(1.5)
+        assert stuck.try_recv() is None, "the start waits on the fork server"
+        code, took = serve.signal_and_wait(signal.SIGTERM, timeout=15)
+        assert code == 0 and took < 5.0, (code, took, serve.log()[-2000:])
+    finally:
+        serve.cleanup()
+
 
 def test_sighup_stops_the_service_cleanly(tmp_path, endpoint):
     """A closed terminal or ssh session sends SIGHUP: the service stops as on SIGTERM (its table saved), instead of
