@@ -10,6 +10,7 @@ re-initialised or stopped.
 from __future__ import annotations
 
 import logging
+import math
 import multiprocessing
 import multiprocessing.connection
 import secrets
@@ -37,6 +38,7 @@ log = logging.getLogger(__name__)
 
 SUPERVISE_PERIOD_S = 0.2
 SAVE_PERIOD_S = 1.0
+FRAME_SAVE_PERIOD_S = 10.0     # each session's box frame, between the saves a start, reinit or shutdown forces
 STOP_GRACE_S = 1.0
 MAX_CRASHES = 5
 CRASH_WINDOW_S = 60.0
@@ -76,7 +78,9 @@ class Session:
     gave_up: bool = False               # failed for good (bad box or config, crash loop): no restart
     stopping: bool = False
     holds_history: bool = False         # holds a reference on its image key's frame history (released once)
-    saved_frame_seq: int | None = None  # the seq of the frame stored with the persisted table
+    saved_frame_seq: int | None = None  # the seq of the frame stored with the persisted table,
+    saved_frame_box: tuple | None = None    # the box computed on it,
+    frame_saved_at: float = -math.inf       # and when it was stored (monotonic)
     started: bool = False               # its start was answered (or it was restored): only such are persisted
     restart_at: float | None = None
     crashes: deque = field(default_factory=deque)
@@ -90,7 +94,8 @@ class Session:
     def persisted(self) -> PersistedSession:
         return PersistedSession(sid=self.sid, image_key=self.image_key, profile=self.profile,
                                 overrides=self.overrides, box=self.box, last_seq=self.last_seq,
-                                created_ns=self.created_ns, restarts=self.restarts)
+                                created_ns=self.created_ns, restarts=self.restarts,
+                                frame_seq=self.saved_frame_seq, frame_box=self.saved_frame_box)
 
 
 class SessionManager:
@@ -152,12 +157,12 @@ class SessionManager:
             with self._lock:
                 self._sessions[session.sid] = session
             self._hold_history(session)
-            last_frame = self._saved_frame(saved)     # the frame the last box belongs to: init there, catch up
-            carried = [last_frame] if last_frame is not None else []
-            frames = self._init_frames(session.image_key, saved.last_seq, carried)
-            self._queue_init(session, session.box, saved.last_seq, released=True, frames=frames)
-            if last_frame is not None:
-                session.saved_frame_seq = last_frame.seq
+            box, seq, saved_frame = self._saved_frame(saved)      # init on the frame of a box, then catch up
+            carried = [saved_frame] if saved_frame is not None else []
+            frames = self._init_frames(session.image_key, seq, carried)
+            self._queue_init(session, box, seq, released=True, frames=frames)
+            if saved_frame is not None:
+                session.saved_frame_seq, session.saved_frame_box = saved_frame.seq, tuple(box)
             self._spawn(session)
             restored += 1
         if restored:
@@ -169,16 +174,23 @@ class SessionManager:
         self._closing.set()
         self._history.wake_all()
 
-    def _saved_frame(self, saved: PersistedSession) -> StoredFrame | None:
+    def _saved_frame(self, saved: PersistedSession) -> tuple[tuple, int | None, StoredFrame | None]:
+        """(box, seq, frame) to restore `saved` on: its last box with the frame it was computed on when stored,
+        else the stored frame's own box (up to FRAME_SAVE_PERIOD_S older), else the last box alone."""
+        last = tuple(saved.box), saved.last_seq, None
         payload = self._store.load_frame(saved.sid) if self._store else None
         if payload is None or saved.last_seq is None:
-            return None
+            return last
         try:
             frame = StoredFrame.from_payload(payload)
         except DecodeError as exc:
             log.warning("ignoring the saved frame of session %s: %s", saved.sid, exc)
-            return None
-        return frame if frame.seq == saved.last_seq else None
+            return last
+        if frame.seq == saved.last_seq:
+            return tuple(saved.box), frame.seq, frame
+        if frame.seq == saved.frame_seq and saved.frame_box is not None:
+            return tuple(saved.frame_box), frame.seq, frame
+        return last
 
     def shutdown(self, timeout: float = 1.5) -> None:
         """Stop every worker (stop command, then SIGTERM, then SIGKILL) within `timeout`; keep the table saved
@@ -634,15 +646,18 @@ class SessionManager:
             self._dirty = False
         self._saved_at = now
         try:
-            for session, entry, box_frame in zip(sessions, table, box_frames):
-                if entry.last_seq is None or entry.last_seq == session.saved_frame_seq:
-                    continue
-                frame = self._history.frame(session.image_key, entry.last_seq)
-                if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:
-                    frame = box_frame               # carried by a start or reinit: in no history
-                if frame is not None:
-                    self._store.save_frame(session.sid, frame.payload)
-                    session.saved_frame_seq = entry.last_seq
+            for i, (session, entry, box_frame) in enumerate(zip(sessions, table, box_frames)):
+                due = force or now - session.frame_saved_at >= FRAME_SAVE_PERIOD_S
+                if due and entry.last_seq is not None and entry.last_seq != session.saved_frame_seq:
+                    frame = self._history.frame(session.image_key, entry.last_seq)
+                    if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:
+                        frame = box_frame           # carried by a start or reinit: in no history
+                    if frame is not None:
+                        self._store.save_frame(session.sid, frame.payload)
+                        session.saved_frame_seq, session.saved_frame_box = entry.last_seq, entry.box
+                        session.frame_saved_at = now
+                table[i] = entry.model_copy(update={"frame_seq": session.saved_frame_seq,
+                                                    "frame_box": session.saved_frame_box})
             self._store.save(table)
             self._store.prune_frames({s.sid for s in sessions})
         except OSError as exc:

@@ -214,6 +214,8 @@ def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, cli
             time.sleep(1.2)                                   # the table is saved about once a second
             saved = {s.sid: s for s in StateStore(state).load()}
             assert saved["keep"].last_seq is not None and saved["keep"].box != box
+            # the frame is stored every 10 s: a restore starts on it, with the box computed on it
+            assert saved["keep"].frame_seq is not None and saved["keep"].frame_box is not None
 
             workers = descendants(serve.proc.pid)
             assert workers                                     # the session's worker and a warm spare
@@ -226,6 +228,7 @@ def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, cli
             assert wait_until(lambda: service_alive(client), 30), serve.log()
             sessions = call(client, NODE, "list").sessions
             assert [s.sid for s in sessions] == ["keep"]
+            assert sessions[0].init_seq == StateStore(state).load()[0].frame_seq, sessions[0]
             marker = len(results.results())
             assert wait_until(lambda: len(results.results()) >= marker + 8, 60), serve.log()
             resumed = results.results()[marker:]
