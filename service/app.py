@@ -21,7 +21,7 @@ from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
 from .config import ZenohOptions, own_endpoints, service_config, worker_config, worker_endpoints
 from .control import ControlServer
 from .frames import FrameHistory
-from .manager import SessionManager
+from .manager import FRAME_SAVE_PERIOD_S, SessionManager
 from .state import StateStore
 from .trackers import DEFAULT_FACTORY
 
@@ -46,6 +46,7 @@ class ServiceOptions:
     tracker_factory: str = DEFAULT_FACTORY
     init_wait_s: float = 1.0
     spare_workers: int = 1
+    state_frame_period_s: float = FRAME_SAVE_PERIOD_S
     log_level: int = logging.INFO
 
 
@@ -56,6 +57,8 @@ class TrackingService:
             raise ValueError("max_sessions must be >= 1")
         if not (math.isfinite(options.init_wait_s) and options.init_wait_s >= 0):     # NaN would wait for ever
             raise ValueError(f"init_wait_s must be finite and >= 0, not {options.init_wait_s}")
+        if not (math.isfinite(options.state_frame_period_s) and options.state_frame_period_s >= 0):
+            raise ValueError(f"state_frame_period_s must be finite and >= 0, not {options.state_frame_period_s}")
         self.options = options
         self.node = options.node
         self._session = None
@@ -81,7 +84,8 @@ class TrackingService:
             self.manager = SessionManager(self._session, self.node, self._history, options.zenoh, endpoints,
                                           max_sessions=options.max_sessions, store=self._store,
                                           tracker_factory=options.tracker_factory, init_wait_s=options.init_wait_s,
-                                          spare_workers=options.spare_workers, log_level=options.log_level)
+                                          spare_workers=options.spare_workers,
+                                          frame_save_period_s=options.state_frame_period_s, log_level=options.log_level)
             self.manager.restore()
             self.manager.start_supervisor()
             self._control = ControlServer(self._session, self.node, self.manager)

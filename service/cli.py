@@ -26,6 +26,10 @@ def register(subparsers) -> None:
     parser.add_argument("--max-sessions", type=integer(1), default=8, metavar="N", help="session limit (default 8)")
     parser.add_argument("--state", metavar="FILE", help="persist sessions in FILE and restore them on start (one "
                                                        "service per file: a second one refuses to start)")
+    parser.add_argument("--state-frames-every", type=seconds, default=5.0, metavar="S",
+                        help="store each session's box frame beside --state every S seconds, besides at start, "
+                             "re-init and shutdown: after a crash a restored tracker starts up to S back "
+                             "(default 5; each store writes a frame to disk)")
     parser.add_argument("--init-wait", type=seconds, default=1.0, metavar="S",
                         help="how long start waits for a first frame to check the box against (default 1 s)")
     parser.add_argument("--spare-workers", type=integer(0), default=1, metavar="N",
@@ -51,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     zenoh_options = options_from_args(args)
     options = ServiceOptions(node=node, zenoh=zenoh_options, max_sessions=args.max_sessions, state_file=args.state,
                              tracker_factory=args.tracker_factory or DEFAULT_FACTORY, init_wait_s=args.init_wait,
-                             spare_workers=args.spare_workers,
+                             spare_workers=args.spare_workers, state_frame_period_s=args.state_frames_every,
                              log_level=logging.getLogger().getEffectiveLevel())
     return serve(options)
 

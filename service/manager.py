@@ -38,7 +38,9 @@ log = logging.getLogger(__name__)
 
 SUPERVISE_PERIOD_S = 0.2
 SAVE_PERIOD_S = 1.0
-FRAME_SAVE_PERIOD_S = 10.0     # each session's box frame, between the saves a start, reinit or shutdown forces
+# Each session's box frame is stored at a start, reinit or shutdown, and every this long between (tacf serve
+# --state-frames-every): after a crash a restored tracker starts this far back at most.
+FRAME_SAVE_PERIOD_S = 5.0
 STOP_GRACE_S = 1.0
 MAX_CRASHES = 5
 CRASH_WINDOW_S = 60.0
@@ -102,7 +104,7 @@ class SessionManager:
     def __init__(self, zenoh_session, node: str, history: FrameHistory, zenoh_options: ZenohOptions,
                  endpoints: list[str], *, max_sessions: int = 8, store: StateStore | None = None,
                  tracker_factory: str = DEFAULT_FACTORY, init_wait_s: float = 1.0, spare_workers: int = 1,
-                 log_level: int = logging.INFO) -> None:
+                 frame_save_period_s: float = FRAME_SAVE_PERIOD_S, log_level: int = logging.INFO) -> None:
         self.node = node
         self.max_sessions = max_sessions
         self._zenoh = zenoh_session
@@ -110,6 +112,7 @@ class SessionManager:
         self._zenoh_options = zenoh_options
         self._endpoints = tuple(endpoints)
         self._store = store
+        self._frame_save_period_s = frame_save_period_s
         self._tracker_factory = tracker_factory
         self._init_wait_s = init_wait_s
         self._log_level = log_level
@@ -176,7 +179,7 @@ class SessionManager:
 
     def _saved_frame(self, saved: PersistedSession) -> tuple[tuple, int | None, StoredFrame | None]:
         """(box, seq, frame) to restore `saved` on: its last box with the frame it was computed on when stored,
-        else the stored frame's own box (up to FRAME_SAVE_PERIOD_S older), else the last box alone."""
+        else the stored frame's own box (up to a frame save period older), else the last box alone."""
         last = tuple(saved.box), saved.last_seq, None
         payload = self._store.load_frame(saved.sid) if self._store else None
         if payload is None or saved.last_seq is None:
@@ -647,7 +650,7 @@ class SessionManager:
         self._saved_at = now
         try:
             for i, (session, entry, box_frame) in enumerate(zip(sessions, table, box_frames)):
-                due = force or now - session.frame_saved_at >= FRAME_SAVE_PERIOD_S
+                due = force or now - session.frame_saved_at >= self._frame_save_period_s
                 if due and entry.last_seq is not None and entry.last_seq != session.saved_frame_seq:
                     frame = self._history.frame(session.image_key, entry.last_seq)
                     if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:

@@ -3,8 +3,8 @@
 Next to it, <file>.frames/<sid>.msgpack holds a Frame of each session with the box computed on it, so that a
 restored session re-initialises its tracker on the very frame its box belongs to, then catches up on the live
 feed, instead of applying a stale box to a frame where the target has moved. The table is saved every second,
-the frames every 10 s (manager.FRAME_SAVE_PERIOD_S) and at every start, reinit and shutdown: a frame a second of
-each session was a megabyte a second to disk for six 720p feeds, worn into an edge box's SD card.
+the frames at every start, reinit and shutdown and otherwise every 5 s (manager.FRAME_SAVE_PERIOD_S): a frame a
+second of each session was a megabyte a second to disk for six 720p feeds, worn into an edge box's SD card.
 
 A missing file is an empty table; a corrupt one is logged, kept aside as <file>.corrupt and treated as empty,
 so a bad file never stops the service from starting. A table of another version (a newer service's) is kept aside

@@ -214,7 +214,7 @@ def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, cli
             time.sleep(1.2)                                   # the table is saved about once a second
             saved = {s.sid: s for s in StateStore(state).load()}
             assert saved["keep"].last_seq is not None and saved["keep"].box != box
-            # the frame is stored every 10 s: a restore starts on it, with the box computed on it
+            # the frame is stored every 5 s: a restore starts on it, with the box computed on it
             assert saved["keep"].frame_seq is not None and saved["keep"].frame_box is not None
 
             workers = descendants(serve.proc.pid)
