@@ -45,7 +45,8 @@ LIST_TIMEOUT_S = 2.0         # reply timeout of that list query
 SILENT_DROP_S = 30.0         # a session of a node that stopped answering (its token still up) is dropped after this
                              # long without news
 TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here or whose service's token went are
-                             # ignored for this long (or until that service's token is back)
+                             # ignored for this long (or until that service's token is back, or a list shows a new
+                             # session under the stopped one's id)
 MAX_IMAGE_KEYS = 32          # watched image keys (each one is a subscriber + a thread)
 # A key asked for by watch() (the page's "watch" box) that no session uses is let go once no one has looked at its
 # frames for this long: else a dashboard up for days reached MAX_IMAGE_KEYS, and new cameras were not shown.
@@ -292,7 +293,8 @@ class Dashboard:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._sessions: dict[str, SessionView] = {}
-        self._tombstones: dict[str, float] = {}
+        # node/sid -> (when, created_ns of the session stopped here, None when its service's token went)
+        self._tombstones: dict[str, tuple[float, int | None]] = {}
         self._watchers: dict[str, FrameWatcher] = {}
         self._pinned: set[str] = set()                    # image_keys: watched for good
         self._asked: dict[str, float] = {}                # key -> when watch() asked for it (monotonic)
@@ -437,12 +439,12 @@ class Dashboard:
         restored sessions again as soon as it lists them or publishes for them."""
         with self._changed:
             if alive:
-                self._tombstones = {k: t for k, t in self._tombstones.items() if not k.startswith(f"{node}/")}
+                self._tombstones = {k: v for k, v in self._tombstones.items() if not k.startswith(f"{node}/")}
                 return
             now = time.monotonic()
             for sid_id in [k for k, view in self._sessions.items() if view.node == node]:
                 del self._sessions[sid_id]
-                self._tombstones[sid_id] = now
+                self._tombstones[sid_id] = (now, None)
             self._nodes.pop(node, None)
             self._changed.notify_all()
 
@@ -476,10 +478,13 @@ class Dashboard:
         to_watch = set()
         with self._changed:
             self._nodes = {listing.node: listing.max_sessions for listing in listings}
-            self._tombstones = {k: t for k, t in self._tombstones.items() if now - t < TOMBSTONE_S}
+            self._tombstones = {k: v for k, v in self._tombstones.items() if now - v[0] < TOMBSTONE_S}
             for sid_id, info in listed.items():
                 if sid_id in self._tombstones:
-                    continue
+                    stopped_created_ns = self._tombstones[sid_id][1]
+                    if stopped_created_ns is None or info.created_ns == stopped_created_ns:
+                        continue
+                    del self._tombstones[sid_id]           # started again under its id (by another client)
                 self._update_from_info(info)
                 to_watch.add(info.image_key)
             for sid_id, view in list(self._sessions.items()):
@@ -546,7 +551,7 @@ class Dashboard:
         info = self.client.stop(sid, node=node)
         with self._changed:
             sid_id = f"{info.node}/{info.sid}"
-            self._tombstones[sid_id] = time.monotonic()
+            self._tombstones[sid_id] = (time.monotonic(), info.created_ns)
             self._sessions.pop(sid_id, None)
             self._changed.notify_all()
         return info

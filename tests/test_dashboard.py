@@ -250,6 +250,29 @@ def test_a_key_asked_for_is_let_go_once_no_one_looks_at_its_frames(stack, monkey
         assert _wait(lambda: app.dashboard.image_keys() == [KEY], timeout=2.0 + 3 * dashboard.LIST_PERIOD_S)
 
 
+def test_a_session_stopped_here_and_started_again_elsewhere_shows_within_a_list_round(stack):
+    """A session stopped from the page is hidden for TOMBSTONE_S (5 s), so that its boxes still in flight do not
+    bring it back; one started again under its id meanwhile (from `tacf start`, say) stayed hidden that long. A
+    list reply showing a session created after the stopped one now ends the hiding."""
+    app, client, camera, service = stack
+    base = app.url.rstrip("/")
+
+    def shown() -> bool:
+        return any(s["id"] == f"{service.node}/again" for s in json.loads(_get(base + "/api/state")[2])["sessions"])
+    try:
+        client.start(KEY, SCENE.box(camera.index_of(camera.last_seq) or 0), sid="again")
+        assert _wait(shown)
+        assert _post(base + "/api/stop", {"sid": "again"})[0] == 200
+        assert not shown()
+        client.start(KEY, SCENE.box(camera.index_of(camera.last_seq) or 0), sid="again")
+        started = time.monotonic()
+        assert _wait(shown, timeout=dashboard.TOMBSTONE_S + 1.0)
+        assert time.monotonic() - started < 2 * dashboard.LIST_PERIOD_S + 0.5, time.monotonic() - started
+    finally:
+        if any(info.sid == "again" for info in client.list()):
+            client.stop("again")
+
+
 def test_an_mjpeg_stream_ends_when_its_key_is_no_longer_watched(stack):
     """A key watched for a session is dropped after its last session: its MJPEG stream (VLC, a wall screen) stayed
     open with no frame for good, a frozen picture that looked live."""
