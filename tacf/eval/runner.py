@@ -22,7 +22,7 @@ import re
 import signal
 import time
 from collections.abc import Iterable, Iterator
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
 from pathlib import Path, PurePosixPath
@@ -451,41 +451,64 @@ WORKER_DIED = ("a worker process died (killed, say by the out-of-memory killer, 
 
 def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[JobOutcome]:
     """Run jobs in this process (workers <= 1) or in a pool of spawned processes, with a tqdm progress bar; the
-    outcomes come in the order the jobs end. When a worker dies, the pairs not done fail (`WORKER_DIED`)."""
+    outcomes come in the order the jobs end. When a worker dies, the pairs it left undone run again, and only the
+    pair that was running in it when it died fails (`WORKER_DIED`)."""
     from tqdm import tqdm
 
     outcomes = []
     bar = tqdm(total=len(jobs), desc="eval", unit="seq", disable=not progress or not jobs)
+
+    def done(outcome: JobOutcome) -> None:
+        bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
+        outcomes.append(outcome)
+        bar.update()
     try:
         if workers <= 1 or len(jobs) <= 1:
             for job in jobs:
-                bar.set_postfix_str(f"{job.tracker} {job.seq.name}")
-                outcomes.append(run_job(job))
-                bar.update()
+                done(run_job(job))
         else:
-            # Ctrl-C reaches the whole process group: this process alone stops the run, ending the workers
-            with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
-                                     initializer=signal.signal, initargs=(signal.SIGINT, signal.SIG_IGN)) as pool:
-                futures = {pool.submit(run_job, job): job for job in jobs}
-                try:
-                    for future in as_completed(futures):
-                        outcome = _pool_outcome(future, futures[future])
-                        bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
-                        outcomes.append(outcome)
-                        bar.update()
-                except BaseException:   # Ctrl-C: leaving the pool would wait for the jobs running
-                    _terminate_workers(pool)
-                    raise
+            _run_in_pools(jobs, workers, done)
     finally:
         bar.close()
     return outcomes
 
 
-def _pool_outcome(future: Future, job: Job) -> JobOutcome:
-    try:
-        return future.result()
-    except BrokenProcessPool:
-        return failed_outcome(job, WORKER_DIED)
+def _run_in_pools(jobs: list[Job], workers: int, done) -> None:
+    """run_jobs' pools. A pool handed each worker a pair and queued one more: of the pairs a dead worker left
+    undone, those first `workers + 1` (the suspects) run again one at a time, where a worker that dies names its
+    pair, then the others in a new pool."""
+    remaining = jobs
+    while remaining:
+        undone = _run_pool(remaining, min(workers, len(remaining)), done)
+        if not undone:
+            return
+        log.warning("a worker process died: the %d pair(s) it left undone run again", len(undone))
+        suspects, remaining = undone[:workers + 1], undone[workers + 1:]
+        while suspects:
+            undone = _run_pool(suspects, 1, done)
+            if undone:
+                done(failed_outcome(undone[0], WORKER_DIED))
+            suspects = undone[1:]
+
+
+def _run_pool(jobs: list[Job], workers: int, done) -> list[Job]:
+    """Run `jobs` in a new pool of `workers` spawned processes, passing each outcome to `done`; the jobs a dead
+    worker left undone, in the order given."""
+    # Ctrl-C reaches the whole process group: this process alone stops the run, ending the workers
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=signal.signal, initargs=(signal.SIGINT, signal.SIG_IGN)) as pool:
+        futures = [pool.submit(run_job, job) for job in jobs]
+        undone = set()
+        try:
+            for future in as_completed(futures):
+                try:
+                    done(future.result())
+                except BrokenProcessPool:
+                    undone.add(future)
+        except BaseException:   # Ctrl-C: leaving the pool would wait for the jobs running
+            _terminate_workers(pool)
+            raise
+    return [job for job, future in zip(jobs, futures) if future in undone]
 
 
 def _terminate_workers(pool: ProcessPoolExecutor) -> None:
