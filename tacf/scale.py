@@ -25,7 +25,7 @@ from scipy.signal.windows import hann
 from tacf.config import TrackerConfig
 from tacf.features import fhog_batch
 from tacf.fft import squared_magnitude
-from tacf.geometry import crop_replicate, resize_auto
+from tacf.geometry import sample_patch
 
 FeatureFn = Callable[[np.ndarray, int], np.ndarray]
 """features(patch uint8 HxW or HxWxC (raw 0-255 values), cell_size) -> (C, H // cell, W // cell)."""
@@ -217,7 +217,7 @@ class ScaleFilter:
         missing = [rect for rect in rects if rect not in known]
         if not missing:
             return known
-        patches = np.stack([resize_auto(crop_replicate(image, rect[:2], rect[2:]), self._model_sz, self._fast_resize)
+        patches = np.stack([sample_patch(image, rect[:2], rect[2:], self._model_sz, self._fast_resize)
                             for rect in missing])
         return {**known, **dict(zip(missing, self._patch_features(patches)))}
 
