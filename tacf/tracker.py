@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from tacf.allocator import keep_freed_memory
@@ -78,6 +79,18 @@ def check_frame(frame, expected_shape=None) -> np.ndarray:
         raise ValueError(f"frame shape {frame.shape} differs from the initial frame's {expected_shape}; "
                          "call init() again for a new video")
     return frame
+
+
+# A search area whose every channel varies by less than this (standard deviation, grey levels) is blank.
+UNIFORM_STD = 1.0
+
+
+def _uniform(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
+    """Whether the part of the frame in the area of area_hw centred on pos is all one colour, to within noise."""
+    top, left = np.maximum(np.floor(pos - area_hw / 2), 0).astype(int)
+    bottom, right = np.minimum(np.ceil(pos + area_hw / 2), frame.shape[:2]).astype(int)
+    region = frame[top:max(bottom, top + 1), left:max(right, left + 1)]
+    return float(np.max(cv2.meanStdDev(region)[1])) < UNIFORM_STD
 
 
 class Tracker:
@@ -165,6 +178,11 @@ class Tracker:
             raise RuntimeError("call init(frame, box) before update(frame)")
         frame = check_frame(frame, self._frame_shape)
         self.learn()
+        if _uniform(frame, self.pos, self._sample_hw()):
+            # A dropout frame (black, grey, saturated) shows nothing to track: the box stays and the model does
+            # not learn a blank target. Searched, it drifted half a cell a frame (the response window's two equal
+            # peaks, on an even grid: zero and one cell) and the motion term carried it on.
+            return TrackResult(box=self.box, pme=0.0, score=0.0, ok=False, scale=self.scale_factor)
         self.frame_number += 1
 
         # ------- LOCALISE -------

@@ -303,6 +303,23 @@ def test_init_refuses_a_box_whose_response_would_be_one_cell():
         tracker.update(strip)
 
 
+@pytest.mark.parametrize("profile", ["paper", "kcc"])
+def test_a_camera_dropout_leaves_the_box_in_place_and_tracking_resumes(profile):
+    """Black frames (a video link's dropout) show nothing to track: the box walked off down and right, half a cell
+    a frame (the response window's two peaks on an even grid), and the model learnt a blank target. Now the box
+    stays, not ok, and the target is found again after the dropout."""
+    frames, boxes = moving_target_sequence(30, velocity=(0.5, 0.5))
+    tracker = Tracker(TrackerConfig.profile(profile))
+    tracker.init(frames[0], boxes[0])
+    for frame in frames[1:10]:
+        tracker.update(frame)
+    before = tracker.box
+    for level in (0, 0, 255, 128, 0):                   # black, then a white and a grey dropout frame
+        result = tracker.update(np.full_like(frames[10], level))
+        assert result.box == before and not result.ok and result.pme == 0.0
+    assert all(box_iou(tracker.update(frame).box, box) > 0.5 for frame, box in zip(frames[10:], boxes[10:]))
+
+
 def test_an_init_refused_keeps_the_target_already_followed():
     """A refused re-init, whatever the reason, leaves the tracker as it was: the one-cell refusal used to drop
     the running target (box reported as the refused one, update asking for init)."""
