@@ -320,6 +320,35 @@ def test_a_camera_dropout_leaves_the_box_in_place_and_tracking_resumes(profile):
     assert all(box_iou(tracker.update(frame).box, box) > 0.5 for frame, box in zip(frames[10:], boxes[10:]))
 
 
+def test_a_faint_target_in_fog_is_tracked_not_taken_for_a_dropout():
+    """A target three grey levels above a flat background (fog, haze, an over-exposed sky) leaves its search area
+    nearly one colour; taken for a dropout, the box stayed on the first frame's and was never ok."""
+    rows, cols = np.mgrid[0:24, 0:24]
+    pattern = np.round(3 * (0.6 + 0.4 * np.cos(cols / 3.0) * np.cos(rows / 4.0))).astype(np.uint8)
+    frames, boxes = [], []
+    for i in range(30):
+        frame = np.full((480, 640), 128, np.uint8)
+        x, y = 200 + 2 * i, 200 + i
+        frame[y:y + 24, x:x + 24] += pattern
+        frames.append(frame)
+        boxes.append((x, y, 24, 24))
+    assert_follows(_track(TrackerConfig(), frames, boxes[0]), boxes)
+
+
+def test_a_target_that_outruns_its_search_area_over_plain_sky_is_still_searched_for():
+    """A textured target speeding up over a flat sky leaves its search area blank; that area taken for a dropout
+    froze the box before the motion search, which is there for such targets, could look ahead."""
+    patch = texture(np.random.default_rng(3), (24, 32, 3), blur=1)
+    frames, boxes, x, speed = [], [], 40.0, 4.0
+    while x + 32 < 1600:
+        frame = np.full((480, 1600, 3), (230, 200, 160), np.uint8)
+        frame[220:244, int(x):int(x) + 32] = patch
+        frames.append(frame)
+        boxes.append((int(x), 220, 32, 24))
+        speed, x = speed + 4, x + speed
+    assert_follows(_track(TrackerConfig(), frames, boxes[0]), boxes)
+
+
 def test_an_init_refused_keeps_the_target_already_followed():
     """A refused re-init, whatever the reason, leaves the tracker as it was: the one-cell refusal used to drop
     the running target (box reported as the refused one, update asking for init)."""
