@@ -651,7 +651,9 @@ class SessionManager:
         try:
             for i, (session, entry, box_frame) in enumerate(zip(sessions, table, box_frames)):
                 due = force or now - session.frame_saved_at >= self._frame_save_period_s
-                if due and entry.last_seq is not None and entry.last_seq != session.saved_frame_seq:
+                # the box too: a reinit drawn on the frame already stored changes the box, not the seq
+                stored = (session.saved_frame_seq, session.saved_frame_box)
+                if due and entry.last_seq is not None and (entry.last_seq, tuple(entry.box)) != stored:
                     frame = self._history.frame(session.image_key, entry.last_seq)
                     if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:
                         frame = box_frame           # carried by a start or reinit: in no history

@@ -947,6 +947,32 @@ def test_a_session_s_frame_is_stored_at_its_start_then_every_5_s_with_its_own_bo
         call(client, NODE, "stop", StopRequest(sid="stored"))
 
 
+def test_a_reinit_on_the_stored_frame_stores_its_new_box_with_it(service, client):
+    """The frame was stored again only when its seq changed: a reinit drawn on the frame already stored (a paused
+    camera, or a correction on the start's frame) kept the old box beside it, and a crash in the next 5 s
+    restored the target from before the reinit."""
+    scene = MovingTargetScene(640, 360, speed=1.0)
+    publisher = client.declare_publisher("test/cam/redrawn")
+    store = service.manager._store
+    drawn = encode_frame(scene.frame(4)[0], 4, "jpeg", quality=85)
+    corrected = (20.0, 20.0, 60.0, 60.0)
+
+    def entry():
+        return next(s for s in store.load() if s.sid == "redrawn")
+    try:
+        play_frames(publisher, scene, 0, 5)
+        start(client, service, image_key="test/cam/redrawn", box=scene.box(4), seq=4, sid="redrawn", frames=[drawn])
+        assert entry().frame_seq == 4 and entry().frame_box == scene.box(4)
+        call(client, NODE, "reinit", ReinitRequest(sid="redrawn", box=corrected, seq=4, frames=[drawn]), timeout=10)
+        assert (entry().frame_seq, entry().frame_box) == (4, corrected), entry()
+        play_frames(publisher, scene, 5, 20)
+        assert wait_until(lambda: entry().last_seq == 19, 5)
+        assert (entry().frame_seq, entry().frame_box) == (4, corrected), entry()
+    finally:
+        publisher.undeclare()
+        call(client, NODE, "stop", StopRequest(sid="redrawn"))
+
+
 def test_health_reads_the_frame_rate_before_its_window_fills_and_p95_by_nearest_rank(monkeypatch):
     """The first Health of a session at 10 fps read 6.5 (frames over the whole 2 s window, not yet filled), and
     p95 of 20 times was their maximum."""
