@@ -130,7 +130,12 @@ class DashboardServer(ThreadingHTTPServer):
             self.connections += admitted
             self.connections_refused += not admitted
         if admitted:
-            super().process_request(request, client_address)
+            try:
+                super().process_request(request, client_address)
+            except BaseException:           # its thread did not start (none left): process_request_thread never runs
+                with self._clients_lock:
+                    self.connections -= 1
+                raise
             return
         self.shutdown_request(request)        # no reply: a TLS connection could not even be answered unread
         if time.monotonic() - self._refusal_logged > 10.0:

@@ -569,6 +569,28 @@ def test_a_request_head_sent_a_byte_at_a_time_is_cut_off_and_connections_are_cap
         assert status == 200 and "tacf_dashboard_connections_refused_total 1" in body.decode()
 
 
+def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch):
+    """Out of threads (the flood the cap is for), Thread.start raises and the connection's thread never ran to give
+    its count back: after max_connections of them every later connection was refused, for good."""
+    starts = threading.Thread.start
+
+    def out_of_threads(thread):
+        if thread.name.endswith("(process_request_thread)"):
+            raise RuntimeError("can't start new thread")
+        starts(thread)
+    with DashboardApp(no_service_options(), port=0) as app:
+        app.server.max_connections = 2
+        monkeypatch.setattr(threading.Thread, "start", out_of_threads)
+        for _ in range(3):
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as connection:
+                connection.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                with contextlib.suppress(ConnectionResetError):
+                    assert connection.recv(1024) == b""
+        monkeypatch.undo()
+        assert app.server.connections == 0
+        assert _get(app.url + "healthz")[0] == 200
+
+
 def test_odd_requests_get_a_clear_answer():
     with DashboardApp(no_service_options(), port=0, image_keys=[KEY]) as app:
         base = app.url.rstrip("/")
