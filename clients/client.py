@@ -40,9 +40,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT = 5.0
 BoxLike = Sequence[float]
-#: `start(..., node=LEAST_LOADED)` runs the session on the least-loaded service (so `start` cannot address a
-#: service called "auto").
-LEAST_LOADED = "auto"
+#: `start(..., node=LEAST_LOADED)` runs the session on the least-loaded service ("auto", an id no service takes).
+LEAST_LOADED = keys.LEAST_LOADED
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,18 @@ def validate_id(value: object, what: str = "id") -> str:
     return value
 
 
+#: The node a client names to start a session on the least-loaded service, so the one id no service may take.
+LEAST_LOADED = "auto"
+
+
+def validate_node_id(value: object) -> str:
+    """validate_id for the id a service takes, which also must not be LEAST_LOADED."""
+    if validate_id(value, "node id") == LEAST_LOADED:
+        raise InvalidIdError(f"node id {LEAST_LOADED!r} is reserved: clients start sessions 'on {LEAST_LOADED}' "
+                             "to mean the least-loaded service")
+    return value
+
+
 def is_valid_id(value: object) -> bool:
     return isinstance(value, str) and bool(_ID_RE.fullmatch(value))
 

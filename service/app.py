@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 
 from tacf.zenoh_options import zenoh_error_text
-from tacf_schemas import sanitise_id, service_liveliness_key, validate_id
+from tacf_schemas import LEAST_LOADED, sanitise_id, service_liveliness_key, validate_node_id
 
 from .config import ZenohOptions, own_endpoints, service_config, worker_config, worker_endpoints
 from .control import ControlServer
@@ -34,7 +34,8 @@ STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SI
 
 
 def default_node_id() -> str:
-    return sanitise_id(socket.gethostname(), fallback="edge")
+    node = sanitise_id(socket.gethostname(), fallback="edge")
+    return "edge" if node == LEAST_LOADED else node
 
 
 @dataclass
@@ -52,7 +53,7 @@ class ServiceOptions:
 
 class TrackingService:
     def __init__(self, options: ServiceOptions) -> None:
-        validate_id(options.node, "node id")
+        validate_node_id(options.node)
         if options.max_sessions < 1:
             raise ValueError("max_sessions must be >= 1")
         if not (math.isfinite(options.init_wait_s) and options.init_wait_s >= 0):     # NaN would wait for ever

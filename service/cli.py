@@ -40,7 +40,7 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from tacf.zenoh_options import options_from_args
-    from tacf_schemas import InvalidIdError, validate_id
+    from tacf_schemas import InvalidIdError, validate_node_id
 
     from .app import ServiceOptions, default_node_id, serve
     from .trackers import DEFAULT_FACTORY
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     log = logging.getLogger("tacf_service")
     node = default_node_id() if args.node is None else args.node     # --node "" is an invalid id, not a default
     try:
-        validate_id(node, "node id")
+        validate_node_id(node)
     except InvalidIdError as exc:
         log.error("%s", exc)
         return 2

@@ -186,14 +186,17 @@ def test_a_service_listening_on_a_unix_socket_only_tracks(tmp_path):
         service.close()
 
 
-@pytest.mark.parametrize("node", ["bad/id", ""])
-def test_serve_rejects_a_bad_node_id(tmp_path, endpoint, node):
+@pytest.mark.parametrize("node, message", [("bad/id", "invalid node id"), ("", "invalid node id"),
+                                           ("auto", "node id 'auto' is reserved")])
+def test_serve_rejects_a_bad_node_id(tmp_path, endpoint, node, message):
+    """"" was taken as "use the hostname"; a service called "auto" was listed, and a start on it went to whichever
+    service was least loaded, since "auto" is how clients ask for that."""
     serve = Serve(tmp_path, endpoint, "--node", node)       # the last --node wins
     try:
-        assert serve.proc.wait(timeout=30) == 2             # "" was taken as "use the hostname"
+        assert serve.proc.wait(timeout=30) == 2
     finally:
         serve.cleanup()
-    assert "invalid node id" in serve.log()
+    assert message in serve.log()
 
 
 def test_kill_restart_with_state_then_sigterm_and_sigint(tmp_path, endpoint, client):
