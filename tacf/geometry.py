@@ -174,12 +174,7 @@ def sample_patch(image: np.ndarray, top_left, size_hw, out_hw, fast_resize: bool
     small_hw = (height // factor, width // factor)
     rows = _blocks_inside(int(top_left[0]), small_hw[0], image.shape[0], factor)
     cols = _blocks_inside(int(top_left[1]), small_hw[1], image.shape[1], factor)
-    if rows is None or cols is None:          # no whole block in the image: each repeats its nearest border pixel
-        small = crop_replicate(image[::factor, ::factor],
-                               (int(top_left[0]) // factor, int(top_left[1]) // factor), small_hw)
-    else:
-        small = _shrunk_crop(image, rows, cols, factor, small_hw)
-    return resize_auto(small, out_hw, fast_resize)
+    return resize_auto(_shrunk_crop(image, rows, cols, factor, small_hw), out_hw, fast_resize)
 
 
 def _shrunk_crop(image: np.ndarray, rows, cols, factor: int, small_hw) -> np.ndarray:
@@ -190,6 +185,8 @@ def _shrunk_crop(image: np.ndarray, rows, cols, factor: int, small_hw) -> np.nda
     last_row, last_col = image.shape[0] - 1, image.shape[1] - 1
 
     def block_means(pixels: np.ndarray, hw) -> np.ndarray:
+        if 0 in hw:                 # no whole block in the image on this axis: all lie beyond a border
+            return np.empty((*hw, *image.shape[2:]), image.dtype)
         return cv2.resize(pixels, (hw[1], hw[0]), interpolation=cv2.INTER_AREA).reshape(*hw, *image.shape[2:])
 
     small = np.empty((*small_hw, *image.shape[2:]), image.dtype)
@@ -205,12 +202,13 @@ def _shrunk_crop(image: np.ndarray, rows, cols, factor: int, small_hw) -> np.nda
     return small
 
 
-def _blocks_inside(start: int, blocks: int, limit: int, factor: int) -> tuple[int, int, int] | None:
+def _blocks_inside(start: int, blocks: int, limit: int, factor: int) -> tuple[int, int, int]:
     """Of `blocks` blocks of `factor` pixels from `start`: the first pixel, index and count of those lying within
-    [0, limit)."""
-    first = max(0, (factor - 1 - start) // factor)      # ceil(-start / factor)
+    [0, limit). With none inside, the index is the count of blocks starting before 0 (those repeat pixel 0, the
+    rest the last one)."""
+    first = min(blocks, max(0, (factor - 1 - start) // factor))     # ceil(-start / factor)
     end = min(blocks, (limit - start) // factor)
-    return (start + first * factor, first, end - first) if end > first else None
+    return start + first * factor, first, max(end - first, 0)
 
 
 def subwindow(image: np.ndarray, pos: np.ndarray, model_hw, sample_hw, fast_resize: bool = False) -> np.ndarray:

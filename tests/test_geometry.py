@@ -132,6 +132,21 @@ def test_a_large_crop_is_shrunk_while_cut_and_stays_close_to_one_cut_whole(monke
         assert shrunk.shape == whole.shape and np.abs(shrunk - whole).mean() < 2.0, (top_left, size)
 
 
+def test_a_large_crop_with_no_whole_block_in_the_image_repeats_the_border_pixels_averaged(monkeypatch):
+    """A crop overlapping the image by under a block (or not at all) on an axis took every f-th pixel of the image:
+    a row f-1 inside instead of the border row, and one column in f instead of their mean (0 for 225 here)."""
+    image = np.zeros((360, 640), np.uint8)
+    image[-1], image[:, -1] = 200, 200          # a bright border row and column, unlike the pixels inside them
+    image[:, 1::2] += 25                        # columns alternating 0 / 25
+    monkeypatch.setattr(geometry, "LARGE_CROP_PIXELS", 1 << 14)
+    cases = [((359, 0), (800, 640)), ((400, 0), (800, 640)), ((-800, 0), (800, 640)),   # last row, below, above
+             ((0, 639), (360, 900)), ((359, 639), (900, 900))]                          # last column, corner
+    for top_left, size in cases:
+        whole = resize_auto(crop_replicate(image, top_left, size), (50, 60)).astype(float)
+        shrunk = sample_patch(image, top_left, size, (50, 60))
+        assert np.abs(shrunk - whole).mean() < 2.0, (top_left, size, np.abs(shrunk - whole).mean())
+
+
 def test_a_frame_sized_box_on_a_4k_frame_takes_megabytes_not_hundreds():
     """Its search area, context sample and 33 scale patches were each cut whole at full resolution: 640 MB more
     (peak RSS) and 0.45 s a frame on 3840x2160; 1.5 GB and 0.63 s on 6000x4000. Now 90 and 83 MB, 0.11 and 0.34 s
