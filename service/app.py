@@ -24,6 +24,7 @@ from .frames import FrameHistory
 from .manager import FRAME_SAVE_PERIOD_S, SessionManager
 from .state import StateStore
 from .trackers import DEFAULT_FACTORY
+from .worker import stop_fork_server
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,8 @@ class TrackingService:
         if self.manager is not None:
             self.manager.begin_shutdown()
         if self._control is not None:
-            self._control.close(timeout=0.5)
+            if not self._control.close(timeout=0.5):
+                stop_fork_server()      # what a start still running most likely waits on, hung
             self._control = None
         if self.manager is not None:
             self.manager.shutdown(timeout=SHUTDOWN_BUDGET_S - (time.monotonic() - started))

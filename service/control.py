@@ -57,9 +57,9 @@ class ControlServer:
         for _, thread in self._threads:
             thread.start()
 
-    def close(self, timeout: float = 1.0) -> None:
+    def close(self, timeout: float = 1.0) -> bool:
         """Undeclare the queryable, let the threads answer what is queued and end, joining them within `timeout`
-        in total."""
+        in total. False: some are still answering, left behind."""
         try:
             self._queryable.undeclare()
         except Exception:
@@ -75,6 +75,7 @@ class ControlServer:
         if stuck:
             log.warning("control queries still being answered after %.1f s (%s): left behind", timeout,
                         ", ".join(stuck))
+        return not stuck
 
     def _admit(self, query) -> None:
         """On Zenoh's callback thread: queue the query in its lane, or refuse it at once when the lane is full."""

@@ -278,7 +278,8 @@ def test_a_stop_right_after_start_leaves_no_worker_and_no_traceback(tmp_path, en
 
 def test_a_frozen_fork_server_does_not_keep_the_service_from_exiting(tmp_path, endpoint, client):
     """A start waiting on a fork server that hangs (stopped here) held a control thread that was not a daemon, so
-    SIGTERM closed the service and its process never ended."""
+    SIGTERM closed the service and its process never ended; then the hung server and the resource tracker it
+    holds open outlived it."""
     serve = Serve(tmp_path, endpoint, "--spare-workers", "0")
     try:
         assert wait_until(lambda: service_alive(client), 30), serve.log()
@@ -298,8 +299,10 @@ def test_a_frozen_fork_server_does_not_keep_the_service_from_exiting(tmp_path, e
                            payload=encode(StartRequest(image_key="proc/frozen", box=(10, 10, 40, 40), sid="stuck")))
         time.sleep(1.5)
         assert stuck.try_recv() is None, "the start waits on the fork server"
+        family = descendants(serve.proc.pid)
         code, took = serve.signal_and_wait(signal.SIGTERM, timeout=15)
         assert code == 0 and took < 5.0, (code, took, serve.log()[-2000:])
+        assert wait_until(lambda: not alive(family), 10), cmdlines(alive(family))
     finally:
         serve.cleanup()
 
