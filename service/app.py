@@ -24,7 +24,7 @@ from .frames import FrameHistory
 from .manager import FRAME_SAVE_PERIOD_S, SessionManager
 from .state import StateStore
 from .trackers import DEFAULT_FACTORY
-from .worker import stop_fork_server
+from .worker import stop_workers_and_fork_server
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,7 @@ class TrackingService:
         self._store: StateStore | None = None
         self.manager: SessionManager | None = None
         self._control: ControlServer | None = None
+        self.queries_left_behind: list[threading.Thread] = []    # by close(): the threads still answering them
 
     def open(self) -> "TrackingService":
         import zenoh
@@ -108,8 +109,7 @@ class TrackingService:
         if self.manager is not None:
             self.manager.begin_shutdown()
         if self._control is not None:
-            if not self._control.close(timeout=0.5):
-                stop_fork_server()      # what a start still running most likely waits on, hung
+            self.queries_left_behind = self._control.close(timeout=0.5)
             self._control = None
         if self.manager is not None:
             self.manager.shutdown(timeout=SHUTDOWN_BUDGET_S - (time.monotonic() - started))
@@ -156,6 +156,14 @@ def serve(options: ServiceOptions) -> int:
         log.info("signal received: shutting down")
     finally:
         service.close()
+        if service.queries_left_behind:
+            # One may wait on a hung fork server, which with the resource tracker it holds would outlive this
+            # process. Only here, where nothing else uses the server: a library's process may share it.
+            stop_workers_and_fork_server()
+            # Woken by that, a thread must end before the interpreter does: one finalised inside a Zenoh call
+            # aborts the process ("FATAL: exception not rethrown", exit -6).
+            for thread in service.queries_left_behind:
+                thread.join(timeout=1.0)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return 0

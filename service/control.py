@@ -57,9 +57,9 @@ class ControlServer:
         for _, thread in self._threads:
             thread.start()
 
-    def close(self, timeout: float = 1.0) -> bool:
+    def close(self, timeout: float = 1.0) -> list[threading.Thread]:
         """Undeclare the queryable, let the threads answer what is queued and end, joining them within `timeout`
-        in total. False: some are still answering, left behind."""
+        in total. Returns those still answering, left behind."""
         try:
             self._queryable.undeclare()
         except Exception:
@@ -71,11 +71,11 @@ class ControlServer:
         deadline = time.monotonic() + timeout
         for _, thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
-        stuck = [thread.name for _, thread in self._threads if thread.is_alive()]
+        stuck = [thread for _, thread in self._threads if thread.is_alive()]
         if stuck:
             log.warning("control queries still being answered after %.1f s (%s): left behind", timeout,
-                        ", ".join(stuck))
-        return not stuck
+                        ", ".join(thread.name for thread in stuck))
+        return stuck
 
     def _admit(self, query) -> None:
         """On Zenoh's callback thread: queue the query in its lane, or refuse it at once when the lane is full."""

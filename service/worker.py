@@ -137,11 +137,13 @@ def worker_context():
     return context
 
 
-def stop_fork_server() -> None:
-    """Kill the workers' fork server, if one runs (multiprocessing starts a new one for the next worker). For a
-    service closing with a start stuck on a hung server: that server, and the resource tracker it keeps open,
-    outlived the service."""
-    pid = getattr(multiprocessing.forkserver._forkserver, "_forkserver_pid", None)    # private, the same from 3.4 to 3.14
+def stop_workers_and_fork_server() -> None:
+    """Kill this process's worker processes, then the workers' fork server if one runs. Workers first: with the
+    server dead, multiprocessing takes every worker for exited and would not stop one at exit. Not joined: a hung
+    server, their parent, would never report them."""
+    for child in multiprocessing.active_children():
+        child.kill()
+    pid = getattr(multiprocessing.forkserver._forkserver, "_forkserver_pid", None)    # private, the same from 3.4 on
     if pid is not None:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)

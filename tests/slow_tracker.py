@@ -1,12 +1,14 @@
 """A tracker factory for the service's tests (`tracker_factory="slow_tracker:slow_tracker"`): the box it was
 initialised with, every frame, after a fixed delay. It shows which init a box comes from, and keeps the worker
-busy inside a frame long enough for a control request to arrive meanwhile."""
+busy inside a frame long enough for a control request to arrive meanwhile (SLOW_TRACKER_LOCATE_S, default 0.3 s,
+for a worker started by a `tacf serve` subprocess)."""
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 
-LOCATE_S = 0.3
+LOCATE_S = float(os.environ.get("SLOW_TRACKER_LOCATE_S", "0.3"))
 
 
 @dataclass(frozen=True)

@@ -307,6 +307,31 @@ def test_a_frozen_fork_server_does_not_keep_the_service_from_exiting(tmp_path, e
         serve.cleanup()
 
 
+def test_a_worker_inside_a_long_update_does_not_outlive_the_service(tmp_path, endpoint, client, monkeypatch):
+    """SIGTERM while a stop waits on a worker inside a 60 s update leaves the stop's thread behind. Killing the fork
+    server then, as a hung one had to be, made multiprocessing take the worker for exited: it ran on after the
+    service, and so did the resource tracker."""
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SLOW_TRACKER_LOCATE_S", "60")
+    serve = Serve(tmp_path, endpoint, "--spare-workers", "0", "--tracker-factory", "slow_tracker:slow_tracker")
+    try:
+        assert wait_until(lambda: service_alive(client), 30), serve.log()
+        with FramePublisher(client, "proc/slow", MovingTargetScene(320, 240), fps=10) as feed:
+            assert wait_until(lambda: feed.seq >= 3, 10)
+            call(client, NODE, "start", StartRequest(image_key="proc/slow", box=(10, 10, 40, 40), sid="slow"),
+                 timeout=30)
+            time.sleep(1.0)                                 # the worker is in its first update
+            family = descendants(serve.proc.pid)
+            client.get(f"tacf/{NODE}/control/stop", timeout=10, payload=encode(StopRequest(sid="slow")),
+                       handler=zenoh.handlers.FifoChannel(4))
+            time.sleep(0.2)
+            code, took = serve.signal_and_wait(signal.SIGTERM, timeout=15)
+            assert code == 0 and "left behind" in serve.log(), serve.log()[-2000:]
+            assert wait_until(lambda: not alive(family), 10), cmdlines(alive(family))
+    finally:
+        serve.cleanup()
+
+
 def test_sighup_stops_the_service_cleanly(tmp_path, endpoint):
     """A closed terminal or ssh session sends SIGHUP: the service stops as on SIGTERM (its table saved), instead of
     being killed by the signal's default action."""
