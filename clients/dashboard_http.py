@@ -132,16 +132,18 @@ class DashboardServer(ThreadingHTTPServer):
         if admitted:
             try:
                 super().process_request(request, client_address)
-            except BaseException:           # its thread did not start (none left): process_request_thread never runs
+                return
+            except Exception as exc:    # its thread did not start (none left): process_request_thread never runs
                 with self._clients_lock:
                     self.connections -= 1
-                raise
-            return
+                    self.connections_refused += 1
+                reason = f"cannot start a thread for a connection ({exc}): refusing it"
+        else:
+            reason = f"{self.max_connections} connections open, the most this dashboard serves: refusing new ones"
         self.shutdown_request(request)        # no reply: a TLS connection could not even be answered unread
         if time.monotonic() - self._refusal_logged > 10.0:
             self._refusal_logged = time.monotonic()
-            log.warning("%d connections open, the most this dashboard serves: refusing new ones (%d so far)",
-                        self.max_connections, self.connections_refused)
+            log.warning("%s (%d so far)", reason, self.connections_refused)
 
     def process_request_thread(self, request, client_address) -> None:
         try:

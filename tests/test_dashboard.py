@@ -569,9 +569,10 @@ def test_a_request_head_sent_a_byte_at_a_time_is_cut_off_and_connections_are_cap
         assert status == 200 and "tacf_dashboard_connections_refused_total 1" in body.decode()
 
 
-def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch):
+def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch, caplog, capfd):
     """Out of threads (the flood the cap is for), Thread.start raises and the connection's thread never ran to give
-    its count back: after max_connections of them every later connection was refused, for good."""
+    its count back: after max_connections of them every later connection was refused, for good. Each is refused
+    as one over the cap is, in one warning every 10 s (not a traceback each on stderr)."""
     starts = threading.Thread.start
 
     def out_of_threads(thread):
@@ -587,8 +588,11 @@ def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch)
                 with contextlib.suppress(ConnectionResetError):
                     assert connection.recv(1024) == b""
         monkeypatch.undo()
-        assert app.server.connections == 0
+        assert app.server.connections == 0 and app.server.connections_refused == 3
         assert _get(app.url + "healthz")[0] == 200
+    assert [r.getMessage() for r in caplog.records if "refusing" in r.getMessage()] == [
+        "cannot start a thread for a connection (can't start new thread): refusing it (1 so far)"]
+    assert "Traceback" not in capfd.readouterr().err
 
 
 def test_odd_requests_get_a_clear_answer():
