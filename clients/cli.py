@@ -318,14 +318,21 @@ def _client(args: argparse.Namespace, one_shot: bool = True):
     import dataclasses
 
     from tacf.zenoh_options import options_from_args
-    from tacf_clients.client import LEAST_LOADED, TrackingClient
+    from tacf_clients.client import TrackingClient
 
     options = options_from_args(args)
     if one_shot and options.mode is None and options.config_file is None:
         options = dataclasses.replace(options, mode="client")
-    node = None if args.node == LEAST_LOADED else args.node     # 'auto' is a choice of start, made there
-    with _reported(args.command), TrackingClient(options, node=node, timeout=args.timeout) as client:
+    with _reported(args.command), TrackingClient(options, node=_queried_node(args), timeout=args.timeout) as client:
         yield client
+
+
+def _queried_node(args: argparse.Namespace) -> str | None:
+    """--node for a command that queries: 'auto' (least loaded) is a choice of start, made there; here it is every
+    node, as no --node is."""
+    from tacf_clients.client import LEAST_LOADED
+
+    return None if args.node == LEAST_LOADED else args.node
 
 
 @contextmanager
@@ -474,7 +481,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
     from tacf_clients.watch import watch
 
     with stop_on_signals() as stop, _reported("watch"):
-        return watch(options_from_args(args), sid=args.sid, node=args.node, interval=args.interval,
+        return watch(options_from_args(args), sid=args.sid, node=_queried_node(args), interval=args.interval,
                      duration=args.duration, stop=stop)
 
 

@@ -450,8 +450,9 @@ def test_command_line_start_list_status_stop(service, camera, capsys):
     assert main(["status", "cli1", "--json", *zenoh_args]) == 0
     info = SessionInfo.model_validate_json(capsys.readouterr().out)
     assert info.sid == "cli1" and info.overrides == {"lambda1": 2e-4, "subcell_peak": False}
-    assert main(["watch", "cli1", "--duration", "1.5", "--interval", "0.5", *zenoh_args]) == 0
-    assert "cli1" in capsys.readouterr().out
+    for node in ([], ["--node", "auto"]):       # 'auto' is every node, as for list (a traceback, exit 1)
+        assert main(["watch", "cli1", "--duration", "1.5", "--interval", "0.5", *node, *zenoh_args]) == 0
+        assert "cli1" in capsys.readouterr().out
     assert main(["reinit", "cli1", "--box", "148,167,25,19", "--seq", "0", *zenoh_args]) == 0   # long gone
     captured = capsys.readouterr()
     assert "re-initialised cli1" in captured.out and "did not hold frame 0" in captured.err
