@@ -81,27 +81,28 @@ def check_frame(frame, expected_shape=None) -> np.ndarray:
     return frame
 
 
-# A frame each of whose channels spans at most this many grey levels shows nothing: a dropout of the video link.
-BLANK_RANGE = 2
+# A frame whose every pixel lies within this many grey levels of its mean colour, in every channel, shows
+# nothing: a dropout of the video link.
+BLANK_TOLERANCE = 2
 
 
 def _blank(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
-    """Whether the whole frame is one colour, to within BLANK_RANGE. The whole frame, not the search area: a
+    """Whether the whole frame is one colour, to within BLANK_TOLERANCE. The whole frame, not the search area: a
     target that moved out of its search area over a plain sky, or one of a few grey levels in fog, leaves the
-    area nearly blank and must still be searched for."""
+    area nearly blank and must still be searched for. The search area first, the quick answer on any ordinary
+    frame (20 us; the whole of a 4K frame takes 0.5 ms, 6 ms when blank)."""
     top, left = np.maximum(np.floor(pos - area_hw / 2), 0).astype(int)
     bottom, right = np.minimum(np.ceil(pos + area_hw / 2), frame.shape[:2]).astype(int)
     area = frame[top:max(bottom, top + 1), left:max(right, left + 1)]
-    # The cheap answer on any ordinary frame (20 us; the ranges of a 720p frame take 2.5 ms): values
-    # within a range r have a standard deviation of at most r / 2.
-    if float(np.max(cv2.meanStdDev(area)[1])) > BLANK_RANGE / 2:
+    return all(_one_colour(part) for part in (area, frame))
+
+
+def _one_colour(image: np.ndarray) -> bool:
+    colour, spread = cv2.meanStdDev(image)
+    if spread.max() > BLANK_TOLERANCE:      # implied by one pixel beyond the tolerance, and quicker to rule out
         return False
-    return all(_channel_range(part) <= BLANK_RANGE for part in (area, frame))
-
-
-def _channel_range(image: np.ndarray) -> int:
-    """The largest range (max - min) of any channel of image."""
-    return int(max(high - low for low, high, _, _ in map(cv2.minMaxLoc, cv2.split(image))))
+    within = cv2.inRange(image, colour.ravel() - BLANK_TOLERANCE, colour.ravel() + BLANK_TOLERANCE)
+    return cv2.countNonZero(within) == within.size
 
 
 class Tracker:
