@@ -1396,11 +1396,15 @@ def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(st
             browser.execute_script("document.querySelector('#node-select').value = arguments[0]", first)
             browser.find_element(By.ID, "sid-input").send_keys("chosen")
             assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == SCENE.width), "its frames are shown"
+            # a draw starts only on a frame held (a key list re-rendered as the second service came may reset it)
+            held = "const f = window.tacf.newFeed; return f.key === arguments[0] && f.bitmap !== null;"
+            assert _wait(lambda: browser.execute_script(held, KEY))
             for event, x, y in (("mousedown", 60, 50), ("mousemove", 120, 100), ("mouseup", 120, 100)):
                 browser.execute_script(mouse, event, x, y)
             said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
                          and t, timeout=30)
-            assert said and f"started on {first}" in said, browser.find_element(By.ID, "new-status").text
+            assert said and f"started on {first}" in said, (browser.find_element(By.ID, "new-status").text,
+                                                             browser.execute_script(held, KEY))
             started.append(("chosen", first))
         finally:
             for sid, node in started:
