@@ -107,8 +107,9 @@ def _one_colour(image: np.ndarray) -> bool:
     height, width = image.shape[:2]
     blocks = cv2.resize(image, (max(width // BLANK_BLOCK, 1), max(height // BLANK_BLOCK, 1)),
                         interpolation=cv2.INTER_AREA)
-    centre = np.round(colour.ravel())       # whole grey levels, as the block means are: inRange would round a
-    low, high = centre - BLANK_TOLERANCE, centre + BLANK_TOLERANCE      # fractional bound outwards
+    # Bounds in whole grey levels, as the block means are: inRange would round a fractional bound outwards.
+    centre = np.round(colour.ravel())
+    low, high = centre - BLANK_TOLERANCE, centre + BLANK_TOLERANCE
     return cv2.countNonZero(cv2.inRange(blocks, low, high)) == blocks.shape[0] * blocks.shape[1]
 
 

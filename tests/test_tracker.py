@@ -305,9 +305,9 @@ def test_init_refuses_a_box_whose_response_would_be_one_cell():
 
 @pytest.mark.parametrize("profile", ["paper", "kcc"])
 def test_a_camera_dropout_leaves_the_box_in_place_and_tracking_resumes(profile):
-    """Black frames (a video link's dropout, clean or with a little noise) show nothing to track: the box walked off down and right, half a cell
-    a frame (the response window's two peaks on an even grid), and the model learnt a blank target. Now the box
-    stays, not ok, and the target is found again after the dropout."""
+    """Black frames (a video link's dropout, clean or with a little noise) show nothing to track: the box walked off
+    down and right, half a cell a frame (the response window's two peaks on an even grid), and the model learnt a
+    blank target. Now the box stays, not ok, and the target is found again after the dropout."""
     frames, boxes = moving_target_sequence(30, velocity=(0.5, 0.5))
     tracker = Tracker(TrackerConfig.profile(profile))
     tracker.init(frames[0], boxes[0])
