@@ -13,6 +13,7 @@ from tacf_clients.demo import HoldingPublisher
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config
+from tacf_service.loopback import wait_until
 
 
 def no_service_options() -> ZenohOptions:
@@ -33,6 +34,15 @@ def service_and_camera(scene: Scene, key: str, node_prefix: str, fps: float = 20
                 yield service, session, camera
             finally:
                 camera.close()
+
+
+def hold_still(camera, timeout: float = 10.0) -> int:
+    """Hold `camera` (it repeats its first frame) and return the seq of the first frame sent held: the frame after
+    the one that may have been picked before the hold was set."""
+    camera.hold.set()
+    first_held = camera.last_seq + 2
+    assert wait_until(lambda: camera.last_seq >= first_held, timeout=timeout, period=0.02), "the camera sends on"
+    return first_held
 
 
 @contextmanager
