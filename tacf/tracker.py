@@ -7,6 +7,8 @@ Per frame (ALGORITHM.md section 7, with the decisions of section B):
             attention multiplies the channel sum; crop; context penalties from PME ratios on context frames;
             upsample, fuse the two feature types, take the peak (refined between cells). After a fast move,
             also search where that move continues, and keep the search whose HOG response peaks higher.
+            A frame that shows nothing of the target (one colour, or one colour where the search ends) is sat
+            out: the box stays and nothing is learnt.
   SCALE     DSST scale filter at the new position.
   UPDATE    train fresh filters (with context patches as hard negatives on context frames), blend them into
             the model, update the channel weights, colour histograms and scale model.
@@ -87,6 +89,9 @@ def check_frame(frame, expected_shape=None) -> np.ndarray:
 BLANK_TOLERANCE = 2     # grey levels between a block's mean and the frame's, in every channel
 BLANK_BLOCK = 4
 BLANK_NOISE_STD = 4.0   # more than this is a picture, or snow, not a dropout; and the quick answer on any other
+# Where a search ends, the box grown this many times a side must show something: the target's outline and its
+# surroundings are never one colour. A grey slice of a corrupt frame over the target is.
+SURROUND = 2.0
 
 
 def _blank(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
@@ -94,10 +99,14 @@ def _blank(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
     moved out of its search area over a plain sky, or one of a few grey levels in fog, leaves the area nearly
     blank and must still be searched for. The search area first, the quick answer on any ordinary frame (20 us;
     the whole of a 4K colour frame takes 0.6 ms, 4.6 ms when it is blank)."""
-    top, left = np.maximum(np.floor(pos - area_hw / 2), 0).astype(int)
-    bottom, right = np.minimum(np.ceil(pos + area_hw / 2), frame.shape[:2]).astype(int)
-    area = frame[top:max(bottom, top + 1), left:max(right, left + 1)]
-    return all(_one_colour(part) for part in (area, frame))
+    return all(_one_colour(part) for part in (_area(frame, pos, area_hw), frame))
+
+
+def _area(frame: np.ndarray, centre: np.ndarray, hw: np.ndarray) -> np.ndarray:
+    """The pixels of `frame` within the (height, width) `hw` around `centre` (row, col), at least one."""
+    top, left = np.maximum(np.floor(centre - hw / 2), 0).astype(int)
+    bottom, right = np.minimum(np.ceil(centre + hw / 2), frame.shape[:2]).astype(int)
+    return frame[top:max(bottom, top + 1), left:max(right, left + 1)]
 
 
 def _one_colour(image: np.ndarray) -> bool:
@@ -202,7 +211,7 @@ class Tracker:
             # A dropout frame (black, grey, saturated) shows nothing to track: the box stays and the model does
             # not learn a blank target. Searched, it drifted half a cell a frame (the response window's two equal
             # peaks, on an even grid: zero and one cell) and the motion term carried it on.
-            return TrackResult(box=self.box, pme=0.0, score=0.0, ok=False, scale=self.scale_factor)
+            return self._nothing_seen()
         self.frame_number += 1
 
         # ------- LOCALISE -------
@@ -210,9 +219,14 @@ class Tracker:
         ahead = self._motion_search_centre()
         if ahead is not None:
             detection = max(detection, self._localise(frame, ahead), key=lambda d: d.score)
+        found = detection.centre + detection.offset / self.areas.resize_factor
+        if _one_colour(_area(frame, self._overlapping(found), SURROUND * self.target_hw)):
+            # A partial dropout (a grey slice of a corrupt frame) over the target: as on a blank frame. Searched
+            # and learnt, the box slid to the slice's edges and learnt them (building5, 10 frames: IoU 0.85 -> 0).
+            self.frame_number -= 1
+            return self._nothing_seen()
         for name, spatial_map in detection.spatial_maps.items():
             self.spatiotemporal[name].keep(spatial_map)
-        found = detection.centre + detection.offset / self.areas.resize_factor
         self.displacement = found - self.pos
         self.pos = self._overlapping(found)
 
@@ -228,6 +242,10 @@ class Tracker:
         # A PME of 0 is a response without a peak (flat, or not finite), and the box did not move: never ok.
         return TrackResult(box=self.box, pme=confidence, score=float(detection.fused.max()),
                            ok=confidence > 0 and confidence >= self.config.lost_pme, scale=self.scale_factor)
+
+    def _nothing_seen(self) -> TrackResult:
+        """The result of a frame that shows nothing of the target: the box where it was, not ok."""
+        return TrackResult(box=self.box, pme=0.0, score=0.0, ok=False, scale=self.scale_factor)
 
     def learn(self) -> None:
         """The second half of update(): learn from the frame of the last locate(); nothing if done already."""

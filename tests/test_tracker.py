@@ -303,23 +303,38 @@ def test_init_refuses_a_box_whose_response_would_be_one_cell():
         tracker.update(strip)
 
 
+def _dropouts(kind: str, frames: list[np.ndarray], box: np.ndarray) -> list[np.ndarray]:
+    """Frames that show nothing of the target in place of `frames`: black, white and grey ones, clean or with a
+    little noise (a video link's dropout), or the frames with the grey part of a corrupt frame over the target
+    at `box` (a slice of rows, or a block)."""
+    if kind == "blank":
+        noise = np.random.default_rng(0).standard_normal(frames[0].shape)
+        noisy_black = [np.clip(np.round(16 + sigma * noise), 0, 255).astype(np.uint8) for sigma in (1, 2)]
+        return [np.full_like(frames[0], level) for level in (0, 0, 255, 128)] + noisy_black
+    x, y, w, h = box.astype(int)
+    columns = slice(None) if kind == "slice" else slice(x - 2 * w, x + 3 * w)
+    corrupt = [frame.copy() for frame in frames]
+    for frame in corrupt:
+        frame[y - 2 * h:y + 3 * h, columns] = 128
+    return corrupt
+
+
 @pytest.mark.parametrize("profile", ["paper", "kcc"])
-def test_a_camera_dropout_leaves_the_box_in_place_and_tracking_resumes(profile):
-    """Black frames (a video link's dropout, clean or with a little noise) show nothing to track: the box walked off
-    down and right, half a cell a frame (the response window's two peaks on an even grid), and the model learnt a
-    blank target. Now the box stays, not ok, and the target is found again after the dropout."""
+@pytest.mark.parametrize("kind", ["blank", "slice", "block"])
+def test_a_camera_dropout_leaves_the_box_in_place_and_tracking_resumes(profile, kind):
+    """Dropouts show nothing to track. Searched, the box walked off (on a blank frame half a cell a frame: the
+    response window's two peaks on an even grid; on a corrupt one to the grey part's edges) and the model learnt
+    a blank target. Now the box stays, not ok, and the target is found again after the dropout."""
     frames, boxes = moving_target_sequence(30, velocity=(0.5, 0.5))
     tracker = Tracker(TrackerConfig.profile(profile))
     tracker.init(frames[0], boxes[0])
     for frame in frames[1:10]:
         tracker.update(frame)
     before = tracker.box
-    noise = np.random.default_rng(0).standard_normal(frames[10].shape)
-    noisy_black = [np.clip(np.round(16 + sigma * noise), 0, 255).astype(np.uint8) for sigma in (1, 2)]
-    for dropout in [np.full_like(frames[10], level) for level in (0, 0, 255, 128)] + noisy_black:
+    for dropout in _dropouts(kind, frames[10:16], boxes[10]):
         result = tracker.update(dropout)
         assert result.box == before and not result.ok and result.pme == 0.0
-    assert all(box_iou(tracker.update(frame).box, box) > 0.5 for frame, box in zip(frames[10:], boxes[10:]))
+    assert all(box_iou(tracker.update(frame).box, box) > 0.5 for frame, box in zip(frames[16:], boxes[16:]))
 
 
 def test_a_faint_target_in_fog_is_tracked_not_taken_for_a_dropout():
