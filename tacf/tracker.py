@@ -83,15 +83,27 @@ def check_frame(frame, expected_shape=None) -> np.ndarray:
     return frame
 
 
+@dataclass(frozen=True)
+class Flatness:
+    """What counts as one colour: every mean over `block` x `block` pixels within `tolerance` grey levels of the
+    image's mean colour, in every channel. A standard deviation over `noise_std` is a picture: the quick answer."""
+
+    block: int
+    tolerance: int
+    noise_std: float
+
+
 # A dropout of the video link shows nothing: a frame of one colour, give or take sensor or encoder noise. Tested on
-# means over BLOCK x BLOCK pixels, which noise of standard deviation s spreads by s / BLOCK only, while what shows
-# the least structure worth tracking (a target three grey levels above fog) keeps its own.
-BLANK_TOLERANCE = 2     # grey levels between a block's mean and the frame's, in every channel
-BLANK_BLOCK = 4
-BLANK_NOISE_STD = 4.0   # more than this is a picture, or snow, not a dropout; and the quick answer on any other
-# Where a search ends, the box grown this many times a side must show something: the target's outline and its
-# surroundings are never one colour. A grey slice of a corrupt frame over the target is.
-SURROUND = 2.0
+# means over 4x4 pixels, which noise of standard deviation s spreads by s / 4 only, while what shows the least
+# structure worth tracking (a target three grey levels above fog) keeps its own. More than 4 is snow, or a picture.
+BLANK = Flatness(block=4, tolerance=2, noise_std=4.0)
+# The lost part of a corrupt frame is one value that the decoder filled in, to a grey level after JPEG; a camera's
+# picture never is, over an area twice the target's size a side, for it has noise. Pixel by pixel, since means
+# over blocks took in a tiny target (6x6 pixels, 12 grey levels under a plain sky) with the sky around it. Not for
+# a target that showed a fill at init: a box drawn inside a plain roof, saturated or noise-free, is searched for
+# by the roof's edges as ever (it drifts across the roof, in and out of the fill).
+FILL = Flatness(block=1, tolerance=1, noise_std=1.0)
+SURROUND = 2.0          # the area around where a search ends that must not be FILL: the box grown twice a side
 
 
 def _blank(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
@@ -99,7 +111,7 @@ def _blank(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
     moved out of its search area over a plain sky, or one of a few grey levels in fog, leaves the area nearly
     blank and must still be searched for. The search area first, the quick answer on any ordinary frame (20 us;
     the whole of a 4K colour frame takes 0.6 ms, 4.6 ms when it is blank)."""
-    return all(_one_colour(part) for part in (_area(frame, pos, area_hw), frame))
+    return all(_one_colour(part, BLANK) for part in (_area(frame, pos, area_hw), frame))
 
 
 def _area(frame: np.ndarray, centre: np.ndarray, hw: np.ndarray) -> np.ndarray:
@@ -109,17 +121,18 @@ def _area(frame: np.ndarray, centre: np.ndarray, hw: np.ndarray) -> np.ndarray:
     return frame[top:max(bottom, top + 1), left:max(right, left + 1)]
 
 
-def _one_colour(image: np.ndarray) -> bool:
+def _one_colour(image: np.ndarray, flatness: Flatness) -> bool:
     colour, spread = cv2.meanStdDev(image)
-    if spread.max() > BLANK_NOISE_STD:
+    if spread.max() > flatness.noise_std:
         return False
     height, width = image.shape[:2]
-    blocks = cv2.resize(image, (max(width // BLANK_BLOCK, 1), max(height // BLANK_BLOCK, 1)),
-                        interpolation=cv2.INTER_AREA)
+    if flatness.block > 1:
+        image = cv2.resize(image, (max(width // flatness.block, 1), max(height // flatness.block, 1)),
+                           interpolation=cv2.INTER_AREA)
     # Bounds in whole grey levels, as the block means are: inRange would round a fractional bound outwards.
     centre = np.round(colour.ravel())
-    low, high = centre - BLANK_TOLERANCE, centre + BLANK_TOLERANCE
-    return cv2.countNonZero(cv2.inRange(blocks, low, high)) == blocks.shape[0] * blocks.shape[1]
+    low, high = centre - flatness.tolerance, centre + flatness.tolerance
+    return cv2.countNonZero(cv2.inRange(image, low, high)) == image.shape[0] * image.shape[1]
 
 
 class Tracker:
@@ -156,6 +169,7 @@ class Tracker:
         self.frame_number = 1
         self.pos = np.array([y + h / 2, x + w / 2])
         self.target_hw, self.base_target_hw = target_hw, target_hw.copy()
+        self.plain_target = self._shows_fill(frame, self.pos)  # drawn on a fill: a fill later is no dropout
         self.scale_factor = 1.0
         self.displacement = None  # last frame's motion in image pixels (for the motion term)
         self.padding, self.areas, self.grid = padding, areas, grid
@@ -220,7 +234,7 @@ class Tracker:
         if ahead is not None:
             detection = max(detection, self._localise(frame, ahead), key=lambda d: d.score)
         found = detection.centre + detection.offset / self.areas.resize_factor
-        if _one_colour(_area(frame, self._overlapping(found), SURROUND * self.target_hw)):
+        if not self.plain_target and self._shows_fill(frame, self._overlapping(found)):
             # A partial dropout (a grey slice of a corrupt frame) over the target: as on a blank frame. Searched
             # and learnt, the box slid to the slice's edges and learnt them (building5, 10 frames: IoU 0.85 -> 0).
             self.frame_number -= 1
@@ -242,6 +256,10 @@ class Tracker:
         # A PME of 0 is a response without a peak (flat, or not finite), and the box did not move: never ok.
         return TrackResult(box=self.box, pme=confidence, score=float(detection.fused.max()),
                            ok=confidence > 0 and confidence >= self.config.lost_pme, scale=self.scale_factor)
+
+    def _shows_fill(self, frame: np.ndarray, pos: np.ndarray) -> bool:
+        """Whether the box around pos, grown SURROUND times a side, is one flat fill (FILL)."""
+        return _one_colour(_area(frame, pos, SURROUND * self.target_hw), FILL)
 
     def _nothing_seen(self) -> TrackResult:
         """The result of a frame that shows nothing of the target: the box where it was, not ok."""

@@ -337,6 +337,34 @@ def test_a_camera_dropout_leaves_the_box_in_place_and_tracking_resumes(profile, 
     assert all(box_iou(tracker.update(frame).box, box) > 0.5 for frame, box in zip(frames[16:], boxes[16:]))
 
 
+def test_a_tiny_target_under_a_plain_sky_is_not_taken_for_a_partial_dropout():
+    """A 6x6 bird or drone up to 12 grey levels under a noise-free sky: in means over 4x4 pixels it merged with
+    the sky around it, the area around it passed for the grey part of a corrupt frame, and the box froze."""
+    pattern = np.round(-12 * np.random.default_rng(0).uniform(0.3, 1.0, (6, 6, 1))).astype(np.int16)
+    frames, boxes = [], []
+    for i in range(40):
+        frame = np.full((360, 480, 3), 200, np.int16)
+        x, y = 150 + i, 150 + i // 2
+        frame[y:y + 6, x:x + 6] += pattern
+        frames.append(frame.astype(np.uint8))
+        boxes.append((x, y, 6, 6))
+    assert_follows(_track(TrackerConfig(), frames, boxes[0]), boxes)
+
+
+def test_a_box_drawn_inside_a_plain_roof_is_searched_for_by_the_roof_edges():
+    """A box inside a plain, noise-free roof (or a saturated one) shows a fill all around it from the first
+    frame: it is no partial dropout, and the roof's edges in the search area lead the box as before."""
+    road = texture(np.random.default_rng(7), (480, 720, 3), blur=4)
+    frames, boxes = [], []
+    for i in range(40):
+        frame = road.copy()
+        top, left = 150 + i, 100 + 3 * i
+        frame[top:top + 130, left:left + 130] = (60, 60, 200)
+        frames.append(frame)
+        boxes.append((left + 35, top + 35, 60, 60))
+    assert_follows(_track(TrackerConfig(), frames, boxes[0]), boxes)
+
+
 def test_a_faint_target_in_fog_is_tracked_not_taken_for_a_dropout():
     """A target three grey levels above a flat background (fog, haze, an over-exposed sky) leaves its search area
     nearly one colour; taken for a dropout, the box stayed on the first frame's and was never ok."""
