@@ -20,7 +20,7 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from camera_rig import no_service_options, service_and_camera, serving, tacf_command
+from camera_rig import hold_still, no_service_options, service_and_camera, serving, tacf_command
 
 pytest.importorskip("foxglove", reason="pip install -e '.[test]' installs foxglove-sdk")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
@@ -197,8 +197,7 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
     pixels = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)
     assert pixels.shape == (SCENE.height, SCENE.width, 3)
 
-    camera.hold.set()                               # a still camera while the box is drawn on it
-    seq = camera.last_seq
+    seq = hold_still(camera)                        # a still camera while the box is drawn on it
     ok, info = client.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
                                            "seq": seq, "sid": "fox1", "node": service.node})
     assert ok, info
@@ -268,8 +267,7 @@ def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path
     service, _, camera, board = rig
     path = tmp_path / "flight.mcap"
     with FoxgloveBridge(board, port=0, record=path) as recorder, serving(recorder):
-        camera.hold.set()
-        seq = camera.last_seq
+        seq = hold_still(camera)
         board.start(KEY, SCENE.box(camera.index_of(seq)), seq, sid="rec1", node=service.node)
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline and not any(s["box"] for s in board.sessions_json()[0]
@@ -310,8 +308,7 @@ def test_the_topics_of_a_key_go_with_its_last_session(rig):
     with Dashboard(session=rig_board.session) as board, FoxgloveBridge(board, port=0) as bridge, \
             foxglove_client(bridge.port) as fox, serving(bridge):
         try:
-            camera.hold.set()
-            seq = camera.last_seq
+            seq = hold_still(camera)
             ok, info = fox.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
                                                 "seq": seq, "sid": "fox-keys", "node": service.node})
             assert ok, info
@@ -540,8 +537,7 @@ def test_a_bad_start_request_gets_a_clear_failure(client, request_bytes, expecte
 
 def test_the_overrides_of_a_start_request_reach_the_service(rig, client):
     service, _, camera, _ = rig
-    camera.hold.set()
-    seq = camera.last_seq
+    seq = hold_still(camera)
     ok, info = client.call("/tacf/start", {"image_key": KEY, "box": list(SCENE.box(camera.index_of(seq))),
                                            "seq": seq, "sid": "fox-overrides", "overrides": {"cell_size": 6}})
     try:
