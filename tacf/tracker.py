@@ -234,7 +234,8 @@ class Tracker:
         if ahead is not None:
             detection = max(detection, self._localise(frame, ahead), key=lambda d: d.score)
         found = detection.centre + detection.offset / self.areas.resize_factor
-        if not self.plain_target and self._shows_fill(frame, self._overlapping(found)):
+        position = self._overlapping(found)
+        if not self.plain_target and self._shows_fill(frame, position):
             # A partial dropout (a grey slice of a corrupt frame) over the target: as on a blank frame. Searched
             # and learnt, the box slid to the slice's edges and learnt them (building5, 10 frames: IoU 0.85 -> 0).
             self.frame_number -= 1
@@ -242,7 +243,7 @@ class Tracker:
         for name, spatial_map in detection.spatial_maps.items():
             self.spatiotemporal[name].keep(spatial_map)
         self.displacement = found - self.pos
-        self.pos = self._overlapping(found)
+        self.pos = position
 
         # ------- SCALE -------
         if self.scale_filter is not None:
