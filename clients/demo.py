@@ -136,6 +136,7 @@ class HoldingPublisher:
         self.hold, self.stop, self.ended = threading.Event(), threading.Event(), threading.Event()
         self.hold.set()
         self._index_of_seq: OrderedDict[int, int] = OrderedDict()
+        self._last_sent = -1
         self._lock = threading.Lock()
         self.error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="tacf-demo-publisher")
@@ -149,16 +150,20 @@ class HoldingPublisher:
 
     @property
     def last_seq(self) -> int:
-        """The seq of the last frame sent, once index_of knows it (-1 before the first)."""
+        """The seq of the last frame sent (-1 before the first)."""
         with self._lock:
-            return next(reversed(self._index_of_seq), -1)
+            return self._last_sent
 
     def _put(self, frame: SourceFrame) -> None:
-        sent = self.publisher.put(frame.image)
+        # Noted before the frame goes: its box can come back before put() returns (on a busy machine it did, and
+        # the demo printed that box without its IoU). A frame that fails to encode leaves its seq to the next.
         with self._lock:
-            self._index_of_seq[sent.seq] = frame.index
+            self._index_of_seq[self.publisher.next_seq] = frame.index
             while len(self._index_of_seq) > 4096:
                 self._index_of_seq.popitem(last=False)
+        sent = self.publisher.put(frame.image)
+        with self._lock:
+            self._last_sent = sent.seq
 
     def _run(self) -> None:
         try:

@@ -128,6 +128,32 @@ def test_the_demo_keeps_up_with_a_live_camera_faster_than_its_rate():
     assert 40 <= seqs <= 75, "about 20 frames a second published"
 
 
+def test_a_frame_s_source_index_is_known_before_it_can_be_answered():
+    """The publisher noted which source frame a seq carried after put() returned; a box can come back sooner (on a
+    machine where the publishing thread lost the CPU right after sending), and the demo printed such boxes
+    without their IoU."""
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_schemas import Frame, decode
+
+    known = []
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        publisher = HoldingPublisher(session, BufferedCamera(), "test/demo/known", 20, "bgr8")
+        put = publisher.publisher.put
+        publisher.publisher.put = lambda image: (put(image), time.sleep(0.02))[0]  # a busy machine, after sending
+        subscriber = session.declare_subscriber(
+            "test/demo/known", lambda sample: known.append(publisher.index_of(decode(sample.payload.to_bytes(),
+                                                                                     Frame).seq)))
+        publisher.start()
+        try:
+            time.sleep(0.3)
+            publisher.hold.clear()
+            time.sleep(0.5)
+        finally:
+            publisher.close()
+            subscriber.undeclare()
+    assert len(known) >= 10 and None not in known, known
+
+
 def test_a_local_service_leaves_its_log_only_when_it_failed():
     """Every `tacf demo` (and test) left /tmp/tacf-serve-<node>-<port>.log behind: hundreds piled up. The log of a
     service that stopped cleanly goes; one that failed keeps it, since the error names it."""
