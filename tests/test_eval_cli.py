@@ -380,6 +380,15 @@ def test_eval_bad_input_exits_2(tmp_path):
     assert main(["eval", str(tmp_path), "--trackers", "nope", "--out", str(tmp_path / "o")]) == 2
 
 
+def test_a_glob_that_matches_nothing_is_refused_with_the_names_there_are(tmp_path, caplog):
+    data = write_synthetic_dataset(tmp_path, 4)
+    for command in (["eval", str(data), "--out", str(tmp_path / "out")], ["bench", "tracker", str(data)]):
+        caplog.clear()
+        assert main([*command, "--trackers", "identity", "--sequences", "drif"]) == 2
+        assert f"no sequences in {data} matching 'drif'; it has synthetic/drift" in caplog.text
+    assert not (tmp_path / "out").exists()
+
+
 def test_eval_refuses_ranges_for_a_root_not_in_the_uav123_layout(tmp_path, caplog):
     """--ranges was ignored, without a word, unless the root was in the UAV123 layout."""
     ranges = tmp_path / "ranges.txt"

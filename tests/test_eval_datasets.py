@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tacf.eval.datasets import detect_layout, load_sequences, read_boxes, write_boxes
+from tacf.eval.datasets import detect_layout, load_sequences, match, read_boxes, write_boxes
 from tacf.eval.datasets import uav123
 from tacf.eval.datasets.uav123 import read_ranges
 
@@ -25,6 +25,14 @@ def write_frames(folder: Path, count: int, fmt: str = "{:06d}.jpg") -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for i in range(1, count + 1):
         (folder / fmt.format(i)).write_bytes(JPG)
+
+
+def test_a_glob_without_a_slash_matches_a_name_s_last_part_too():
+    """`--sequences person12_1` found nothing: the names are UAV123_10fps/person12_1 and the like."""
+    name = "UAV123_10fps/person12_1"
+    assert all(match(name, glob) for glob in ("person12_1", "person*", "UAV123*", "UAV123_10fps/*", "x, person12_1"))
+    assert not any(match(name, glob) for glob in ("person", "*/person", "DTB70/person12_1", "UAV123_10fps"))
+    assert match("S0601", "S06*") and match("S0601", None)
 
 
 # --- box files -----------------------------------------------------------------------------------------------

@@ -63,7 +63,9 @@ def register(subparsers) -> None:
     p.add_argument("root", metavar="ROOT", type=Path, help="dataset root folder")
     p.add_argument("--trackers", nargs="+", metavar="NAME",
                    help=f"tracker names, comma or space separated (default {DEFAULT_TRACKERS}; none with --results)")
-    p.add_argument("--sequences", metavar="GLOB", help="only sequences whose name matches (comma-separated globs)")
+    p.add_argument("--sequences", metavar="GLOB",
+                   help="only sequences whose name matches (comma-separated globs; one without a / matches the "
+                        "name's last part too)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR", help="output folder (default %(default)s)")
     p.add_argument("--workers", type=integer(1), default=1, metavar="N", help="processes (default %(default)s)")
     p.add_argument("--force", action="store_true",
@@ -136,6 +138,10 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
         raise ValueError(f"--ranges {ranges}: frame-range tables are for the UAV123 layout (data_seq/ + anno/), and "
                          f"{root} is in the {layout} layout")
     seqs = load_sequences(root, pattern, layout=layout, ranges=ranges)
+    if pattern and not seqs:
+        names = [s.name for s in load_sequences(root, layout=layout, ranges=ranges)]
+        listed = ", ".join(names[:20]) + (f" and {len(names) - 20} more" if len(names) > 20 else "")
+        raise ValueError(f"no sequences in {root} matching {pattern!r}; it has {listed or 'none'}")
     if max_frames is not None:
         seqs = [replace(s, frames=s.frames[:max_frames], gt=s.gt[:max_frames]) for s in seqs]
     log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
@@ -199,7 +205,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return 2
     if not seqs:
-        log.error("no sequences in %s%s", args.root, f" matching {args.sequences!r}" if args.sequences else "")
+        log.error("no sequences in %s", args.root)
         return 2
     try:  # before any pair runs: every one would fail to record, and the report after them
         args.out.mkdir(parents=True, exist_ok=True)
@@ -320,6 +326,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                       "--sequences chooses others, '*' all of them", len(seqs), root, "*, ".join(UAV_PREFIXES))
             return 2
         seqs = uav
+        log.info("timing the %d UAV sequences among them (%s*; --sequences chooses others)", len(seqs),
+                 "*, ".join(UAV_PREFIXES))
     if not seqs:
         log.error("no sequences to benchmark in %s", root)
         return 2

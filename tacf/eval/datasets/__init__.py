@@ -38,10 +38,14 @@ def detect_layout(root: Path) -> str:
 
 
 def match(name: str, pattern: str | None) -> bool:
-    """fnmatch on the sequence name; `pattern` may hold several comma-separated globs."""
+    """fnmatch on the sequence name; `pattern` may hold several comma-separated globs. A glob without a `/` also
+    matches the name's last part: `person12_1` and `wakeboard*` select `UAV123_10fps/person12_1` and the like."""
     if not pattern:
         return True
-    return any(fnmatch.fnmatchcase(name, p.strip()) for p in pattern.split(",") if p.strip())
+    globs = [p.strip() for p in pattern.split(",") if p.strip()]
+    last_part = name.rsplit("/", 1)[-1]
+    return any(fnmatch.fnmatchcase(name, glob) or ("/" not in glob and fnmatch.fnmatchcase(last_part, glob))
+               for glob in globs)
 
 
 def load_sequences(root: Path, pattern: str | None = None, layout: str | None = None,
