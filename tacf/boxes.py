@@ -34,3 +34,12 @@ def box_around(pos, size_hw) -> tuple[float, float, float, float]:
     """(x, y, w, h) of the box of size (height, width) centred on pos (row, col): what the trackers report."""
     height, width = size_hw
     return (float(pos[1] - width / 2), float(pos[0] - height / 2), float(width), float(height))
+
+
+def overlapping(pos, size_hw, frame_shape) -> np.ndarray:
+    """pos (row, col) moved as little as needed for the box of size (height, width) around it to overlap the frame
+    by a pixel, as check_box requires of a first box. Not into the frame: a first box may have its centre outside,
+    and a clip of the centre into the frame moved it on the first update (10 px on identical frames). Within the
+    frame, where ordinary targets are, nothing changes."""
+    half = np.asarray(size_hw, dtype=np.float64) / 2
+    return np.clip(pos, 1 - half, np.asarray(frame_shape[:2]) - 1 + half)

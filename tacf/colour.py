@@ -39,17 +39,21 @@ def _centre_mask(area_hw: np.ndarray, block_hw: np.ndarray, inside: bool) -> np.
 
 
 class ColourModel:
-    def __init__(self, patch: np.ndarray, bg_area: np.ndarray, fg_area: np.ndarray, target_hw: np.ndarray,
+    """Foreground and background colour histograms of the patches the tracker samples. The sizes (height, width)
+    share one unit: `patch_hw` is the area the patch covers, `fg_area` the foreground block at its centre and
+    `target_hw` the target, left out of the background; the masks they make are resized to the patch."""
+
+    def __init__(self, patch: np.ndarray, patch_hw: np.ndarray, fg_area: np.ndarray, target_hw: np.ndarray,
                  bins: int, learning_rate: float, floor: float):
         if 256 % bins or bins & (bins - 1):
             raise ValueError(f"hist_bins must be a power of two dividing 256, got {bins}")
         self.bins = bins
         self.learning_rate = learning_rate
         self.floor = floor
-        patch_hw = patch.shape[1], patch.shape[0]
-        self.bg_mask = cv2.resize(_centre_mask(bg_area, target_hw, inside=False), patch_hw,
+        patch_wh = patch.shape[1], patch.shape[0]
+        self.bg_mask = cv2.resize(_centre_mask(patch_hw, target_hw, inside=False), patch_wh,
                                   interpolation=cv2.INTER_NEAREST)
-        self.fg_mask = cv2.resize(_centre_mask(bg_area, fg_area, inside=True), patch_hw,
+        self.fg_mask = cv2.resize(_centre_mask(patch_hw, fg_area, inside=True), patch_wh,
                                   interpolation=cv2.INTER_NEAREST)
         self.fg_hist, self.bg_hist = self._histograms(patch)
 

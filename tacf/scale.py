@@ -67,11 +67,12 @@ def scale_model_size(norm_target_sz, max_area: float, cell_size: int) -> np.ndar
 
 def scale_limits(scale_step: float, image_hw, base_target_sz, bg_area) -> tuple[float, float]:
     """(min_scale, max_scale): whole powers of scale_step; the background area keeps 5 px, the target fits
-    (section 11)."""
+    (section 11). The first box's scale, 1, is always within them: for a background area under 5 px (a 1x1 box, a
+    frame 6 px high) the code's minimum is above 1, and the box grew on the first update of identical frames."""
     log_step = np.log(scale_step)
     smallest = np.log(np.max(5.0 / np.asarray(bg_area, dtype=np.float64))) / log_step
     largest = np.log(np.min(np.asarray(image_hw, dtype=np.float64) / np.asarray(base_target_sz))) / log_step
-    return float(scale_step ** np.ceil(smallest)), float(scale_step ** np.floor(largest))
+    return min(float(scale_step ** np.ceil(smallest)), 1.0), max(float(scale_step ** np.floor(largest)), 1.0)
 
 
 def scale_patch_rects(pos, base_target_sz, scale_factor: float, factors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,11 +154,6 @@ class ScaleFilter:
     def model_size(self) -> np.ndarray:
         """scale_model_sz (height, width): every scale patch is resized to this."""
         return self._model_sz.copy()
-
-    @property
-    def factors(self) -> np.ndarray:
-        """The relative scales tried around the current scale factor, largest first."""
-        return self._factors.copy()
 
     def update_model(self, image: np.ndarray, pos, scale_factor: float) -> None:
         """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11).

@@ -25,7 +25,7 @@ import numpy as np
 import scipy.fft
 
 from tacf.attention import pme
-from tacf.boxes import box_around, check_box
+from tacf.boxes import box_around, check_box, overlapping
 from tacf.colour import ColourModel
 from tacf.config import check_fields
 from tacf.correlator import gaussian_label
@@ -123,12 +123,13 @@ class Staple:
         colour_response = window_means(self.colour.pixel_likelihood(colour_patch), self.grid.target_hw)
         response = (1 - cfg.merge_factor) * filter_response + cfg.merge_factor * colour_response
         displacement = peak_offset(response) / self.areas.resize_factor
-        self.pos = np.clip(self.pos + displacement, 0, np.asarray(frame.shape[:2]) - 1)
+        self.pos = overlapping(self.pos + displacement, self.target_hw, frame.shape)
 
         # ------- SCALE -------
         self.scale_factor = self.scale_filter.estimate(frame, self.pos, self.scale_factor)
         self.target_hw = np.maximum(round_half_up(self.base_target_hw * self.scale_factor), 1.0)
         self.areas = self._areas_around(self.target_hw)
+        self.pos = overlapping(self.pos, self.target_hw, frame.shape)
 
         # ------- UPDATE -------
         patch = self._sample(frame)

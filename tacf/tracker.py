@@ -4,14 +4,15 @@
 Per frame (ALGORITHM.md section 7, with the decisions of section B):
   LOCALISE  sample the search area at the last position; colour-weighted cosine window; per-channel kernel
             correlators for fHOG and Color Names; dimensional attention weights the channels; spatiotemporal
-            attention multiplies the channel sum; crop; context penalties from PME ratios on context frames;
-            upsample, fuse the two feature types, take the peak (refined between cells). After a fast move,
-            also search where that move continues, and keep the search whose HOG response peaks higher.
+            attention multiplies the channel sum; crop; upsample, fuse the two feature types, take the peak
+            (refined between cells). After a fast move, also search where that move continues, and keep the
+            search whose HOG response peaks higher.
             A frame that shows nothing of the target (one colour, or one colour where the search ends) is sat
             out: the box stays and nothing is learnt.
   SCALE     DSST scale filter at the new position.
-  UPDATE    train fresh filters (with context patches as hard negatives on context frames), blend them into
-            the model, update the channel weights, colour histograms and scale model.
+  UPDATE    on context frames, context penalties from the PME ratios of the context patches around the new
+            position; train fresh filters (with those patches as hard negatives), blend them into the model,
+            update the channel weights, colour histograms and scale model.
 """
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ import numpy as np
 from tacf.allocator import keep_freed_memory
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.spatiotemporal import to_response_origin
-from tacf.boxes import box_around, check_box
+from tacf.boxes import box_around, check_box, overlapping
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
 from tacf.correlator import (FAST_KERNEL_EXPONENT, FIRST_ORDER_EXPONENT, CorrelatorBank, GaussianKernel,
@@ -115,8 +116,9 @@ def _blank(frame: np.ndarray, pos: np.ndarray, area_hw: np.ndarray) -> bool:
 
 
 def _area(frame: np.ndarray, centre: np.ndarray, hw: np.ndarray) -> np.ndarray:
-    """The pixels of `frame` within the (height, width) `hw` around `centre` (row, col), at least one."""
-    top, left = np.maximum(np.floor(centre - hw / 2), 0).astype(int)
+    """The pixels of `frame` within the (height, width) `hw` around `centre` (row, col), at least one: those at the
+    frame's edge nearest to an area wholly outside it (a box as tall as the frame, overlapping it by one row)."""
+    top, left = np.clip(np.floor(centre - hw / 2), 0, np.asarray(frame.shape[:2]) - 1).astype(int)
     bottom, right = np.minimum(np.ceil(centre + hw / 2), frame.shape[:2]).astype(int)
     return frame[top:max(bottom, top + 1), left:max(right, left + 1)]
 
@@ -234,7 +236,7 @@ class Tracker:
         if ahead is not None:
             detection = max(detection, self._localise(frame, ahead), key=lambda d: d.score)
         found = detection.centre + detection.offset / self.areas.resize_factor
-        position = self._overlapping(found)
+        position = overlapping(found, self.target_hw, self._frame_shape)
         if not self.plain_target and self._shows_fill(frame, position):
             # A partial dropout (a grey slice of a corrupt frame) over the target: as on a blank frame. Searched
             # and learnt, the box slid to the slice's edges and learnt them (building5, 10 frames: IoU 0.85 -> 0).
@@ -250,7 +252,7 @@ class Tracker:
             self.scale_factor = self.scale_filter.estimate(frame, self.pos, self.scale_factor)
             self.target_hw = np.maximum(round_half_up(self.base_target_hw * self.scale_factor), 1.0)
             self.areas = self._areas_around(self.target_hw)
-            self.pos = self._overlapping(self.pos)  # a box that shrank may have to come closer
+            self.pos = overlapping(self.pos, self.target_hw, self._frame_shape)  # a shrunk box may have to come in
 
         self._to_learn = frame, detection.hog_response
         confidence = pme(detection.fused)
@@ -285,14 +287,6 @@ class Tracker:
     def _areas_around(self, target_hw: np.ndarray) -> TargetAreas:
         return TargetAreas.around(target_hw, self.padding, self._frame_shape[:2], self.config.fixed_area,
                                   self.config.inner_padding)
-
-    def _overlapping(self, pos: np.ndarray) -> np.ndarray:
-        """pos moved as little as needed for the box of the current size to overlap the frame by a pixel, as init
-        requires of a box. Not into the frame: init accepts a box whose centre lies outside, and a clip of the
-        centre into the frame moved it on the first update (10 px on identical frames). Within the frame,
-        where ordinary targets are, nothing changes."""
-        half = self.target_hw / 2
-        return np.clip(pos, 1 - half, np.asarray(self._frame_shape[:2]) - 1 + half)
 
     def _sample_hw(self) -> np.ndarray:
         """The image area a sample covers: the background area, grown with the fast-FFT grid."""

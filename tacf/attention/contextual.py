@@ -40,13 +40,13 @@ def context_offsets(target_hw: np.ndarray) -> np.ndarray:
 
 class ContextualAttention:
     def __init__(self, interval: int, penalty_total: float, challenge_floor: float, penalty_rate: float,
-                 lambda2: float, num_patches: int = 4):
+                 lambda2: float):
         self.interval = interval
         self.penalty_total = penalty_total
         self.challenge_floor = challenge_floor
         self.penalty_rate = penalty_rate
         self.sqrt_lambda2 = float(np.sqrt(lambda2))
-        self.penalties = np.full(num_patches, penalty_total / num_patches)
+        self.penalties = np.full(4, penalty_total / 4)  # one per context patch, context_offsets' order
 
     def is_context_frame(self, frame_number: int) -> bool:
         """Frames 1, 1 + interval, 1 + 2 interval, ... (1-based), as in the authors' code."""

@@ -1,9 +1,9 @@
 """Spatiotemporal attention: a spatial map from the windowed response plus a motion term (ALGORITHM.md 9).
 
 S = exp(relu(norm(sum_d R_d . window) - mean)) - 0.5, plus gamma_t times S shifted along the last motion,
-with gamma_t = gamma |delta| / |target size|. The map is an EMA over frames and multiplies the response.
-Responses have their zero displacement at the corner, so the window is rolled to that origin here (the
-authors' code built that rolled window but applied the centred one).
+with gamma_t = gamma |delta| / |target size|. The map, an EMA over frames at spatial_learning_rate (1 by
+default: this frame's map), multiplies the response. Responses have their zero displacement at the corner, so
+the window is rolled to that origin here (the authors' code built that rolled window but applied the centred one).
 """
 from __future__ import annotations
 

@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 
 N_CHANNELS = 11
-CHANNEL_NAMES = ("black", "blue", "brown", "grey", "green", "orange", "pink", "purple", "red", "white", "yellow")
 
 
 @lru_cache(maxsize=1)
