@@ -397,10 +397,10 @@ class Worker:
             return
         self._last_frame_id = (frame.seq, frame.stamp_ns)
         if self._image_shape is None:
-            self._initialise(image, frame, started)
+            self._initialise(image, frame)
             return
         if image.shape != self._image_shape:
-            self._follow_new_size(image, frame, started)
+            self._follow_new_size(image, frame)
             return
         # A tracker with locate() and learn() (tacf.Tracker) gives the box before it learns from the frame: the
         # box is sent in between, so its latency excludes the model update.
@@ -429,7 +429,7 @@ class Worker:
         self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, float(result.pme),
                               bool(result.ok))
 
-    def _initialise(self, image, frame, started: float) -> None:
+    def _initialise(self, image, frame) -> None:
         """Initialise the tracker on this frame; counted as processed (no box is published for it), or as rejected
         when the box does not fit it, so that received = processed + dropped + rejected."""
         from .frames import box_problem
@@ -450,11 +450,11 @@ class Worker:
         self._image_shape, self._last_box = image.shape, tuple(box)
         self._init_box = None
         self._state = "tracking"
-        self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, None, True)
+        self._stats.processed(frame.seq, frame.stamp_ns, None, None, True)
         self._send(("initialised", frame.seq, self._init_generation))
         log.info("initialised on seq %d with box %s", frame.seq, box)
 
-    def _follow_new_size(self, image, frame, started: float) -> None:
+    def _follow_new_size(self, image, frame) -> None:
         """A feed whose frame size changes (a stream adapting its resolution to the link, a camera reopened, a
         colour camera switching to grey) mostly shows the same view: the tracker starts again on this frame from
         the last box, scaled. A different aspect ratio is a different view (a crop) that no scaling maps: the
@@ -469,7 +469,7 @@ class Worker:
         x, y, w, h = self._last_box
         self._init_box = (x * scale_x, y * scale_y, w * scale_x, h * scale_y)
         log.info("%s: re-initialising from the last box, scaled", change)
-        self._initialise(image, frame, started)
+        self._initialise(image, frame)
         if self._state == "tracking":
             self._message = f"{change}: re-initialised on seq {frame.seq} from the last box, scaled"
 
