@@ -50,7 +50,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_zenoh_arguments(p)
     p.set_defaults(func=cmd_publish)
 
-    p = subparsers.add_parser("start", help="start a tracking session")
+    p = subparsers.add_parser("start", help="start a tracking session",
+                              description="Start a session that tracks the target in --box on the frames of --key "
+                                          "and print it (`started SID on NODE: state, key, ...`; --json: its "
+                                          "SessionInfo). The box is put on frame --seq if the service holds it "
+                                          "(a feed's last 24 frames, kept only while a session follows the feed), "
+                                          "else on the newest frame, where a moving target may have left it; "
+                                          "`tacf dashboard` sends the frame the box was drawn on with the start.")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key the frames are published on")
     p.add_argument("--box", "-b", required=True, type=box, help="initial box x,y,w,h in pixels")
     p.add_argument("--seq", type=frame_seq, help="seq of the frame the box was drawn on")
@@ -63,12 +69,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                               "only service on the network")
     p.set_defaults(func=cmd_start)
 
-    p = subparsers.add_parser("stop", help="stop a tracking session")
+    p = subparsers.add_parser("stop", help="stop a tracking session",
+                              description="Stop session SID on whichever service runs it and print it as stopped.")
     p.add_argument("sid", metavar="SID")
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_stop)
 
-    p = subparsers.add_parser("reinit", help="re-initialise a session on a new box")
+    p = subparsers.add_parser("reinit", help="re-initialise a session on a new box",
+                              description="Start session SID's tracker again on --box (on frame --seq when the "
+                                          "service still holds it), keeping its id, key and counters.")
     p.add_argument("sid", metavar="SID")
     p.add_argument("--box", "-b", required=True, type=box, help="new box x,y,w,h in pixels")
     p.add_argument("--seq", type=frame_seq, help="seq of the frame the box was drawn on")
@@ -83,7 +92,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(p, add_zenoh_arguments, node_help="only this service (node id); default: every service on the network")
     p.set_defaults(func=cmd_list)
 
-    p = subparsers.add_parser("status", help="show one session")
+    p = subparsers.add_parser("status", help="show one session",
+                              description="Print session SID: state, key, profile, box, the frame it started on, "
+                                          "and its last health (fps, p95 ms and counters, up to a second old).")
     p.add_argument("sid", metavar="SID")
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_status)

@@ -116,11 +116,16 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
     deadline = None if duration is None else time.monotonic() + duration
     with TrackingClient(options, node=node, timeout=2.0) as client:     # a bad node id is refused before opening
         try:
-            for info in client.list():
-                if sid in (keys.WILDCARD, info.sid):
-                    rows.setdefault((info.node, info.sid), SessionRow(info.node, info.sid)).apply(info)
+            services = client.services()
         except TacfError as exc:
             print(f"(list failed: {exc}; showing live data only)", file=out)
+        else:
+            if not services:    # a peer opens without anyone to talk to: say so, then wait for one
+                print(f"(no service answered{f' as {node!r}' if node else ''}: waiting for one; is `tacf serve` "
+                      "running, and reachable with these Zenoh settings?)", file=out)
+            for info in (info for listing in services for info in listing.sessions):
+                if sid in (keys.WILDCARD, info.sid):
+                    rows.setdefault((info.node, info.sid), SessionRow(info.node, info.sid)).apply(info)
 
         def draw() -> None:
             text = render_table(list(rows.values()))
