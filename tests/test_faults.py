@@ -167,14 +167,16 @@ def test_duplicated_and_reordered_frames_are_dropped(service, client):
         for seq in (2, 3):
             put(frames[seq])
             assert wait_until(lambda: boxed(frames[seq]), 10)
-        dropped = wait_until(lambda: results.last_health(), 5).frames_dropped
+        # a Health after frame 3, so that frame 1's repeats above are in its count
+        dropped = wait_until(lambda: (h := results.last_health()) and h.last_seq == 3 and h, 10).frames_dropped
         for stale in (frames[3], frames[2], frames[1], frames[3]):   # duplicates and older frames, one at a time
             put(stale)
             time.sleep(0.3)
         put(frames[4])
         assert wait_until(lambda: boxed(frames[4]), 10)
         assert [r.seq for r in results.results()] == [2, 3, 4]
-        assert wait_until(lambda: results.last_health().frames_dropped >= dropped + 4, 5), results.last_health()
+        assert wait_until(lambda: (h := results.last_health()).last_seq == 4 and h.frames_dropped == dropped + 4, 5), \
+            results.last_health()
 
         restarted = encode_frame(SCENE.frame(5), 0, "jpeg", stamp_ns=time.time_ns())
         put(restarted)
@@ -197,9 +199,11 @@ def test_a_frame_that_fills_a_seq_gap_is_counted_once(service, client):
         publisher.put(encode(frames[seq]))
         assert wait_until(lambda: any(r.seq == seq for r in results.results()), 10)
 
-    def settled_health():
-        time.sleep(1.5)                     # past a health period after the last frame
-        return results.last_health()
+    def settled_health(last_seq: int):
+        """The first Health sent after frame last_seq (one publisher: the frames before it arrived before it)."""
+        health = wait_until(lambda: (h := results.last_health()) and h.last_seq == last_seq and h, 10)
+        assert health, results.last_health()
+        return health
 
     try:
         start(service, client, image_key=key, box=SCENE.box(1), sid="gap")
@@ -208,12 +212,12 @@ def test_a_frame_that_fills_a_seq_gap_is_counted_once(service, client):
             return status(client, "gap").state == "tracking"
         assert wait_until(initialised, 30, period=0.2)
         put_and_wait(2)
-        before = settled_health()
+        before = settled_health(2)
         put_and_wait(4)
         publisher.put(encode(frames[3]))
         time.sleep(0.3)
         put_and_wait(5)
-        after = settled_health()
+        after = settled_health(5)
         assert [r.seq for r in results.results()] == [2, 4, 5]
         assert (after.frames_received - before.frames_received, after.frames_processed - before.frames_processed,
                 after.frames_dropped - before.frames_dropped) == (3, 2, 1), (before, after)

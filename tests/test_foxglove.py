@@ -246,10 +246,9 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
 
     ok, listed = client.call("/tacf/list", {})
     assert ok and [s["sid"] for s in listed] == ["fox1"]
-    camera.hold.set()
-    time.sleep(0.5)
-    again = SCENE.box(camera.index_of(camera.last_seq))
-    ok, info = client.call("/tacf/reinit", {"sid": "fox1", "box": list(again)})
+    held = hold_still(camera)
+    again = SCENE.box(camera.index_of(held))
+    ok, info = client.call("/tacf/reinit", {"sid": "fox1", "box": list(again), "seq": held})
     assert ok and info["sid"] == "fox1"
 
     ok, info = client.call("/tacf/stop", {"sid": "fox1"})

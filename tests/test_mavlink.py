@@ -17,7 +17,7 @@ from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
 from tacf_service.loopback import wait_until
-from camera_rig import no_service_options, service_and_camera, serving, tacf_command
+from camera_rig import hold_still, no_service_options, service_and_camera, serving, tacf_command
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
 os.environ.setdefault("MAVLINK20", "1")
@@ -183,17 +183,18 @@ def test_any_command_gets_an_answer_and_the_component_lives_on(rig):
     assert _receive(gcs, "HEARTBEAT", timeout=3) is not None
 
 
+def _held_target(camera, component) -> tuple:
+    """Hold the camera (a still camera: the target is where the operator drags) until the component's newest
+    frame, which a drag is put on, is a held one; the target's box on it. A fixed sleep after the hold left a
+    frame from before it as the component's newest on a busy machine."""
+    first = hold_still(camera)
+    assert wait_until(lambda: (header := component._frame_header()) is not None and header.seq >= first, 10)
+    return SCENE.box(camera.index_of(first))
+
+
 def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     gcs, camera, client, component = rig
-    camera.hold.set()                                   # a still camera: the target is where the operator drags
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and camera.index_of(camera.last_seq) is None:
-        time.sleep(0.1)
-    held = camera.index_of(camera.last_seq)
-    while time.monotonic() < deadline and (component._frame_header() is None or
-                                           camera.index_of(component._frame_header().seq) != held):
-        time.sleep(0.1)
-    target = SCENE.box(held)
+    target = _held_target(camera, component)
     assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
         mav.MAV_RESULT_ACCEPTED
     info = client.status(SID)
@@ -227,9 +228,7 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
                     0) == mav.MAV_RESULT_ACCEPTED
 
     # Dragging again re-targets the same session.
-    camera.hold.set()
-    time.sleep(0.5)
-    again = SCENE.box(camera.index_of(camera.last_seq))
+    again = _held_target(camera, component)
     assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(again)) == \
         mav.MAV_RESULT_ACCEPTED
     assert client.status(SID).init_seq is not None and client.status(SID).init_seq > info.init_seq
@@ -253,10 +252,8 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
 def test_commands_sent_as_command_int_are_answered_alike(rig):
     """The command protocol lets a ground station send any command as COMMAND_INT instead of COMMAND_LONG (the
     same four float params, then x, y, z): the rectangle starts the session and the stop ends it either way."""
-    gcs, camera, client, _ = rig
-    camera.hold.set()
-    time.sleep(0.5)
-    target = SCENE.box(camera.index_of(camera.last_seq))
+    gcs, camera, client, component = rig
+    target = _held_target(camera, component)
 
     def command_int(command: int, *params: float):
         params = list(params) + [0.0] * (4 - len(params))
@@ -292,11 +289,17 @@ def test_a_session_stopped_elsewhere_is_dragged_again_and_stopped_at_once(rig, m
         loop.start()
         try:
             assert _receive(gcs, "HEARTBEAT") is not None
-            camera.hold.set()
-            time.sleep(0.5)
-            target = _normalised_corners(SCENE.box(camera.index_of(camera.last_seq)))
+            checked, check = threading.Event(), component._check_session
+
+            def check_and_tell() -> int:
+                try:
+                    return check()
+                finally:
+                    checked.set()
+            component._check_session = check_and_tell
+            target = _normalised_corners(_held_target(camera, component))
             assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *target) == mav.MAV_RESULT_ACCEPTED
-            time.sleep(0.5)                             # the check that follows the start is done
+            assert checked.wait(10), "the check that follows the start is done"
             for stop_from_the_ground_station in (False, True):
                 client.stop(sid)
                 assert component.tracking, "not noticed yet"
@@ -321,19 +324,18 @@ def test_a_session_left_running_by_a_killed_component_is_taken_over(rig):
     from tacf_schemas.images import encode_frame
 
     gcs, camera, client, component = rig
-    camera.hold.set()
-    time.sleep(0.5)
-    held = camera.index_of(camera.last_seq)
-    left = client.start(KEY, SCENE.box(held), camera.last_seq, sid=SID)   # as the killed component left it
+    target = _held_target(camera, component)
+    left = client.start(KEY, target, camera.last_seq, sid=SID)   # as the killed component left it
     assert not component.tracking
-    time.sleep(0.3)                                     # the drag is on a newer frame than the one left behind
-    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(SCENE.box(held))) == \
+    # the drag is on a newer frame than the one left behind
+    assert wait_until(lambda: component._frame_header().seq > left.init_seq, 10)
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
         mav.MAV_RESULT_ACCEPTED
     taken = client.status(SID)
     assert taken.created_ns == left.created_ns and taken.init_seq > left.init_seq, "the same session, re-targeted"
     status = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
                       where=lambda m: m.target_data == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
-    assert status is not None and box_iou(_status_box(status), SCENE.box(held)) > 0.5
+    assert status is not None and box_iou(_status_box(status), target) > 0.5
     assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
     assert SID not in {s.sid for s in client.list()}
 
