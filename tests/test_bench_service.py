@@ -94,21 +94,19 @@ def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
     assert all(name.startswith(("UAV123", "DTB70")) for name in report["sequences"])   # the 1280x720 ones
 
 
-@needs_data
 def test_bench_service_without_sequences_is_a_clear_error(tmp_path, caplog):
     assert main(["bench", "service", str(tmp_path / "nowhere")]) == 2
     assert "does not exist" in caplog.text
 
 
-@needs_data
 def test_bench_service_refuses_a_bad_warmup_or_profile_before_starting_a_service(tmp_path):
     a_file = tmp_path / "a-file"
     a_file.write_text("")
-    for bad in (["--warmup", "-1"], ["--fps", "nan"], ["--profile", "bogus"], ["--json", str(DATA)],
+    for bad in (["--warmup", "-1"], ["--fps", "nan"], ["--profile", "bogus"], ["--json", str(tmp_path)],
                 ["--json", str(a_file / "out.json")]):       # written only after the run, lost with it
         # argparse: a usage error naming what is wrong (a NaN --fps passed a `<= 0` check and ran)
         with pytest.raises(SystemExit) as refused:
-            main(["bench", "service", str(DATA), *bad])
+            main(["bench", "service", str(tmp_path), *bad])
         assert refused.value.code == 2
 
 

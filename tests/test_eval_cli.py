@@ -640,15 +640,14 @@ def test_cores_count_the_cpu_time_of_the_tracker_calls_only():
     assert run.cpu_seconds < 0.3 * run.times.sum()
 
 
-@needs_data
 @pytest.mark.parametrize("frames", ["0", "-5"])
-def test_bench_tracker_refuses_max_frames_under_one(frames, capsys):
+def test_bench_tracker_refuses_max_frames_under_one(frames, capsys, tmp_path):
     with pytest.raises(SystemExit) as refused:
-        main(["bench", "tracker", str(SEQUENCES), "--sequences", "OTB100/Football1", "--trackers", "identity",
-              "--max-frames", frames])
+        main(["bench", "tracker", str(write_synthetic_dataset(tmp_path, 6)), "--sequences", "*",
+              "--trackers", "identity", "--max-frames", frames])
     assert refused.value.code == 2
     captured = capsys.readouterr()
-    assert captured.out == ""                            # no report of 69 (= 74 - 5) frames at a negative fps
+    assert captured.out == ""                            # no report of 1 (= 6 - 5) frame at a negative fps
     assert f"argument --max-frames: '{frames}': expected an integer >= 1" in captured.err
 
 

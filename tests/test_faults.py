@@ -95,9 +95,9 @@ def latest_frame(client, key: str, timeout: float = 30.0) -> Frame:
 
 def publish_process(tmp_path, key: str, connect: str) -> subprocess.Popen:
     """`tacf publish scene:320x240` at 10 fps, a peer connected to `connect`."""
-    log = open(tmp_path / f"publish-{time.monotonic_ns()}.log", "w")
-    return subprocess.Popen([sys.executable, "-m", "tacf.cli", "publish", "scene:320x240", "--key", key, "--fps", "10",
-                             "--connect", connect], stdout=log, stderr=subprocess.STDOUT)
+    with open(tmp_path / f"publish-{time.monotonic_ns()}.log", "w") as log:     # the child keeps its own copy
+        return subprocess.Popen([sys.executable, "-m", "tacf.cli", "publish", "scene:320x240", "--key", key,
+                                 "--fps", "10", "--connect", connect], stdout=log, stderr=subprocess.STDOUT)
 
 
 def kill(process: subprocess.Popen) -> None:

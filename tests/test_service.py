@@ -806,13 +806,16 @@ def test_a_slow_save_never_lands_after_a_newer_one(endpoint, client, feed, tmp_p
     import tacf_service.state as state
 
     write = state._atomic_write
-    writing = threading.Event()
+    writing, written = threading.Event(), threading.Event()
 
     def slow_supervisor_write(path, data):      # a slow fsync (an SD card) in the supervisor's save
-        if threading.current_thread().name == "supervisor" and path.name == "sessions.json":
+        slow = threading.current_thread().name == "supervisor" and path.name == "sessions.json"
+        if slow:
             writing.set()
             time.sleep(1.5)
         write(path, data)
+        if slow:
+            written.set()
     monkeypatch.setattr(state, "_atomic_write", slow_supervisor_write)
     table = tmp_path / "sessions.json"
     disk = TrackingService(ServiceOptions(node="disk", zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",),
@@ -823,8 +826,9 @@ def test_a_slow_save_never_lands_after_a_newer_one(endpoint, client, feed, tmp_p
         assert wait_until(lambda: disk.manager.status("gone").state == "tracking", 30)
         writing.clear()
         assert writing.wait(10)                 # the supervisor took its snapshot, "gone" in it, and writes it
+        written.clear()
         disk.manager.stop("gone")
-        time.sleep(2.0)
+        assert written.wait(10)                 # that slow write is done, whenever it lands
         assert json.loads(table.read_text())["sessions"] == []
     finally:
         disk.close()
