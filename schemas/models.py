@@ -35,7 +35,7 @@ CONTROL_OPS: tuple[str, ...] = ("start", "stop", "reinit", "list", "status")
 
 ErrorCode = Literal[
     "invalid_request",     # malformed msgpack, wrong or missing fields, wrong version
-    "invalid_id",          # a node or session id outside [A-Za-z0-9_-]{1,64}
+    "invalid_id",          # a node or session id outside [A-Za-z0-9_-]{1,64} (clients; the service: invalid_request)
     "invalid_key",         # an image key that is not a plain key expression
     "invalid_box",         # non-finite, non-positive size, or outside the image
     "invalid_config",      # unknown tracker profile or override, or a value TrackerConfig refuses
@@ -234,9 +234,10 @@ class Health(WireModel):
     processing_ms_mean: FiniteFloat          # per frame: decode, locate and learn (the box is sent before learning)
     processing_ms_p95: FiniteFloat
     frame_age_ms: Optional[FiniteFloat] = None   # now - stamp_ns of the last processed frame
-    frames_received: Count = 0
+    frames_received: Count = 0               # = processed + dropped + rejected; catch-up frames and seq gaps included
     frames_processed: Count = 0
-    frames_dropped: Count = 0                # superseded by a newer frame before being processed (latest-only)
+    frames_dropped: Count = 0                # not processed: superseded (latest-only, seq gaps), duplicate or older,
+                                             # before the init or as a stop came
     frames_rejected: Count = 0               # undecodable, wrong size, wrong fields
     frames_lost: Count = 0                   # processed with the target flagged lost (BoxResult.ok False)
     pme: Optional[FiniteFloat] = None

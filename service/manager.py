@@ -4,7 +4,7 @@ Control operations (start, stop, reinit, list, status) run on the control thread
 every worker's pipe, notices dead workers (process sentinels) and restarts them from their last box with a
 backoff, kills the workers that went silent (pool.WORKER_SILENCE_S), keeps the pool of warm spares filled
 (pool.WorkerPool: a session takes its worker from there) and saves the table when it changed.
-A session whose worker keeps crashing (MAX_CRASHES within CRASH_WINDOW_S) stays `failed` until it is
+A session whose worker keeps crashing (more than MAX_CRASHES within CRASH_WINDOW_S) stays `failed` until it is
 re-initialised or stopped.
 """
 from __future__ import annotations
@@ -148,13 +148,14 @@ class SessionManager:
                         len(table) - self.max_sessions, self._store.path, self.max_sessions,
                         ", ".join(s.sid for s in table[self.max_sessions:]))
         for saved in table[: self.max_sessions]:
-            try:
+            try:            # as a start checks them: a hand-edited file, or one from a version with other profiles
                 validate_image_key(saved.image_key)
-            except InvalidKeyError as exc:
+                overrides = checked_overrides(saved.profile, dict(saved.overrides))
+            except (InvalidKeyError, ValueError, TypeError) as exc:
                 log.warning("not restoring session %s: %s", saved.sid, exc)
                 continue
             session = Session(sid=saved.sid, image_key=saved.image_key, profile=saved.profile,
-                              overrides=dict(saved.overrides), box=tuple(saved.box), created_ns=saved.created_ns,
+                              overrides=overrides, box=tuple(saved.box), created_ns=saved.created_ns,
                               init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts,
                               started=True)
             with self._lock:
@@ -433,8 +434,8 @@ class SessionManager:
         """Pin `frames`, those to initialise on (_init_frames: the ones the box was checked against), so that they
         are still there when the worker is ready."""
         if seq is not None and frames and frames[0].seq != seq:
-            log.warning("session %s: frame seq %d is no longer kept; initialising on seq %d", session.sid, seq,
-                        frames[0].seq)
+            log.warning("session %s: frame seq %d is not held (no longer, or never); initialising on seq %d",
+                        session.sid, seq, frames[0].seq)
         session.init_box, session.init_frames = tuple(box), frames
         session.init_seq = frames[0].seq if frames else seq
         # The box now belongs to the init frame: a restart or a restored service initialises there, not on the
@@ -558,17 +559,21 @@ class SessionManager:
                     return              # the box of a replaced init did not fit; the new one may
                 session.state, session.message, session.gave_up = "failed", message[1], True
             log.warning("session %s failed: %s", session.sid, message[1])
+            if message[2] is None:          # its tracker could not be built: the worker publishes no Health at all
+                self._publish_health(session, "failed", message[1])
 
     def _on_worker_exit(self, session: Session, process) -> None:
         with self._lock:
-            if session.process is not process:
-                return                          # a reinit gave it a new worker meanwhile, and closed this one's pipe
+            if session.process is not process or self._is_gone(session):
+                # a reinit gave it a new worker meanwhile and closed this one's pipe, or a stop, whose "stopped"
+                # must stay the session's last Health, is reaping it
+                return
             worker, session.worker, session.conn, session.process = session.worker, None, None, None
         if worker is not None:
             worker.close()
         code = process.exitcode
         with self._lock:
-            if session.gave_up:
+            if session.gave_up or self._is_gone(session):
                 return
             session.state = "failed"
             session.message = f"worker exited with code {code}"

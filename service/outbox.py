@@ -3,7 +3,8 @@
 A worker that does not read its pipe for a while (busy, starved of CPU, stopped, wedged) makes a write larger than
 what the pipe holds block until it reads: an init carries whole frames. Only this thread waits then, never a
 control thread (a reply, and the queries queued behind it, other sessions' included) nor the supervisor. A new
-init replaces one not written yet: only the latest box matters.
+init replaces one not written yet: only the latest box matters. Inits carry their generation last; two reinits at
+once can queue them out of order, and the older one is then dropped, not the newer.
 """
 from __future__ import annotations
 
@@ -29,7 +30,11 @@ class Outbox:
                 done.set()
                 return done
             if message[0] == "init":
-                for queued in [q for q in self._queue if q[0][0] == "init"]:
+                queued_inits = [q for q in self._queue if q[0][0] == "init"]
+                if any(queued[0][-1] > message[-1] for queued in queued_inits):
+                    done.set()
+                    return done
+                for queued in queued_inits:
                     self._queue.remove(queued)
                     queued[1].set()
             self._queue.append((message, done))

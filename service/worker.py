@@ -179,6 +179,7 @@ class Worker:
         self._pending_lock = threading.Lock()
         self._pending_init: tuple | None = None
         self._init_generation = 0                # of the init last applied: echoed in "initialised" and "failed"
+        self._newest_init_generation = -1        # of the inits received: an older one written after it is stale
         self._tracker = None
         self._init_box: tuple | None = None      # box to initialise on the next frame
         self._image_shape: tuple | None = None   # shape of the frame the tracker was initialised on
@@ -334,6 +335,10 @@ class Worker:
                 self._assigned.set()
             elif message[0] == "init":
                 with self._pending_lock:
+                    # two reinits at once can be written out of order: the service waits for the newer one
+                    if message[3] < self._newest_init_generation:
+                        continue
+                    self._newest_init_generation = message[3]
                     self._pending_init = (tuple(message[1]), list(message[2]), message[3])
                 self._slot.wake()
             elif message[0] == "stop":
@@ -426,7 +431,7 @@ class Worker:
                 log.exception("tracker learning failed on seq %d", frame.seq)
                 self._reject(f"tracker learning failed: {exc}")
                 return
-        self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, float(result.pme),
+        self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, _finite(result.pme),
                               bool(result.ok))
 
     def _initialise(self, image, frame) -> None:

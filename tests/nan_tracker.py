@@ -1,5 +1,6 @@
 """A tracker factory for the service's tests (`tracker_factory="nan_tracker:nan_tracker"`): the box it was
-initialised with, but NaN on every other frame, as a buggy plug-in tracker might give."""
+initialised with, but NaN on every other frame, and a NaN PME on the others, as a buggy plug-in tracker might
+give."""
 from __future__ import annotations
 
 import math
@@ -13,7 +14,7 @@ class NanTracker:
 
     def update(self, frame) -> Result:
         self.frames += 1
-        return Result((math.nan,) * 4 if self.frames % 2 else self.box)
+        return Result((math.nan,) * 4) if self.frames % 2 else Result(self.box, pme=math.nan)
 
 
 def nan_tracker(profile: str, overrides: dict) -> NanTracker:

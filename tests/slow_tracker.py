@@ -37,3 +37,8 @@ class SlowTracker:
 
 def slow_tracker(profile: str, overrides: dict) -> SlowTracker:
     return SlowTracker()
+
+
+def refusing_tracker(profile: str, overrides: dict) -> SlowTracker:
+    """A plug-in that refuses its configuration when it is built, in the worker: the session fails there."""
+    raise ValueError(f"this tracker has no profile {profile!r}")

@@ -349,6 +349,86 @@ def test_no_box_of_the_replaced_target_after_a_reinit(endpoint, client, feed):
         results.close()
 
 
+def test_a_worker_crash_met_by_a_stop_leaves_stopped_the_last_health(service, client, feed, monkeypatch):
+    """The supervisor saw the crash, a stop came before it took the lock: "failed" went out after "stopped", the
+    last word a dashboard kept of a session that was stopped."""
+    import tacf_service.manager as manager
+
+    results = Collector(client, NODE, "crashing")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], sid="crashing")
+        assert wait_until(lambda: len(results.results()) >= 3, 30)
+        handling, handled, handle = threading.Event(), threading.Event(), manager.SessionManager._on_worker_exit
+
+        def slow_to_lock(self, session, process):
+            handling.set()
+            time.sleep(0.5)
+            try:
+                return handle(self, session, process)
+            finally:
+                handled.set()
+        monkeypatch.setattr(manager.SessionManager, "_on_worker_exit", slow_to_lock)
+        os.kill(service.manager.worker_pids()["crashing"], signal.SIGKILL)
+        assert handling.wait(10)
+        assert call(client, NODE, "stop", StopRequest(sid="crashing")).state == "stopped"
+        assert handled.wait(10)
+        time.sleep(0.5)                                 # what it published is on its way by now
+        assert results.health[-1].state == "stopped", [h.state for h in results.health]
+    finally:
+        results.close()
+
+
+def test_two_reinits_at_once_leave_the_newer_box(endpoint, client, feed, monkeypatch):
+    """The older of two reinits at once was written to the worker last (its catch-up frames were still being picked
+    when the newer went out): the worker tracked the older box, and the service, waiting for the newer one's
+    "initialised" for good, kept listing (and saving) the newer box on a frame long gone."""
+    import tacf_service.manager as manager
+
+    results = Collector(client, "twice", "both")
+    older, newer = (100.0, 100.0, 40.0, 40.0), (200.0, 150.0, 40.0, 40.0)
+    try:
+        with plugin_service(endpoint, client, "twice", "slow_tracker:slow_tracker") as twice:
+            call(client, "twice", "start", StartRequest(sid="both", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
+                 timeout=10)
+            assert wait_until(lambda: call(client, "twice", "status", StatusRequest(sid="both")).state == "tracking",
+                              20)
+            picking, pick = threading.Event(), manager.catch_up_subset
+
+            def slow_first_pick(frames, limit):
+                if not picking.is_set():
+                    picking.set()
+                    time.sleep(0.5)
+                return pick(frames, limit)
+            monkeypatch.setattr(manager, "catch_up_subset", slow_first_pick)
+            first = threading.Thread(target=call, kwargs={"timeout": 10},
+                                     args=(client, "twice", "reinit", ReinitRequest(sid="both", box=older)))
+            first.start()
+            assert picking.wait(5)
+            call(client, "twice", "reinit", ReinitRequest(sid="both", box=newer), timeout=10)
+            first.join(10)
+            # the slow tracker keeps the box it was given: every box after the inits is the newer one's
+            marker = len(results.results())
+            assert wait_until(lambda: len(results.results()) >= marker + 4, 20)
+            assert {r.box for r in results.results()[marker + 1:]} == {newer}
+            assert not twice.manager._sessions["both"].awaiting_init
+    finally:
+        results.close()
+
+
+def test_a_session_whose_tracker_cannot_be_built_says_why_on_its_health_key(endpoint, client, feed):
+    """The worker, which publishes a session's Health, had none yet: the session failed without a word there."""
+    results = Collector(client, "refusing", "refused")
+    try:
+        with plugin_service(endpoint, client, "refusing", "slow_tracker:refusing_tracker"):
+            call(client, "refusing", "start", StartRequest(sid="refused", image_key=feed.key, box=(20.0, 20.0, 60.0,
+                                                                                                 60.0)), timeout=10)
+            assert wait_until(lambda: any(h.state == "failed" for h in results.health), 10), results.health
+            failed = [h for h in results.health if h.state == "failed"][-1]
+            assert failed.message.startswith("tracker config: this tracker has no profile"), failed
+    finally:
+        results.close()
+
+
 def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
     """With a tracker slower than the feed, stop found a frame in the worker's slot (never counted: received was one
     more than processed + dropped + rejected), and the service's "stopped" Health, sent after the worker's, carried
@@ -375,8 +455,8 @@ def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
 
 
 def test_a_tracker_box_that_is_not_finite_rejects_its_frame_and_the_session_goes_on(endpoint, client, feed):
-    """A plug-in tracker's NaN box failed BoxResult's validation outside any guard: the worker died, was restarted
-    and died again, until the session failed."""
+    """A plug-in tracker's NaN box failed BoxResult's validation outside any guard, and its NaN PME the next
+    Health's: the worker died, was restarted and died again, until the session failed."""
     with plugin_service(endpoint, client, "nan", "nan_tracker:nan_tracker"), \
             contextlib.closing(Collector(client, "nan", "halves")) as results:
         call(client, "nan", "start", StartRequest(sid="halves", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
@@ -1013,6 +1093,26 @@ def test_watch_lists_a_service_s_sessions_first(service, client, feed, endpoint)
         assert "watched" in out.getvalue() and "no service answered" not in out.getvalue(), out.getvalue()
     finally:
         call(client, NODE, "stop", StopRequest(sid="watched"))
+
+
+def test_an_older_init_queued_after_a_newer_one_is_dropped_not_the_newer():
+    """The outbox replaced a queued init with the one put last, which two reinits at once can make the older."""
+    from multiprocessing import Pipe
+
+    from tacf_service.outbox import Outbox
+
+    reader, writer = Pipe(duplex=False)
+    outbox = Outbox(writer, "test-outbox")
+    try:
+        outbox.put(("frames", bytes(8 << 20)))       # more than a pipe holds: the writer waits for the reader
+        newer = outbox.put(("init", (1.0, 1.0, 5.0, 5.0), [], 3))
+        older = outbox.put(("init", (9.0, 9.0, 5.0, 5.0), [], 2))
+        assert older.is_set() and not newer.is_set()
+        assert reader.recv()[0] == "frames" and reader.recv() == ("init", (1.0, 1.0, 5.0, 5.0), [], 3)
+        assert newer.wait(5)
+    finally:
+        outbox.close(5)
+        reader.close()
 
 
 def test_an_init_is_counted_as_processed_but_not_timed():

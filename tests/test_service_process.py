@@ -439,6 +439,26 @@ def test_sessions_beyond_max_sessions_are_not_restored_silently(tmp_path, caplog
     finally:
         service.close()
 
+
+def test_a_saved_session_its_tracker_refuses_is_not_restored(tmp_path, caplog):
+    """A start checks the profile and overrides; a restore did not: a hand-edited state file, or one from a
+    version with other profiles, gave a session that failed in its worker without a word on its health key."""
+    state = tmp_path / "sessions.json"
+    entry = PersistedSession(sid="good", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0),
+                             created_ns=1)
+    StateStore(state).save([entry, entry.model_copy(update={"sid": "profile", "profile": "nope"}),
+                            entry.model_copy(update={"sid": "config", "overrides": {"cell_size": -3}})])
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                             state_file=str(state), spare_workers=0))
+    with caplog.at_level("WARNING", logger="tacf_service.manager"):
+        service.open()
+    try:
+        assert [s.sid for s in service.manager.list().sessions] == ["good"]
+        assert "not restoring session profile: " in caplog.text and "not restoring session config: " in caplog.text
+    finally:
+        service.close()
+
+
 def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
     """It would restore the first one's sessions and track them too, and each would overwrite the other's table."""
     state = str(tmp_path / "sessions.json")
