@@ -50,15 +50,25 @@ def call_unless_stopped(call: Callable[[], T], should_stop: Callable[[], bool] =
     `should_stop()` (then STOPPED). FFmpeg's blocking calls cannot be cut short: a stream that does not answer holds
     one for up to OPEN_TIMEOUT_MS or READ_TIMEOUT_MS, which a stop or Ctrl-C must not wait for; the call is left to
     end on its own thread."""
+    return wait_unless_stopped(start_call(call), should_stop, poll_s)
+
+
+def start_call(call: Callable[[], T]) -> Future:
+    """call() on a daemon thread of its own; the Future of its value or exception."""
     result: Future = Future()
 
     def run() -> None:
         try:
             result.set_result(call())
-        except BaseException as exc:        # raised in the caller's thread below
+        except BaseException as exc:        # raised in the thread that waits for it
             result.set_exception(exc)
 
     threading.Thread(target=run, name="tacf-capture", daemon=True).start()
+    return result
+
+
+def wait_unless_stopped(result: Future, should_stop: Callable[[], bool] = never_stop, poll_s: float = 0.1):
+    """The value of `result` once it is there, or STOPPED as soon as `should_stop()` is true."""
     while True:
         try:
             return result.result(timeout=poll_s)
@@ -167,7 +177,7 @@ class CaptureSource(FrameSource):
         self._cap = call_unless_stopped(self._open, should_stop)
         if self._cap is STOPPED:
             raise SourceError(f"stopped while opening {self.name}")
-        self._abandoned = False         # a read left blocked on its thread still uses the capture
+        self._pending_read: Future | None = None    # a read a stop left running: the next frames() takes its frame
         if live is None:
             live = isinstance(spec, int) or not self._cap.get(cv2.CAP_PROP_FRAME_COUNT) > 0
         self.live = live
@@ -190,12 +200,13 @@ class CaptureSource(FrameSource):
         return cap
 
     def frames(self, should_stop: Callable[[], bool] = never_stop) -> Iterator[SourceFrame]:
-        """The frames; a source left reading on another thread (stopped mid-read) has none to give any more."""
+        """The frames. A stop during a read that may block leaves the read running; the next call of frames()
+        waits for it and yields its frame (`publish --wait-subscriber` stops reading once a subscriber comes, in
+        the middle of a slow camera's read: its frames were lost for good)."""
         index = 0
-        while not should_stop() and not self._abandoned:
-            read = call_unless_stopped(self._cap.read, should_stop) if self._reads_may_block else self._cap.read()
+        while not should_stop():
+            read = self._read(should_stop)
             if read is STOPPED:
-                self._abandoned = True
                 return
             ok, image = read
             if ok and image is not None:
@@ -215,6 +226,20 @@ class CaptureSource(FrameSource):
                 index = 0
             else:
                 return
+
+    def _read(self, should_stop: Callable[[], bool]):
+        """cap.read()'s (ok, image), or STOPPED with the read still running (kept in _pending_read)."""
+        if not self._reads_may_block:
+            return self._cap.read()
+        self._pending_read = self._pending_read or start_call(self._cap.read)
+        try:
+            read = wait_unless_stopped(self._pending_read, should_stop)
+        except BaseException:
+            self._pending_read = None
+            raise
+        if read is not STOPPED:
+            self._pending_read = None
+        return read
 
     def _reopen(self, should_stop: Callable[[], bool]) -> bool:
         """Reopen a failed live source, pausing longer after each failed attempt; False once stopped."""
@@ -236,8 +261,17 @@ class CaptureSource(FrameSource):
         return False
 
     def close(self) -> None:
-        if not self._abandoned:
-            self._cap.release()
+        """Release the capture, once a read still running on it has ended (a slow camera's, within a frame; a
+        silent stream's within READ_TIMEOUT_MS): that read, returning into an interpreter shutting down, crashed
+        `tacf publish` on a Ctrl-C (exit 134 or 139). One that outlasts its timeout is left to it."""
+        if self._pending_read is not None:
+            try:
+                self._pending_read.result(timeout=READ_TIMEOUT_MS / 1000 + 1.0)
+            except FutureTimeout:
+                return
+            except Exception:
+                pass                                # its error does not matter any more: the source is closing
+        self._cap.release()
 
 
 def _read_image(path: Path) -> np.ndarray | None:

@@ -16,13 +16,13 @@ from tacf_clients.local_service import free_port
 
 
 class MjpegCamera:
-    """An HTTP camera serving multipart/x-mixed-replace JPEGs at 20 fps. Each connection sends
+    """An HTTP camera serving multipart/x-mixed-replace JPEGs at `fps` (20). Each connection sends
     `frames_per_connection` frames, then closes (or, with `stall`, goes silent while keeping the connection);
     `down()` closes the port (connection refused), `up()` reopens it. Frame i of connection k shows a white bar at
     x = 8 i on a background of grey level 40 k, so a frame tells which connection delivered it."""
 
-    def __init__(self, frames_per_connection: int = 5, stall: bool = False):
-        self.frames_per_connection, self.stall = frames_per_connection, stall
+    def __init__(self, frames_per_connection: int = 5, stall: bool = False, fps: float = 20.0):
+        self.frames_per_connection, self.stall, self.fps = frames_per_connection, stall, fps
         self.connections = 0
         self._lock = threading.Lock()
         self.port = free_port()  # stays this camera's across down() / up()
@@ -49,7 +49,7 @@ class MjpegCamera:
                         self.wfile.flush()
                     except OSError:
                         return
-                    time.sleep(0.05)
+                    time.sleep(1 / camera.fps)
                 if camera.stall:
                     time.sleep(30)  # the link is dead but the connection lives: only a read timeout notices
 

@@ -609,7 +609,17 @@ def test_stopping_ends_a_stalled_stream_without_waiting_for_ffmpeg(camera):
         started = time.monotonic()
         assert next(frames, None) is None
         assert time.monotonic() - started < 1.5
-        assert next(source.frames(), None) is None       # the read left on its thread keeps the capture
+
+
+def test_a_stop_during_a_slow_camera_s_read_loses_it_no_frame(camera):
+    """--wait-subscriber stops reading when a subscriber comes, mostly in the middle of a read for a camera under
+    10 fps: the source gave no frame any more, and `tacf publish` published nothing (exit 2)."""
+    cam = camera(frames_per_connection=40, fps=4)
+    with open_source(cam.url) as source:
+        assert len(_take(source, 5)) == 5                   # what FFmpeg read ahead while opening is taken
+        stop_at = time.monotonic() + 0.1                    # within the 0.25 s the next frame takes
+        _take(source, 1, should_stop=lambda: time.monotonic() > stop_at)
+        assert len(_take(source, 2)) == 2
 
 
 def test_ctrl_c_ends_publish_while_a_stream_does_not_answer():
