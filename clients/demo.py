@@ -210,13 +210,15 @@ class Printer:
                   f"dropped {h.frames_dropped}" + (f"  ({h.message})" if h.message else ""))
 
 
-def initial_box(options: DemoOptions, source: FrameSource, truth: GroundTruth | None) -> tuple[Box, str]:
-    """(box, where it came from) for the first frame."""
+def initial_box(options: DemoOptions, source: FrameSource, truth: GroundTruth | None,
+                stop: threading.Event) -> tuple[Box, str]:
+    """(box, where it came from) for the first frame. A live source that opened and gives no frame is reopened
+    until it does, or until `stop` (Ctrl-C: it was not heard there)."""
     if options.box is not None:
         return options.box, "--box"
     if truth is not None and (box := truth.box(0)) is not None:
         return box, "ground truth"
-    first = next(iter(source), None)
+    first = next(source.frames(should_stop=stop.is_set), None)
     if first is None:
         raise ValueError(f"source {options.source!r} has no frames")
     height, width = first.image.shape[:2]
@@ -236,7 +238,7 @@ def run_demo(options: DemoOptions | None = None, stop: threading.Event | None = 
     source = open_source(options.source, should_stop=stop.is_set)
     with source:
         truth = GroundTruth.for_source(source)
-        box, origin = initial_box(options, source, truth)
+        box, origin = initial_box(options, source, truth, stop)
         if isinstance(source, CaptureSource) and not source.live:
             # A video file starts again at frame 0, which the box is on; a camera or stream is not opened twice
             # (one may take a single client), folders and the scene start again by themselves.

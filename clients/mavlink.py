@@ -49,7 +49,7 @@ import zenoh
 
 from tacf_clients.client import TrackingClient
 from tacf_clients.consumer import BoxConsumer, TrackedBox
-from tacf_clients.errors import DuplicateSession, TacfError, UnknownSession
+from tacf_clients.errors import DuplicateSession, RequestTimeout, TacfError, UnknownSession
 from tacf_clients.zconfig import ZenohOptions, open_session, zenoh_error_text
 from tacf_schemas import keys
 from tacf_schemas.codec import DecodeError, decode
@@ -321,7 +321,9 @@ class MavlinkCamera:
         except TacfError as exc:
             log.warning("TRACK_RECTANGLE: the service refused: %s", exc)
             if not self.tracking:                    # a re-target refused leaves the session tracking as it was
-                self._held = False                   # nothing of ours runs: a stop clears the failure alone
+                # a refusal leaves nothing of ours running, and a stop clears the failure alone; a start not
+                # answered in time may have started it: a stop asks the service
+                self._held = isinstance(exc, RequestTimeout)
                 self._set_state("failed")
             return mav.MAV_RESULT_FAILED
         self._held = True

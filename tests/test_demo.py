@@ -198,6 +198,21 @@ def test_ctrl_c_while_a_stream_opens_ends_the_demo_with_130():
     assert last_line == "tacf demo: interrupted" and "cannot open" not in done.stderr, done.stderr
 
 
+def test_the_first_frame_of_a_live_source_is_waited_for_only_until_a_stop():
+    """A camera that opened and then gave no frame (unplugged, a stream dead after its probe) was read for a first
+    box without the stop: Ctrl-C and SIGTERM went unheard while it reconnected for ever."""
+    from tacf_clients.demo import initial_box
+
+    camera, stop = MjpegCamera(frames_per_connection=100), threading.Event()
+    try:
+        with open_source(camera.url, should_stop=stop.is_set) as source:
+            stop.set()
+            with pytest.raises(ValueError, match="has no frames"):
+                initial_box(DemoOptions(source=camera.url), source, None, stop)
+    finally:
+        camera.close()
+
+
 def test_a_source_whose_frames_cannot_be_sent_is_a_usage_error_and_no_session_starts(tmp_path):
     """A frame beyond the wire's limits: the publisher failed with a traceback, the demo started a session on
     frame -1 anyway and reported the service's refusal of that, exit 1."""

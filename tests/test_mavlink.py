@@ -249,6 +249,29 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     camera.hold.clear()
 
 
+def test_a_start_answered_too_late_is_stopped_by_a_stop(rig, monkeypatch):
+    """A start whose reply came after the timeout may have started the session: the stop that followed said
+    ACCEPTED without asking the service, and the session ran on, holding a slot."""
+    from tacf_clients.errors import RequestTimeout
+
+    gcs, camera, client, component = rig
+    target = _held_target(camera, component)
+    start = component.client.start
+
+    def answered_too_late(*args, **kwargs):
+        start(*args, **kwargs)
+        raise RequestTimeout("no reply on tacf/test/control/start within 5 s")
+    monkeypatch.setattr(component.client, "start", answered_too_late)
+    try:
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+            mav.MAV_RESULT_FAILED
+        assert SID in {s.sid for s in client.list()}
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        assert SID not in {s.sid for s in client.list()}
+    finally:
+        camera.hold.clear()
+
+
 def test_commands_sent_as_command_int_are_answered_alike(rig):
     """The command protocol lets a ground station send any command as COMMAND_INT instead of COMMAND_LONG (the
     same four float params, then x, y, z): the rectangle starts the session and the stop ends it either way."""
