@@ -39,6 +39,7 @@ from tacf_schemas.models import (BoxResult, Error, Frame, Health, ListRequest, R
 log = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT = 5.0
+SETTLE_POLL_S = 0.005   # how often a lookup that may end early looks for replies
 BoxLike = Sequence[float]
 #: `start(..., node=LEAST_LOADED)` runs the session on the least-loaded service ("auto", an id no service takes).
 LEAST_LOADED = keys.LEAST_LOADED
@@ -102,7 +103,7 @@ class TrackingClient:
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
         deadline, target = self._deadline(), node or self.node
         if target == LEAST_LOADED:                                       # every service, even with self.node set
-            target = least_loaded(self._services(keys.WILDCARD, deadline))
+            target = least_loaded(self._services(keys.WILDCARD, deadline, settle=True))
         elif target is None:
             target = self._single_node(deadline)
         info = self._call_one(target, "start", request, SessionInfo, deadline)
@@ -139,8 +140,9 @@ class TrackingClient:
         """Ids of the services that answer a list query."""
         return [listing.node for listing in self.services()]
 
-    def _services(self, node: str | None, deadline: float) -> list[SessionList]:
-        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList, deadline)
+    def _services(self, node: str | None, deadline: float, settle: bool = False) -> list[SessionList]:
+        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList, deadline,
+                              settled=(lambda replies: any(r.model for r in replies)) if settle else None)
         listings = [r.model for r in replies if r.model is not None]
         errors = [r.error for r in replies if r.error is not None]
         if not listings and errors:
@@ -251,7 +253,8 @@ class TrackingClient:
 
     def _find_node(self, sid: str, deadline: float) -> str:
         """The node holding session `sid`, found by a wildcard status query."""
-        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo, deadline)
+        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo, deadline,
+                              settled=lambda replies: any(r.model for r in replies))
         found = sorted({r.model.node for r in replies if r.model is not None})
         if len(found) > 1:
             raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: pass node=...")
@@ -277,18 +280,36 @@ class TrackingClient:
                 return reply.model
         raise replies[0].error
 
-    def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel],
-               deadline: float) -> list[_Reply]:
+    def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float,
+               settled: Callable[[list[_Reply]], bool] | None = None) -> list[_Reply]:
+        """The replies to `op` on `node` (a wildcard asks every service) until `deadline`. A lookup before the
+        call itself (which service, where a session is) passes `settled`: once half the time is gone and the
+        replies so far settle it, it waits no longer for a service that does not answer (hung, or going out of
+        reach until its lease ends, 10 s), which took the call's whole time and failed every call without a node."""
         with as_invalid_id():
             key = keys.control_key(node, op)
-        remaining = deadline - time.monotonic()
+        now = time.monotonic()
+        remaining = deadline - now
         if remaining <= 0:                       # the queries before this one took the call's whole timeout
-            raise RequestTimeout(f"no reply on {key} within {self.timeout:g} s")
+            raise RequestTimeout(f"no time left for {key}: the queries before it took the call's {self.timeout:g} s")
         log.debug("query %s %s", key, request)
-        replies = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
+        handler = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
                                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                                    timeout=remaining)
-        return [_parse_reply(reply, reply_model, key, self.timeout) for reply in replies]
+        if settled is None:
+            return [_parse_reply(reply, reply_model, key, self.timeout) for reply in handler]
+        settle_at, replies = now + remaining / 2, []
+        while True:
+            try:
+                reply = handler.try_recv()
+            except zenoh.ZError:                 # every service answered, or the deadline passed
+                return replies
+            if reply is not None:
+                replies.append(_parse_reply(reply, reply_model, key, self.timeout))
+            elif time.monotonic() >= settle_at and settled(replies):
+                return replies
+            else:
+                time.sleep(SETTLE_POLL_S)
 
 
 class NodeWatch:

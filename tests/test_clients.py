@@ -219,6 +219,38 @@ def test_a_call_takes_no_longer_than_its_timeout_however_many_queries_it_makes()
             queryable.undeclare()
 
 
+def test_a_service_that_does_not_answer_holds_up_no_lookup_before_a_call():
+    """One service that takes queries and never answers (hung, or a drone gone out of reach, which keeps its place
+    until its lease ends, 10 s) took the whole timeout of the lookup before a call: a start on the least-loaded
+    service and a status by session id alone failed with a timeout that named the service that did answer."""
+    from tacf_clients.client import LEAST_LOADED
+    from tacf_schemas.codec import MSGPACK_ENCODING, encode
+    from tacf_schemas.models import SessionList
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as services:
+        info = SessionInfo(node="ok", sid="s", image_key="cam/a", profile="default", state="tracking",
+                           box=(1, 2, 3, 4), created_ns=1)
+        replies = {"list": SessionList(node="ok", max_sessions=8), "start": info, "status": info}
+        answering = services.declare_queryable("tacf/ok/control/*", lambda query: query.reply(
+            query.key_expr, encode(replies[str(query.key_expr).rsplit("/", 1)[-1]]),
+            encoding=zenoh.Encoding(MSGPACK_ENCODING)))
+        held = []
+        hung = services.declare_queryable("tacf/hung/control/*", held.append)
+        try:
+            for call in (lambda client: client.start("cam/a", (1, 2, 3, 4), node=LEAST_LOADED),
+                         lambda client: client.status("s")):
+                with TrackingClient(ZenohOptions.loopback(port), timeout=2.0) as client:
+                    started = time.monotonic()
+                    assert call(client).node == "ok"
+                    assert time.monotonic() - started < 2.0
+        finally:
+            answering.undeclare()
+            hung.undeclare()
+            for query in held:
+                query.drop()            # finalise: a query kept alive at exit can abort the interpreter
+
+
 def test_a_call_to_one_service_refuses_the_wildcard_node():
     """node="*" passed the id check of a key expression, so a start or stop went to every service at once (the
     dashboard's POST /api/start with "node": "*" started the session on each of them)."""
