@@ -21,7 +21,7 @@ import zenoh
 
 from tacf_clients.sources import FrameSource, SourceFrame, paced_frames, paced_rate
 from tacf_schemas.codec import MSGPACK_ENCODING, encode
-from tacf_schemas.images import encode_frame
+from tacf_schemas.images import FrameError, encode_frame
 from tacf_schemas.keys import validate_image_key
 from tacf_schemas.models import ENCODINGS, Frame
 
@@ -116,6 +116,8 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
     Replayable sources (files, folders, the scene) are paced at `fps`, else at their own rate, else 30 fps;
     live sources (camera, URL) run at the device's rate, thinned to `fps` when given, and go on through their
     reconnections with the same seq count. `on_frame(frame, src)` is called after each put (keep it quick).
+    A frame that cannot be sent (beyond the wire's limits) raises FrameError if it is the first; after frames went
+    out it is skipped with a warning (one odd image in a folder ended the whole run).
     """
     if max_frames is not None and max_frames < 1:
         raise ValueError(f"max_frames must be at least 1, got {max_frames}")
@@ -130,7 +132,13 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
     with FramePublisher(session, key, encoding, quality) as publisher:
         for src in paced_frames(source, fps, stop):
             # Live sources: the time the device delivered the frame; replayed ones: now, their "capture" time.
-            frame = publisher.put(src.image, src.stamp_ns if source.live else None)
+            try:
+                frame = publisher.put(src.image, src.stamp_ns if source.live else None)
+            except FrameError as exc:
+                if not frames:
+                    raise
+                log.warning("frame %d of %s skipped: %s", src.index, source.name, exc)
+                continue
             last_put = time.monotonic()
             first_put = first_put or last_put
             matched = matched or publisher.matched

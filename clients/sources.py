@@ -278,7 +278,19 @@ def _read_image(path: Path) -> np.ndarray | None:
     """An image file as BGR uint8 (None if unreadable). Deeper images (16-bit thermal frames, float TIFFs) are
     stretched from their own minimum to their maximum, as a thermal camera's automatic gain does; cutting them to
     their high byte would leave 12-bit data almost black."""
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
+    if path.suffix.lower() in (".tif", ".tiff"):
+        # as it is: a one-channel float TIFF (a radiometric thermal export) fails IMREAD_COLOR
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None or image.ndim == 3 and image.shape[2] not in (3, 4):
+            return None
+        if image.dtype.kind == "f":
+            image = np.nan_to_num(image, nan=float(np.nanmin(image)) if not np.isnan(image).all() else 0.0)
+        if image.ndim == 2:
+            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        elif image.shape[2] == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    else:
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
     if image is None or image.dtype == np.uint8:
         return image
     return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)

@@ -224,6 +224,35 @@ def test_a_folder_of_16_bit_images_is_stretched_to_8_bits(tmp_path):
     assert image.min() == 0 and image.max() == 255
 
 
+@pytest.mark.parametrize("pixels", [np.float32, np.uint16])
+def test_a_folder_of_one_channel_tiffs_is_stretched_to_8_bits(tmp_path, pixels):
+    """A radiometric thermal export: one channel of floats (NaN where nothing was measured), which IMREAD_COLOR
+    cannot read: every image was skipped and the folder refused."""
+    folder = tmp_path / "radiometric"
+    folder.mkdir()
+    kelvin = np.tile(np.linspace(250, 320, 64), (48, 1)).astype(pixels)
+    if pixels == np.float32:
+        kelvin[0, :8] = np.nan
+    cv2.imwrite(str(folder / "000001.tiff"), kelvin)
+    image = next(iter(open_source(str(folder)))).image
+    assert image.dtype == np.uint8 and image.shape == (48, 64, 3)
+    assert image.min() == 0 and image.max() == 255 and image[47, 63].tolist() == [255, 255, 255]
+
+
+def test_an_image_beyond_the_wire_s_limits_is_skipped_once_frames_went_out(tmp_path, collector):
+    """One odd image in a folder (a panorama 9000 px wide) ended the whole run with its FrameError."""
+    images = _frames(3)
+    folder = _write_folder(tmp_path / "img", images)
+    cv2.imwrite(str(folder / "000002.png"), np.zeros((16, 9000, 3), np.uint8))
+    with _publisher_session(collector.port) as session:
+        _wait_matched(session)
+        with open_source(str(folder)) as source:
+            assert publish(session, source, KEY, fps=40, encoding="png").frames == len(images) - 1
+        (folder / "000001.png").unlink()
+        with open_source(str(folder)) as source, pytest.raises(FrameError):       # the first: an error, as before
+            publish(session, source, KEY, fps=40)
+
+
 def test_a_folder_named_by_digits_is_a_folder_not_a_camera(tmp_path, monkeypatch):
     """`tacf publish 7` with a folder ./7 tried camera 7 ("cannot open video source 7")."""
     _write_folder(tmp_path / "7", _frames(2))
