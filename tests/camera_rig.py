@@ -36,6 +36,19 @@ def service_and_camera(scene: Scene, key: str, node_prefix: str, fps: float = 20
                 camera.close()
 
 
+def reset_rig(camera, client) -> None:
+    """After a test on a shared rig: the camera moving again and no session left, whatever the test did. One that
+    failed midway left them, and the later tests failed on them too (a session listed, a camera held)."""
+    from tacf_clients.errors import TacfError
+
+    camera.hold.clear()
+    for info in client.list():
+        try:
+            client.stop(info.sid, node=info.node)
+        except TacfError:
+            pass                        # stopped meanwhile
+
+
 def hold_still(camera, timeout: float = 10.0) -> int:
     """Hold `camera` (it repeats its first frame) and return the seq of the first frame sent held: the frame after
     the one that may have been picked before the hold was set."""

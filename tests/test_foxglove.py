@@ -20,7 +20,8 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.local_service import free_port
 from tacf_clients.scene import Scene
-from camera_rig import hold_still, no_service_options, service_and_camera, serving, tacf_command
+from camera_rig import (hold_still, no_service_options, reset_rig, service_and_camera, serving,
+                        tacf_command)
 
 pytest.importorskip("foxglove", reason="pip install -e '.[test]' installs foxglove-sdk")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
@@ -173,6 +174,14 @@ def rig():
         with Dashboard(session=session, image_keys=[KEY], max_frame_fps=20) as board:
             with FoxgloveBridge(board, port=0, image_hz=10) as bridge, serving(bridge):
                 yield service, bridge, camera, board
+
+
+@pytest.fixture(autouse=True)
+def _rig_reset(request):
+    yield
+    if "rig" in request.fixturenames:
+        _, _, camera, board = request.getfixturevalue("rig")
+        reset_rig(camera, board.client)
 
 
 @contextmanager

@@ -17,7 +17,8 @@ from tacf_clients.client import TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
 from tacf_service.loopback import wait_until
-from camera_rig import hold_still, no_service_options, service_and_camera, serving, tacf_command
+from camera_rig import (hold_still, no_service_options, reset_rig, service_and_camera, serving,
+                        tacf_command)
 
 pytest.importorskip("pymavlink", reason="pip install -e '.[test]' installs pymavlink")
 os.environ.setdefault("MAVLINK20", "1")
@@ -54,6 +55,14 @@ def rig():
             loop.join(timeout=10)
             component.close()
             gcs.close()
+
+
+@pytest.fixture(autouse=True)
+def _rig_reset(request):
+    yield
+    if "rig" in request.fixturenames:
+        _, camera, client, _ = request.getfixturevalue("rig")
+        reset_rig(camera, client)
 
 
 @contextmanager
