@@ -131,6 +131,26 @@ def test_opencv_mil_refuses_a_box_too_small_for_its_features():
     assert mil.update(frames[1])[2:] == (2.0, 11.0)
 
 
+@needs_data
+def test_opencv_mil_gives_the_same_boxes_whatever_ran_before_in_the_process():
+    """MIL draws its features with libc's rand(), whose state is the process's: the boxes of a pair depended on the
+    pairs before it (person12_1's AUC 0.15, 0.38 or 0.56 by --workers and --sequences alone)."""
+    import ctypes
+    import ctypes.util
+
+    from tacf.eval.runner import track_sequence
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    seq = load_sequences(SEQUENCES, "UAV123_10fps/wakeboard7")[0]
+    seq = replace(seq, frames=seq.frames[:30], gt=seq.gt[:30])
+    runs = []
+    for draws in (0, 7, 1000):
+        for _ in range(draws):               # what earlier pairs would have drawn
+            libc.rand()
+        runs.append(track_sequence(trackers.make_tracker("opencv-mil"), seq).boxes)
+    assert all(np.array_equal(runs[0], boxes) for boxes in runs[1:])
+
+
 # --- tacf eval ------------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def evaluated(tmp_path_factory):
@@ -274,6 +294,39 @@ def test_eval_resumes_and_force_reruns(evaluated, capsys):
                  "--out", str(evaluated), "--force", "--no-progress"]) == 0
     assert result.stat().st_mtime_ns > before - 10**9
     assert "opencv-mosse" in capsys.readouterr().out
+
+
+def test_a_pair_that_fails_is_not_scored_from_what_an_earlier_run_left(tmp_path, caplog):
+    """A --force run whose frame had become unreadable named the pair as failed, then scored it from the result
+    file of the run before."""
+    data = write_synthetic_dataset(tmp_path, 6)
+    out = tmp_path / "out"
+    args = ["eval", str(data), "--trackers", "opencv-mosse", "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    (data / "synthetic" / "drift" / "img" / "000003.png").write_bytes(b"not a png")
+    assert main([*args, "--force"]) == 1
+    assert "opencv-mosse on synthetic/drift failed" in caplog.text
+    assert json.loads((out / "summary.json").read_text())["trackers"]["opencv-mosse"]["sequences"] == {}
+    assert not (out / "opencv-mosse" / "synthetic" / "drift.txt").exists()
+
+
+def test_a_result_recorded_with_other_settings_is_run_again(tmp_path, caplog):
+    """`tacf` names the default profile, whose boxes change with it: a resumed run kept an older version's results
+    under that name, and summary.json credited them to the current commit. Here another tracker's results stand in
+    for them."""
+    caplog.set_level("INFO", logger="tacf.eval.runner")
+    data = write_synthetic_dataset(tmp_path, 6)
+    out = tmp_path / "out"
+    args = ["eval", str(data), "--out", str(out), "--no-progress", "--trackers"]
+
+    def pairs_run() -> int:
+        return json.loads((out / "summary.json").read_text())["run"]["pairs_run"]
+    assert main([*args, "identity,opencv-mosse"]) == 0 and pairs_run() == 2
+    shutil.rmtree(out / "opencv-mosse")
+    shutil.copytree(out / "identity", out / "opencv-mosse")
+    assert main([*args, "opencv-mosse"]) == 0 and pairs_run() == 1
+    assert "recorded with other settings of opencv-mosse" in caplog.text
+    assert main([*args, "opencv-mosse"]) == 0 and pairs_run() == 0         # resumed, now that they are its own
 
 
 @needs_data

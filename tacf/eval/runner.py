@@ -31,7 +31,7 @@ import numpy as np
 
 from .datasets import Sequence, read_boxes, write_boxes
 from .datasets.base import parse_boxes
-from .trackers import BoxTracker, make_tracker
+from .trackers import BoxTracker, make_tracker, settings_of
 
 log = logging.getLogger(__name__)
 
@@ -212,12 +212,28 @@ def _write_atomically(path: Path, rows: np.ndarray, fmt: str, header: str = "") 
     tmp.replace(path)
 
 
+SETTINGS = "settings "        # in the confidence file's header: settings_of() the tracker that made the result
+
+
 def write_run(out_dir: Path, tracker: str, seq_name: str, run: TrackRun) -> None:
     """Times and confidence first, boxes last: the box file's presence marks a complete, resumable result."""
     _write_atomically(times_path(out_dir, tracker, seq_name), run.times, "%.9g")
-    _write_atomically(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]),
-                      "%.3f,%d", "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame")
+    _write_atomically(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]), "%.3f,%d",
+                      "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame\n"
+                      f"{SETTINGS}{settings_of(tracker)}")
     write_boxes(result_path(out_dir, tracker, seq_name), run.boxes, one_based=True)
+
+
+def recorded_settings(out_dir: Path, tracker: str, seq_name: str) -> str | None:
+    """settings_of() the tracker that recorded this result, from its confidence file (None: not said there)."""
+    path = confidence_path(out_dir, tracker, seq_name)
+    if not path.is_file():
+        return None
+    with path.open() as lines:
+        for line in itertools.islice(lines, 2):
+            if line.startswith("# " + SETTINGS):
+                return line[len("# " + SETTINGS):].strip()
+    return None
 
 
 def read_confidence(out_dir: Path, tracker: str, seq_name: str) -> tuple[np.ndarray, np.ndarray] | None:
@@ -307,7 +323,9 @@ def _read_toolkit_mat(mat_file: Path) -> tuple[np.ndarray, float]:
         raise ValueError(f"{mat_file}: `results` holds no struct with a `res` field")
     if run.get("type", "rect") != "rect":
         raise ValueError(f"{mat_file}: results of type {run['type']!r}; only 'rect' (x,y,w,h) results are read")
-    boxes = np.array(run["res"], dtype=np.float64).reshape(-1, 4)
+    boxes = np.atleast_2d(np.array(run["res"], dtype=np.float64))
+    if boxes.ndim != 2 or boxes.shape[1] != 4:     # a 4 x N matrix read N x 4 would scramble every box
+        raise ValueError(f"{mat_file}: `res` is {boxes.shape}, not one x,y,w,h row per frame")
     boxes[:, :2] -= 1.0   # 1-based, as the ground truth the toolkit compares them with
     return boxes, float(run.get("fps", np.nan))
 
@@ -390,7 +408,11 @@ def failed_outcome(job: Job, error: str) -> JobOutcome:
 
 
 def run_job(job: Job) -> JobOutcome:
-    """Run one (tracker, sequence) pair and record it; errors are returned, not raised."""
+    """Run one (tracker, sequence) pair and record it; errors are returned, not raised. What an earlier run left
+    for the pair goes first: a pair that failed was scored from it (a `--force` run whose frame had become
+    unreadable, a TRE start moved by other --max-frames)."""
+    for path in (result_path, times_path, confidence_path):
+        path(job.out_dir, job.tracker, job.seq.name).unlink(missing_ok=True)
     try:
         import cv2
 
@@ -410,7 +432,9 @@ def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool =
     """Whether out_dir holds a result of `tracker` that scores `seq` (see `rows_fit`); one of another length, left
     by a run with other --max-frames or frame ranges, is not, nor one that cannot be read, nor, given `first_box`,
     one whose first row (the box the tracker started from) is another: a TRE start moves with the sequence's
-    length, so a run with other --max-frames can leave a result of the same length from another frame."""
+    length, so a run with other --max-frames can leave a result of the same length from another frame. Nor is one
+    recorded with other settings (`settings_of`): `tacf` names the default profile, whose boxes change with it, and
+    a resumed run mixed the boxes of two versions under one name."""
     path = result_path(out_dir, tracker, seq.name)
     if not path.is_file():
         return False
@@ -424,6 +448,10 @@ def is_recorded(out_dir: Path, tracker: str, seq: Sequence, allow_longer: bool =
         return False
     if first_box is not None and not np.allclose(boxes[0], first_box, atol=1e-3, rtol=0):
         log.info("%s starts from %s, not from %s; run again", path, boxes[0].tolist(), first_box.tolist())
+        return False
+    if recorded_settings(out_dir, tracker, seq.name) != settings_of(tracker):
+        log.info("%s was recorded with other settings of %s (its configuration, or the tacf or OpenCV version), or "
+                 "before they were recorded; run again", path, tracker)
         return False
     return True
 

@@ -17,6 +17,7 @@ Names:
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Protocol, runtime_checkable
 
@@ -118,6 +119,11 @@ class OpenCVAdapter:
         if self._kind == "mil" and not mil_features_fit(rect[2], rect[3]):
             raise ValueError(f"opencv-mil cannot start on a {rect[2]}x{rect[3]} box: OpenCV's MIL would search for "
                              "room for its features for ever")
+        if self._kind == "mil":
+            # MIL draws its Haar features with libc's rand(), whose state is the process's: seeded here, its boxes
+            # no longer depend on what the process ran before (the pairs, --workers, the warm-up; person12_1's AUC
+            # was 0.15, 0.38 or 0.56 by that alone)
+            _libc().srand(0)
         self._tracker = self._create()
         self._tracker.init(frame, rect)
         self._box, self.ok = (x, y, w, h), True
@@ -130,6 +136,14 @@ class OpenCVAdapter:
         if ok:
             self._box = tuple(float(v) for v in rect)
         return self._box
+
+
+@functools.lru_cache(maxsize=1)
+def _libc():
+    import ctypes
+    import ctypes.util
+
+    return ctypes.CDLL(ctypes.util.find_library("c") or ctypes.util.find_library("msvcrt"))
 
 
 def tacf_config(name: str):
@@ -182,6 +196,33 @@ def check_name(name: str) -> str:
                          "each optionally followed by @field=value settings, "
                          f"staple, {', '.join(OPENCV_TRACKERS)}, identity") from None
     return name
+
+
+@functools.lru_cache(maxsize=None)
+def settings_of(name: str) -> str:
+    """What a result of tracker `name` depends on besides the frames, as a short digest: its configuration, every
+    field of it (so that a setting added later and on by default, as the motion search was, changes it), and the
+    tacf and OpenCV versions. `tacf eval` runs a pair recorded under other settings again instead of resuming it."""
+    import dataclasses
+    import hashlib
+    import json
+
+    import cv2
+
+    import tacf
+
+    if name == "staple":
+        from tacf.staple import StapleConfig
+
+        config = dataclasses.asdict(StapleConfig())
+    else:
+        try:
+            config = dataclasses.asdict(tacf_config(name))
+        except ValueError:                  # identity, OpenCV's: no settings of ours
+            config = {}
+    described = json.dumps({"tracker": name, "config": config, "tacf": tacf.__version__, "opencv": cv2.__version__},
+                           sort_keys=True, default=str)
+    return hashlib.sha256(described.encode()).hexdigest()[:16]
 
 
 def make_tracker(name: str) -> BoxTracker:
