@@ -313,7 +313,8 @@ def test_boxes_show_after_the_camera_restarts_its_seq_count_before_the_first_box
         try:
             assert _wait(lambda: (f := board.frame(key)) is not None and f.seq >= 100_002)
             camera.close()                                  # it goes down; the box is drawn on its last frame
-            seq = board.frame(key).seq
+            seq = camera.last_seq                           # once the board has it: a frame after the one it
+            assert _wait(lambda: board.frame(key).seq == seq)   # showed was caught up through, and its box shown
             status, body = _post(app.url + "api/start", {"image_key": key, "box": list(SCENE.box(0)), "seq": seq,
                                                          "sid": sid})
             assert status == 200 and body["init_seq"] == seq, body
