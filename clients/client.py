@@ -141,8 +141,7 @@ class TrackingClient:
         return [listing.node for listing in self.services()]
 
     def _services(self, node: str | None, deadline: float, settle: bool = False) -> list[SessionList]:
-        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList, deadline,
-                              settled=(lambda replies: any(r.model for r in replies)) if settle else None)
+        replies = self._query(node or keys.WILDCARD, "list", ListRequest(), SessionList, deadline, settle)
         listings = [r.model for r in replies if r.model is not None]
         errors = [r.error for r in replies if r.error is not None]
         if not listings and errors:
@@ -253,8 +252,7 @@ class TrackingClient:
 
     def _find_node(self, sid: str, deadline: float) -> str:
         """The node holding session `sid`, found by a wildcard status query."""
-        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo, deadline,
-                              settled=lambda replies: any(r.model for r in replies))
+        replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo, deadline, settle=True)
         found = sorted({r.model.node for r in replies if r.model is not None})
         if len(found) > 1:
             raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: pass node=...")
@@ -281,11 +279,11 @@ class TrackingClient:
         raise replies[0].error
 
     def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float,
-               settled: Callable[[list[_Reply]], bool] | None = None) -> list[_Reply]:
+               settle: bool = False) -> list[_Reply]:
         """The replies to `op` on `node` (a wildcard asks every service) until `deadline`. A lookup before the
-        call itself (which service, where a session is) passes `settled`: once half the time is gone and the
-        replies so far settle it, it waits no longer for a service that does not answer (hung, or going out of
-        reach until its lease ends, 10 s), which took the call's whole time and failed every call without a node."""
+        call itself (which service, where a session is) passes `settle`: once half the time is gone and a service
+        has answered, it waits no longer for one that does not answer (hung, or going out of reach until its lease
+        ends, 10 s), which took the call's whole time and failed every call without a node."""
         with as_invalid_id():
             key = keys.control_key(node, op)
         now = time.monotonic()
@@ -296,7 +294,7 @@ class TrackingClient:
         handler = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
                                    target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                                    timeout=remaining)
-        if settled is None:
+        if not settle:
             return [_parse_reply(reply, reply_model, key, self.timeout) for reply in handler]
         settle_at, replies = now + remaining / 2, []
         while True:
@@ -306,7 +304,7 @@ class TrackingClient:
                 return replies
             if reply is not None:
                 replies.append(_parse_reply(reply, reply_model, key, self.timeout))
-            elif time.monotonic() >= settle_at and settled(replies):
+            elif time.monotonic() >= settle_at and any(r.model is not None for r in replies):
                 return replies
             else:
                 time.sleep(SETTLE_POLL_S)

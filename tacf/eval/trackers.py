@@ -116,10 +116,10 @@ class OpenCVAdapter:
     def init(self, frame, box: Box) -> None:
         x, y, w, h = (float(v) for v in box)
         rect = (x, y, w, h) if self._legacy else (round(x), round(y), max(1, round(w)), max(1, round(h)))
-        if self._kind == "mil" and not mil_features_fit(rect[2], rect[3]):
-            raise ValueError(f"opencv-mil cannot start on a {rect[2]}x{rect[3]} box: OpenCV's MIL would search for "
-                             "room for its features for ever")
         if self._kind == "mil":
+            if not mil_features_fit(rect[2], rect[3]):
+                raise ValueError(f"opencv-mil cannot start on a {rect[2]}x{rect[3]} box: OpenCV's MIL would search "
+                                 "for room for its features for ever")
             # MIL draws its Haar features with libc's rand(), whose state is the process's: seeded here, its boxes
             # no longer depend on what the process ran before (the pairs, --workers, the warm-up; person12_1's AUC
             # was 0.15, 0.38 or 0.56 by that alone)
