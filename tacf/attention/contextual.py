@@ -16,8 +16,8 @@ def median(values: np.ndarray):
     half = flat.size // 2
     if flat.size % 2:
         return np.partition(flat, half)[half]
-    low, high = np.partition(flat, [half - 1, half])[half - 1:half + 1]
-    return (low + high) / 2
+    # the mean of the two middle values in their dtype, as np.median (NumPy 1.x made (low + high) / 2 a float64)
+    return np.partition(flat, [half - 1, half])[half - 1:half + 1].mean()
 
 
 def pme(response: np.ndarray) -> float:
