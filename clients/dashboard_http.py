@@ -402,9 +402,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
                                  + str(len(snap.jpeg)).encode() + b"\r\nX-Seq: " + str(snap.seq).encode()
                                  + b"\r\n\r\n" + snap.jpeg + b"\r\n")
                 self.wfile.flush()
-            # a viewer that left is seen here, not by a write, while no new frame comes; it never sends more
-            # (Connection: close), so anything readable is its end (b"") or bytes that nobody will read
-            if select.select([self.connection], [], [], 1.0 / MJPEG_FPS)[0] and not self.connection.recv(4096):
+            if self._client_left(1.0 / MJPEG_FPS):     # seen here, not by a write, while no new frame comes
                 return
 
     def _events(self) -> None:
@@ -429,6 +427,9 @@ class DashboardHandler(BaseHTTPRequestHandler):
             next_tick = time.monotonic() + period
             while not self._ending():
                 dashboard.wait_changed(timeout=min(1.0, KEEPALIVE_S))
+                # a browser gone is seen here: with nothing to send, a write fails only at the second keep-alive
+                if self._client_left(0.0):
+                    break
                 delay = next_tick - time.monotonic()
                 if delay > 0 and self.server.stopping.wait(delay):        # the rate cap
                     break
@@ -454,6 +455,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _ending(self) -> bool:
         return self.server.stopping.is_set() or self.server.dashboard.closed.is_set()
+
+    def _client_left(self, timeout: float) -> bool:
+        """Whether the client of a stream (/events, /mjpeg) closed its end, waiting up to `timeout` s to see it. It
+        never sends more (Connection: close), so anything readable is its end (b"") or bytes that nobody will read."""
+        return bool(select.select([self.connection], [], [], timeout)[0]) and not self.connection.recv(4096)
 
     def _sse(self, event: str, data: dict, retry_ms: int | None = None) -> None:
         text = (f"retry: {retry_ms}\n" if retry_ms else "") + f"event: {event}\ndata: {json.dumps(data)}\n\n"

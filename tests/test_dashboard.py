@@ -513,6 +513,20 @@ def test_an_mjpeg_viewer_that_leaves_while_no_frame_comes_is_let_go():
         assert _wait(lambda: _request_threads() == before, timeout=3), _request_threads()
 
 
+def test_a_browser_that_leaves_an_idle_event_stream_is_let_go():
+    """The event stream saw a browser gone only when a write failed: with nothing to send, the second keep-alive,
+    30 s later. Meanwhile each closed tab kept a thread and a connection, and /metrics counted it connected."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        for _ in range(3):
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as browser:
+                browser.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                received = b""
+                while b"event: state" not in received:
+                    received += browser.recv(65536)
+        assert _wait(lambda: app.server.event_clients == 0 and app.server.connections == 0, timeout=3), \
+            (app.server.event_clients, app.server.connections)
+
+
 def test_many_viewers_connecting_at_once_are_all_answered_at_once():
     """The listen backlog was the stdlib's 5: of 40 viewers connecting together (a dashboard restarted under open
     pages, a wall of screens), most waited a second or more for the kernel to take their connection."""
