@@ -1170,6 +1170,13 @@ _COUNT_FRAME_FETCHES = """
         if (path.startsWith('/frame/')) window.frameFetches[path] = (window.frameFetches[path] || 0) + 1;
         return fetched(url, options);
     };"""
+_RECORD_STARTS = """
+    window.starts = [];
+    const fetched = window.fetch;
+    window.fetch = (url, options) => {
+        if (String(url) === '/api/start') window.starts.push(JSON.parse(options.body));
+        return fetched(url, options);
+    };"""
 
 
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
@@ -1383,6 +1390,51 @@ def test_a_box_starts_on_the_key_it_was_drawn_on_when_the_key_list_changes_meanw
             for info in client.list():
                 if info.sid in ("leaving", "drawn-here"):
                     client.stop(info.sid)
+
+
+def test_a_finger_draws_a_box_on_a_touch_screen(stack, browser):
+    """The page drew boxes from mouse events only: a finger that moves on a touch screen (a tablet at the ground
+    station) fires none, so no session could be started there."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, _ = stack
+    key, sid, box = "test/dashboard/touched", "touched", (60, 50, 80, 60)
+    corners = """const c = document.querySelector('#new-canvas');
+        c.scrollIntoView({block: 'center'});
+        const r = c.getBoundingClientRect(), b = arguments[0];
+        return [r.left + b[0] * r.width / c.width, r.top + b[1] * r.height / c.height,
+                r.left + (b[0] + b[2]) * r.width / c.width, r.top + (b[1] + b[3]) * r.height / c.height];"""
+    with FramePublisher(client.session, key, MovingTargetScene(400, 300, target=48), fps=10):
+        try:
+            assert _post(app.url + "api/watch", {"key": key})[0] == 200
+            _open_page(browser, app)
+            _select_key(browser, key)
+            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400), "its frames are shown"
+            browser.find_element(By.ID, "sid-input").send_keys(sid)
+            browser.execute_script(_RECORD_STARTS)
+            x0, y0, x1, y1 = browser.execute_script(corners, box)
+            browser.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 1})
+            try:
+                touch = functools.partial(browser.execute_cdp_cmd, "Input.dispatchTouchEvent")
+                touch({"type": "touchStart", "touchPoints": [{"x": x0, "y": y0}]})
+                for step in range(1, 5):
+                    touch({"type": "touchMove", "touchPoints": [{"x": x0 + (x1 - x0) * step / 4,
+                                                                 "y": y0 + (y1 - y0) * step / 4}]})
+                touch({"type": "touchEnd", "touchPoints": []})
+            finally:
+                browser.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": False})
+            said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
+                         and t, timeout=30)
+            assert said and "started" in said, browser.find_element(By.ID, "new-status").text
+            [start] = browser.execute_script("return window.starts")
+            assert start["image_key"] == key and all(abs(a - b) <= 2 for a, b in zip(start["box"], box)), start
+            assert client.status(sid).image_key == key
+        finally:
+            if any(info.sid == sid for info in client.list()):
+                client.stop(sid)
 
 
 def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(stack, browser):
