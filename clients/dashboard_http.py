@@ -175,10 +175,13 @@ class DashboardServer(ThreadingHTTPServer):
                 pass
 
     def handle_error(self, request, client_address) -> None:
-        """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say) is a line, not a trace."""
+        """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say), or that its client resets
+        (a flaky radio link, a phone changing networks), is a line, not a trace."""
         exc = sys.exc_info()[1]
         if isinstance(exc, ssl.SSLError):
             log.info("%s: TLS failed: %s", client_address[0], exc)
+        elif isinstance(exc, ConnectionError):
+            log.info("%s: connection lost: %s", client_address[0], exc)
         else:
             super().handle_error(request, client_address)
 

@@ -16,6 +16,7 @@ import os
 import re
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -607,6 +608,21 @@ def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch,
         assert _get(app.url + "healthz")[0] == 200
     assert [r.getMessage() for r in caplog.records if "refusing" in r.getMessage()] == [
         "cannot start a thread for a connection (can't start new thread): refusing it (1 so far)"]
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_connection_its_client_resets_is_a_line_not_a_traceback(capfd):
+    """A client that reset its connection (a flaky radio link, a phone changing networks) while the server read a
+    request head, or waited for the next one, printed a 30-line traceback on stderr each time."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        for request in (b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", b"GET /healthz HTTP/1.1\r\nHost: 12"):
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as connection:
+                connection.sendall(request)
+                if request.endswith(b"\r\n\r\n"):
+                    assert connection.recv(65536).startswith(b"HTTP/1.1 200")       # then idle, kept alive
+                assert _wait(lambda: app.server.connections == 1)
+                connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))   # a reset
+            assert _wait(lambda: app.server.connections == 0)
     assert "Traceback" not in capfd.readouterr().err
 
 
