@@ -7,7 +7,7 @@
                               ?seq=N: the newest kept frame with seq <= N (the frame a box was computed on)
     GET  /mjpeg/<image key>   multipart/x-mixed-replace of the newest frames (a single view, e.g. VLC)
     POST /api/watch           {"key"}: watch an image key's frames
-    POST /api/start           {"image_key", "box": [x, y, w, h], "seq"?, "sid"?, "profile"?, "node"?}
+    POST /api/start           {"image_key", "box": [x, y, w, h], "seq"?, "sid"?, "profile"?, "overrides"?, "node"?}
     POST /api/stop            {"sid", "node"?}
     POST /api/reinit          {"sid", "box", "seq"?, "node"?}
     GET  /metrics             Prometheus text format (dashboard_metrics.py)
@@ -289,7 +289,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
         except TacfError as exc:
             status = next(s for cls, s in _ERROR_STATUS if isinstance(exc, cls))
             self._error(status, getattr(exc, "code", type(exc).__name__), str(exc))
-        except (ValueError, TypeError, KeyError) as exc:
+        except (ValueError, TypeError, KeyError, OverflowError) as exc:     # the last: an override msgpack cannot carry
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", str(exc) or type(exc).__name__)
         else:
             self._json(HTTPStatus.OK, reply)
@@ -324,7 +324,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def _start(self, body: dict) -> dict:
         info = self.server.dashboard.start(_str(body, "image_key"), _box(body), _seq(body),
                                            sid=_opt_str(body, "sid"), profile=_opt_str(body, "profile"),
-                                           node=_opt_str(body, "node"))
+                                           overrides=_opt_dict(body, "overrides"), node=_opt_str(body, "node"))
         return json.loads(info.model_dump_json())
 
     def _stop(self, body: dict) -> dict:
@@ -557,6 +557,13 @@ def _opt_str(body: dict, name: str) -> str | None:
         return None
     if not isinstance(value, str):
         raise ValueError(f"{name!r}: expected a string")
+    return value
+
+
+def _opt_dict(body: dict, name: str) -> dict | None:
+    value = body.get(name)
+    if value is not None and not isinstance(value, dict):
+        raise ValueError(f"{name!r}: expected a JSON object")
     return value
 
 

@@ -174,6 +174,28 @@ def test_api_validates_and_reports_service_errors(stack):
     assert status == 200 and body["sid"] == "pre", body
 
 
+def test_the_overrides_of_a_start_reach_the_service(stack):
+    """POST /api/start dropped a start's tracker overrides without a word (`tacf start --set` and the Foxglove
+    bridge pass them on): the session ran with the profile's values and the reply said 200."""
+    app, client, camera, _ = stack
+    base = app.url.rstrip("/")
+    seq = camera.last_seq
+    box = list(SCENE.box(camera.index_of(seq) or 0))
+    try:
+        status, body = _post(base + "/api/start", {"image_key": KEY, "box": box, "sid": "overridden",
+                                                   "overrides": {"cell_size": 6}})
+        assert status == 200 and body["overrides"] == {"cell_size": 6}, body
+        assert client.status("overridden").overrides == {"cell_size": 6}
+        for overrides in ({"no_such_field": 1}, [1], {"cell_size": 10**400}):    # the last, too large for msgpack
+            status, body = _post(base + "/api/start", {"image_key": KEY, "box": box, "sid": "refused",
+                                                       "overrides": overrides})
+            assert status == 400, (overrides, body)
+        assert "refused" not in [info.sid for info in client.list()]
+    finally:
+        if any(info.sid == "overridden" for info in client.list()):
+            client.stop("overridden")
+
+
 def test_a_box_drawn_on_a_shown_frame_starts_on_it_after_the_frame_is_gone(stack):
     """An operator draws for seconds on a frame of a feed no session follows yet, so the service never held that
     frame: the dashboard sends it with the start (it keeps the frames it showed), and the session starts on it
