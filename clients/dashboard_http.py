@@ -7,7 +7,7 @@
                               ?seq=N: the newest kept frame with seq <= N (the frame a box was computed on)
     GET  /mjpeg/<image key>   multipart/x-mixed-replace of the newest frames (a single view, e.g. VLC)
     POST /api/watch           {"key"}: watch an image key's frames
-    POST /api/start           {"image_key", "box": [x, y, w, h], "seq"?, "sid"?, "profile"?, "node"?}
+    POST /api/start           {"image_key", "box": [x, y, w, h], "seq"?, "sid"?, "profile"?, "overrides"?, "node"?}
     POST /api/stop            {"sid", "node"?}
     POST /api/reinit          {"sid", "box", "seq"?, "node"?}
     GET  /metrics             Prometheus text format (dashboard_metrics.py)
@@ -175,10 +175,13 @@ class DashboardServer(ThreadingHTTPServer):
                 pass
 
     def handle_error(self, request, client_address) -> None:
-        """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say) is a line, not a trace."""
+        """A connection that fails its TLS handshake (plain HTTP on the HTTPS port, say), or that its client resets
+        (a flaky radio link, a phone changing networks), is a line, not a trace."""
         exc = sys.exc_info()[1]
         if isinstance(exc, ssl.SSLError):
             log.info("%s: TLS failed: %s", client_address[0], exc)
+        elif isinstance(exc, ConnectionError):
+            log.info("%s: connection lost: %s", client_address[0], exc)
         else:
             super().handle_error(request, client_address)
 
@@ -286,7 +289,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
         except TacfError as exc:
             status = next(s for cls, s in _ERROR_STATUS if isinstance(exc, cls))
             self._error(status, getattr(exc, "code", type(exc).__name__), str(exc))
-        except (ValueError, TypeError, KeyError) as exc:
+        except (ValueError, TypeError, KeyError, OverflowError) as exc:     # the last: an override msgpack cannot carry
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", str(exc) or type(exc).__name__)
         else:
             self._json(HTTPStatus.OK, reply)
@@ -321,7 +324,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def _start(self, body: dict) -> dict:
         info = self.server.dashboard.start(_str(body, "image_key"), _box(body), _seq(body),
                                            sid=_opt_str(body, "sid"), profile=_opt_str(body, "profile"),
-                                           node=_opt_str(body, "node"))
+                                           overrides=_opt_dict(body, "overrides"), node=_opt_str(body, "node"))
         return json.loads(info.model_dump_json())
 
     def _stop(self, body: dict) -> dict:
@@ -402,9 +405,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
                                  + str(len(snap.jpeg)).encode() + b"\r\nX-Seq: " + str(snap.seq).encode()
                                  + b"\r\n\r\n" + snap.jpeg + b"\r\n")
                 self.wfile.flush()
-            # a viewer that left is seen here, not by a write, while no new frame comes; it never sends more
-            # (Connection: close), so anything readable is its end (b"") or bytes that nobody will read
-            if select.select([self.connection], [], [], 1.0 / MJPEG_FPS)[0] and not self.connection.recv(4096):
+            if self._client_left(1.0 / MJPEG_FPS):     # seen here, not by a write, while no new frame comes
                 return
 
     def _events(self) -> None:
@@ -429,6 +430,9 @@ class DashboardHandler(BaseHTTPRequestHandler):
             next_tick = time.monotonic() + period
             while not self._ending():
                 dashboard.wait_changed(timeout=min(1.0, KEEPALIVE_S))
+                # a browser gone is seen here: with nothing to send, a write fails only at the second keep-alive
+                if self._client_left(0.0):
+                    break
                 delay = next_tick - time.monotonic()
                 if delay > 0 and self.server.stopping.wait(delay):        # the rate cap
                     break
@@ -454,6 +458,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _ending(self) -> bool:
         return self.server.stopping.is_set() or self.server.dashboard.closed.is_set()
+
+    def _client_left(self, timeout: float) -> bool:
+        """Whether the client of a stream (/events, /mjpeg) closed its end, waiting up to `timeout` s to see it. It
+        never sends more (Connection: close), so anything readable is its end (b"") or bytes that nobody will read."""
+        return bool(select.select([self.connection], [], [], timeout)[0]) and not self.connection.recv(4096)
 
     def _sse(self, event: str, data: dict, retry_ms: int | None = None) -> None:
         text = (f"retry: {retry_ms}\n" if retry_ms else "") + f"event: {event}\ndata: {json.dumps(data)}\n\n"
@@ -548,6 +557,13 @@ def _opt_str(body: dict, name: str) -> str | None:
         return None
     if not isinstance(value, str):
         raise ValueError(f"{name!r}: expected a string")
+    return value
+
+
+def _opt_dict(body: dict, name: str) -> dict | None:
+    value = body.get(name)
+    if value is not None and not isinstance(value, dict):
+        raise ValueError(f"{name!r}: expected a JSON object")
     return value
 
 

@@ -16,6 +16,7 @@ import os
 import re
 import shutil
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -171,6 +172,28 @@ def test_api_validates_and_reports_service_errors(stack):
     status, body = _post(base + "/api/reinit", {"sid": "pre", "box": list(SCENE.box(camera.index_of(seq))),
                                                 "seq": seq})
     assert status == 200 and body["sid"] == "pre", body
+
+
+def test_the_overrides_of_a_start_reach_the_service(stack):
+    """POST /api/start dropped a start's tracker overrides without a word (`tacf start --set` and the Foxglove
+    bridge pass them on): the session ran with the profile's values and the reply said 200."""
+    app, client, camera, _ = stack
+    base = app.url.rstrip("/")
+    seq = camera.last_seq
+    box = list(SCENE.box(camera.index_of(seq) or 0))
+    try:
+        status, body = _post(base + "/api/start", {"image_key": KEY, "box": box, "sid": "overridden",
+                                                   "overrides": {"cell_size": 6}})
+        assert status == 200 and body["overrides"] == {"cell_size": 6}, body
+        assert client.status("overridden").overrides == {"cell_size": 6}
+        for overrides in ({"no_such_field": 1}, [1], {"cell_size": 10**400}):    # the last, too large for msgpack
+            status, body = _post(base + "/api/start", {"image_key": KEY, "box": box, "sid": "refused",
+                                                       "overrides": overrides})
+            assert status == 400, (overrides, body)
+        assert "refused" not in [info.sid for info in client.list()]
+    finally:
+        if any(info.sid == "overridden" for info in client.list()):
+            client.stop("overridden")
 
 
 def test_a_box_drawn_on_a_shown_frame_starts_on_it_after_the_frame_is_gone(stack):
@@ -495,22 +518,31 @@ def test_metrics_count_what_the_dashboard_could_not_decode_on_a_key():
         assert samples[("tacf_dashboard_frames_received_total", frozenset({("image_key", key)}))] == 0
 
 
-def _request_threads() -> int:
-    """The HTTP server's handler threads (ThreadingMixIn names them after process_request_thread)."""
-    return sum("process_request_thread" in t.name for t in threading.enumerate())
-
-
 def test_an_mjpeg_viewer_that_leaves_while_no_frame_comes_is_let_go():
     """The stream only wrote on a new frame, so a viewer that left a key without frames kept a thread and a
     socket for good."""
     key = "test/dashboard/nothing"
     with DashboardApp(no_service_options(), port=0, image_keys=[key]) as app:
-        before = _request_threads()
         for _ in range(3):
             with socket.create_connection(app.server.server_address[:2], timeout=10) as viewer:
                 viewer.sendall(f"GET /mjpeg/{key} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
                 assert viewer.recv(65536).startswith(b"HTTP/1.1 200")
-        assert _wait(lambda: _request_threads() == before, timeout=3), _request_threads()
+        # this server's connections: the handler threads of the process include other tests' servers', ending
+        assert _wait(lambda: app.server.connections == 0, timeout=3), app.server.connections
+
+
+def test_a_browser_that_leaves_an_idle_event_stream_is_let_go():
+    """The event stream saw a browser gone only when a write failed: with nothing to send, the second keep-alive,
+    30 s later. Meanwhile each closed tab kept a thread and a connection, and /metrics counted it connected."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        for _ in range(3):
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as browser:
+                browser.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                received = b""
+                while b"event: state" not in received:
+                    received += browser.recv(65536)
+        assert _wait(lambda: app.server.event_clients == 0 and app.server.connections == 0, timeout=3), \
+            (app.server.event_clients, app.server.connections)
 
 
 def test_many_viewers_connecting_at_once_are_all_answered_at_once():
@@ -593,6 +625,21 @@ def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch,
         assert _get(app.url + "healthz")[0] == 200
     assert [r.getMessage() for r in caplog.records if "refusing" in r.getMessage()] == [
         "cannot start a thread for a connection (can't start new thread): refusing it (1 so far)"]
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_connection_its_client_resets_is_a_line_not_a_traceback(capfd):
+    """A client that reset its connection (a flaky radio link, a phone changing networks) while the server read a
+    request head, or waited for the next one, printed a 30-line traceback on stderr each time."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        for request in (b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", b"GET /healthz HTTP/1.1\r\nHost: 12"):
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as connection:
+                connection.sendall(request)
+                if request.endswith(b"\r\n\r\n"):
+                    assert connection.recv(65536).startswith(b"HTTP/1.1 200")       # then idle, kept alive
+                assert _wait(lambda: app.server.connections == 1)
+                connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))   # a reset
+            assert _wait(lambda: app.server.connections == 0)
     assert "Traceback" not in capfd.readouterr().err
 
 
@@ -1156,6 +1203,13 @@ _COUNT_FRAME_FETCHES = """
         if (path.startsWith('/frame/')) window.frameFetches[path] = (window.frameFetches[path] || 0) + 1;
         return fetched(url, options);
     };"""
+_RECORD_STARTS = """
+    window.starts = [];
+    const fetched = window.fetch;
+    window.fetch = (url, options) => {
+        if (String(url) === '/api/start') window.starts.push(JSON.parse(options.body));
+        return fetched(url, options);
+    };"""
 
 
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
@@ -1369,6 +1423,51 @@ def test_a_box_starts_on_the_key_it_was_drawn_on_when_the_key_list_changes_meanw
             for info in client.list():
                 if info.sid in ("leaving", "drawn-here"):
                     client.stop(info.sid)
+
+
+def test_a_finger_draws_a_box_on_a_touch_screen(stack, browser):
+    """The page drew boxes from mouse events only: a finger that moves on a touch screen (a tablet at the ground
+    station) fires none, so no session could be started there."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, _ = stack
+    key, sid, box = "test/dashboard/touched", "touched", (60, 50, 80, 60)
+    corners = """const c = document.querySelector('#new-canvas');
+        c.scrollIntoView({block: 'center'});
+        const r = c.getBoundingClientRect(), b = arguments[0];
+        return [r.left + b[0] * r.width / c.width, r.top + b[1] * r.height / c.height,
+                r.left + (b[0] + b[2]) * r.width / c.width, r.top + (b[1] + b[3]) * r.height / c.height];"""
+    with FramePublisher(client.session, key, MovingTargetScene(400, 300, target=48), fps=10):
+        try:
+            assert _post(app.url + "api/watch", {"key": key})[0] == 200
+            _open_page(browser, app)
+            _select_key(browser, key)
+            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400), "its frames are shown"
+            browser.find_element(By.ID, "sid-input").send_keys(sid)
+            browser.execute_script(_RECORD_STARTS)
+            x0, y0, x1, y1 = browser.execute_script(corners, box)
+            browser.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 1})
+            try:
+                touch = functools.partial(browser.execute_cdp_cmd, "Input.dispatchTouchEvent")
+                touch({"type": "touchStart", "touchPoints": [{"x": x0, "y": y0}]})
+                for step in range(1, 5):
+                    touch({"type": "touchMove", "touchPoints": [{"x": x0 + (x1 - x0) * step / 4,
+                                                                 "y": y0 + (y1 - y0) * step / 4}]})
+                touch({"type": "touchEnd", "touchPoints": []})
+            finally:
+                browser.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": False})
+            said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
+                         and t, timeout=30)
+            assert said and "started" in said, browser.find_element(By.ID, "new-status").text
+            [start] = browser.execute_script("return window.starts")
+            assert start["image_key"] == key and all(abs(a - b) <= 2 for a, b in zip(start["box"], box)), start
+            assert client.status(sid).image_key == key
+        finally:
+            if any(info.sid == sid for info in client.list()):
+                client.stop(sid)
 
 
 def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(stack, browser):

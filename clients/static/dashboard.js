@@ -193,21 +193,24 @@ function canvasPoint(canvas, event) {
 }
 
 function enableDrawing(canvas, feedOf, onBox) {
-  canvas.addEventListener("mousedown", (event) => {
+  const begin = (point) => {       // a mouse event or a Touch: true if a draft starts
     const feed = feedOf();
-    if (!feed || !feed.bitmap || event.button !== 0 || !canvas.classList.contains("drawable")) return;
-    const [x, y] = canvasPoint(canvas, event);
+    if (!feed || !feed.bitmap || !canvas.classList.contains("drawable")) return false;
+    const [x, y] = canvasPoint(canvas, point);
     // Hold the frame the operator draws on: the box is sent with its seq and key (the key list may change
     // during the drag, and the selected key with it).
     drafts.set(canvas, { x0: x, y0: y, x1: x, y1: y, bitmap: feed.bitmap, seq: feed.seq, key: feed.key });
-    event.preventDefault();
-  });
-  canvas.addEventListener("mousemove", (event) => {
+    return true;
+  };
+  const move = (point) => {
     const draft = drafts.get(canvas);
-    if (!draft) return;
-    [draft.x1, draft.y1] = canvasPoint(canvas, event);
+    if (!draft) return false;
+    [draft.x1, draft.y1] = canvasPoint(canvas, point);
     scheduleDraw();
-  });
+    return true;
+  };
+  canvas.addEventListener("mousedown", (event) => { if (event.button === 0 && begin(event)) event.preventDefault(); });
+  canvas.addEventListener("mousemove", move);
   const finish = (event) => {
     const draft = drafts.get(canvas);
     if (!draft) return;
@@ -222,6 +225,15 @@ function enableDrawing(canvas, feedOf, onBox) {
   };
   canvas.addEventListener("mouseup", finish);
   canvas.addEventListener("mouseleave", () => { if (drafts.get(canvas)) finish(null); });
+  // A finger draws too (a tablet at the ground station): a touch that moves fires no mouse event at all, and
+  // would scroll the page. A second finger (a pinch) drops the draft.
+  canvas.addEventListener("touchstart", (event) => {
+    if (event.touches.length === 1 ? begin(event.touches[0]) : drafts.delete(canvas)) event.preventDefault();
+  }, { passive: false });
+  canvas.addEventListener("touchmove", (event) => { if (move(event.changedTouches[0])) event.preventDefault(); },
+                          { passive: false });
+  canvas.addEventListener("touchend", (event) => finish(event.changedTouches[0]));
+  canvas.addEventListener("touchcancel", () => { drafts.delete(canvas); scheduleDraw(); });
 }
 
 function paintDraft(canvas) {
