@@ -216,6 +216,18 @@ def test_watch_ends_on_time_and_on_stop_whatever_the_interval(net):
     assert not thread.is_alive(), "the watch ends soon after Ctrl-C"
 
 
+def test_watch_refuses_a_bad_session_id_before_it_says_anything(net):
+    """`tacf watch a/b` first asked every service for its sessions (up to 2 s), printed that it was waiting for a
+    service when none answered, and only then refused the id."""
+    from tacf_clients.errors import InvalidId
+
+    out = io.StringIO()
+    started = time.monotonic()
+    with pytest.raises(InvalidId):
+        watch(options=net.options, sid="a/b", duration=1, out=out)
+    assert out.getvalue() == "" and time.monotonic() - started < 1.5
+
+
 _wait = functools.partial(wait_until, timeout=5.0, period=0.02)
 
 
