@@ -135,7 +135,8 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
             out.write((CLEAR if redraw else "") + f"tacf watch  {time.strftime('%H:%M:%S')}\n{text}\n\n")
             out.flush()
 
-        with client.results(sid, node=node, latest_only=True) as stream:
+        # on every service unless --node says one: a session seen on one may be started again on another
+        with client.results(sid, node=node or keys.WILDCARD, latest_only=True) as stream:
             next_draw = time.monotonic()
             while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
                 # wait for data until the next refresh, in slices: a long --interval must not hide a stop (Ctrl-C)
