@@ -87,7 +87,9 @@ ERRORS: dict[str, type[ServiceError]] = {cls.code: cls for cls in (
 
 
 def error_from_wire(code: str, message: str, node: str | None = None) -> ServiceError:
-    return ERRORS.get(code, ServiceError)(message, node)
+    error = ERRORS.get(code, ServiceError)(message, node)
+    error.code = code       # a newer service's code, which no class here names, not ServiceError's "internal"
+    return error
 
 
 # ------------------------------------------------------------------ errors found by the client

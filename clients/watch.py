@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from typing import TextIO
 
 from tacf_clients.client import TrackingClient
-from tacf_clients.errors import TacfError
+from tacf_clients.errors import TacfError, as_invalid_id
 from tacf_clients.zconfig import ZenohOptions
 from tacf_schemas import keys
 from tacf_schemas.models import BoxResult, Health, SessionInfo
@@ -114,6 +114,9 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
     redraw = out.isatty()
     rows: dict[tuple[str, str], SessionRow] = {}
     deadline = None if duration is None else time.monotonic() + duration
+    if sid != keys.WILDCARD:            # before the list query, which said it waited for a service meanwhile
+        with as_invalid_id():
+            keys.validate_id(sid, "session id")
     with TrackingClient(options, node=node, timeout=2.0) as client:     # a bad node id is refused before opening
         try:
             services = client.services()
@@ -132,7 +135,8 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
             out.write((CLEAR if redraw else "") + f"tacf watch  {time.strftime('%H:%M:%S')}\n{text}\n\n")
             out.flush()
 
-        with client.results(sid, node=node, latest_only=True) as stream:
+        # on every service unless --node says one: a session seen on one may be started again on another
+        with client.results(sid, node=node or keys.WILDCARD, latest_only=True) as stream:
             next_draw = time.monotonic()
             while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
                 # wait for data until the next refresh, in slices: a long --interval must not hide a stop (Ctrl-C)

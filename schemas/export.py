@@ -14,12 +14,16 @@ from pathlib import Path
 from .models import MODELS
 
 JSON_DIR = Path(__file__).resolve().parent / "json"
+#: The draft pydantic writes in: named in each file, since a validator left to its default draft (7, often) ignores
+#: 2020-12's keywords, such as the prefixItems that type a box.
+DRAFT = "https://json-schema.org/draft/2020-12/schema"
 log = logging.getLogger("tacf_schemas.export")
 
 
 def schema_text(name: str) -> str:
     """The exported file content for one model: sorted keys, 2-space indent, trailing newline."""
-    return json.dumps(MODELS[name].model_json_schema(mode="validation"), indent=2, sort_keys=True) + "\n"
+    schema = {"$schema": DRAFT, **MODELS[name].model_json_schema(mode="validation")}
+    return json.dumps(schema, indent=2, sort_keys=True) + "\n"
 
 
 def expected_files() -> dict[str, str]:

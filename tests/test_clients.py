@@ -60,6 +60,26 @@ def test_error_classes_cover_every_wire_code():
     assert all(issubclass(cls, ServiceError) for cls in ERRORS.values())
 
 
+def test_an_error_of_a_newer_service_keeps_its_code():
+    """A code this client has no class for raises a plain ServiceError: its `code` said "internal" (the class's),
+    so a caller, or the dashboard's API that passes it on, took a newer service's refusal for a bug."""
+    import msgpack
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as newer:
+        def refuse(query):
+            with query:
+                query.reply_err(msgpack.packb({"v": 2, "code": "rate_limited", "message": "slow down",
+                                               "node": "newer"}))
+
+        newer.declare_queryable("tacf/newer/control/*", refuse)
+        with TrackingClient(ZenohOptions.loopback(port), timeout=2.0) as client, \
+                pytest.raises(ServiceError) as refused:
+            client.status("abc", node="newer")
+    assert type(refused.value) is ServiceError
+    assert (refused.value.code, refused.value.message, refused.value.node) == ("rate_limited", "slow down", "newer")
+
+
 def test_start_status_list_subscribe_stop(client, camera, service):
     boxes: list[BoxResult] = []
     health: list[Health] = []

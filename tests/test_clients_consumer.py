@@ -216,6 +216,49 @@ def test_watch_ends_on_time_and_on_stop_whatever_the_interval(net):
     assert not thread.is_alive(), "the watch ends soon after Ctrl-C"
 
 
+def test_watch_of_one_session_follows_it_to_another_service(net):
+    """`tacf watch SID` subscribed on the node the list found SID on, so a session stopped there and started
+    again elsewhere (`tacf start --node auto`, a MAVLink bridge restarting it) never showed again: --node is what
+    limits the watch to one service."""
+    from tacf_schemas import control_key
+    from tacf_schemas.models import SessionList
+
+    info = SessionInfo(node="edge1", sid="moved", image_key="cam/a", profile="paper", state="tracking",
+                       box=(1.0, 2.0, 3.0, 4.0), created_ns=time.time_ns())
+
+    def reply(query):
+        with query:
+            query.reply(control_key("edge1", "list"), encode(SessionList(node="edge1", max_sessions=8,
+                                                                         sessions=[info])))
+
+    queryable = net.service.declare_queryable(control_key("edge1", "list"), reply)
+    out = io.StringIO()
+    stop = threading.Event()
+    thread = threading.Thread(target=watch, kwargs=dict(options=net.options, sid="moved", interval=0.2, duration=8,
+                                                        stop=stop, out=out))
+    thread.start()
+    try:
+        net.wait_matched(box_key("edge1", "moved"))
+        net.put(_box("moved", 71, node="edge2"))
+        assert _wait(lambda: "edge2" in out.getvalue() and "71" in out.getvalue())
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        queryable.undeclare()
+
+
+def test_watch_refuses_a_bad_session_id_before_it_says_anything(net):
+    """`tacf watch a/b` first asked every service for its sessions (up to 2 s), printed that it was waiting for a
+    service when none answered, and only then refused the id."""
+    from tacf_clients.errors import InvalidId
+
+    out = io.StringIO()
+    started = time.monotonic()
+    with pytest.raises(InvalidId):
+        watch(options=net.options, sid="a/b", duration=1, out=out)
+    assert out.getvalue() == "" and time.monotonic() - started < 1.5
+
+
 _wait = functools.partial(wait_until, timeout=5.0, period=0.02)
 
 

@@ -173,6 +173,18 @@ def test_what_the_schema_cannot_state_the_decoder_refuses(case):
     assert _schema_takes(case.model, case.message) and not _decoder_takes(case.model, case.message)
 
 
+def test_every_json_schema_names_its_draft():
+    """The schemas are written in 2020-12 (a box's prefixItems): without "$schema" a validator applies its own
+    default draft, and under draft 7 (Ajv's default class, jsonschema's Draft7Validator...) prefixItems is no
+    keyword, so a box of four strings passed."""
+    for name in MODELS:
+        schema = json.loads((JSON_DIR / f"{name}.json").read_text())
+        assert schema.get("$schema") == "https://json-schema.org/draft/2020-12/schema", name
+    schema = json.loads((JSON_DIR / "StartRequest.json").read_text())
+    validator = jsonschema.validators.validator_for(schema, default=jsonschema.Draft7Validator)(schema)
+    assert not validator.is_valid({"image_key": "cam", "box": ["1", "2", "3", "4"]})
+
+
 def test_init_box_sizes_are_positive_in_the_json_schema():
     for name in ("StartRequest", "ReinitRequest"):
         items = MODELS[name].model_json_schema()["properties"]["box"]["prefixItems"]
