@@ -66,8 +66,9 @@ def viewer_options(options: ZenohOptions) -> ZenohOptions:
     """The options of a client that shows frames (dashboard, Foxglove bridge). From another machine (every
     --connect endpoint off this host, no --listen, --mode or config file) it runs as a Zenoh *client*: it listens
     nowhere then, and as a peer it would get boxes (the service routes its workers') but no frames, since a
-    camera on the edge box listens on loopback only and peers do not relay for peers; the box it connects to
-    routes everything for a client (measured across two network namespaces, docs/thin_link.md)."""
+    camera on the edge box listens on loopback at most (nowhere when it connects off-host) and peers do not relay
+    for peers; the box it connects to routes everything for a client (measured across two network namespaces,
+    docs/thin_link.md)."""
     remote = options.connect and not any(map(_is_loopback, options.connect))
     if remote and options.mode is None and options.config_file is None and not options.listen:
         return dataclasses.replace(options, mode="client")

@@ -2,7 +2,7 @@
 box and the ground station (needs root and iproute2; skipped elsewhere). On the edge: `tacf serve` on the link's
 address, a camera (`tacf publish scene`) and a session. On the ground: `tacf dashboard --connect` to the edge.
 Before the dashboard ran as a Zenoh client there, it showed the session's boxes but never a frame: the camera
-listens on the edge's loopback only, and peers do not relay for peers (docs/thin_link.md)."""
+listens nowhere the ground can reach (on loopback at most), and peers do not relay for peers (docs/thin_link.md)."""
 from __future__ import annotations
 
 import json
