@@ -39,6 +39,7 @@ import logging
 import math
 import os
 import queue
+import re
 import socket
 import threading
 import time
@@ -495,10 +496,11 @@ class MavlinkCamera:
 
 
 def default_sid(image_key: str) -> str:
-    """mavlink-<image key>, made an id; a key too long for one (ids have 64 characters at most) is cut and ends
-    in a digest of the whole key, so that two long keys with one beginning still get two ids."""
+    """mavlink-<image key>, made an id, '/' read as '-'. A key of other characters than letters, digits, '_' and
+    '/' (uav1/cam-front, uav1/cam.front and uav1/cam/front would all read mavlink-uav1-cam-front) or too long for
+    an id (64 characters at most, so cut) ends in a digest of the whole key: two cameras never share a session."""
     sid = "mavlink-" + keys.sanitise_id(image_key)
-    if len(sid) <= 64:
+    if len(sid) <= 64 and re.fullmatch(r"[A-Za-z0-9_/]+", image_key):
         return sid
     return sid[:55] + "-" + hashlib.sha256(image_key.encode()).hexdigest()[:8]
 

@@ -622,6 +622,15 @@ def test_an_image_key_too_long_for_an_id_still_gets_its_own_session_id():
     assert len(set(sids)) == 2 and all(len(sid) == 64 for sid in sids)
 
 
+def test_image_keys_that_read_alike_get_session_ids_of_their_own():
+    """Keys that differ in punctuation only all got mavlink-uav1-cam-front: two bridges then shared one session."""
+    from tacf_clients.mavlink import default_sid
+    from tacf_schemas.keys import validate_id
+
+    alike = ["uav1/cam/front", "uav1/cam-front", "uav1.cam.front", "uav1/cam:front", "uav1/cam/front-"]
+    assert len({validate_id(default_sid(key)) for key in alike}) == len(alike)
+
+
 def test_tacf_mavlink_command_announces_itself_until_sigterm():
     import signal
     import subprocess
