@@ -44,6 +44,8 @@ LIST_PERIOD_S = 1.0          # how often the session list is refreshed
 LIST_TIMEOUT_S = 2.0         # reply timeout of that list query
 SILENT_DROP_S = 30.0         # a session of a node that stopped answering (its token still up) is dropped after this
                              # long without news
+REORDER_WINDOW_NS = 10**9    # a box published this much before the one shown crossed it on the way; further back,
+                             # the edge box's clock was set back (NTP after boot), and it is news
 TOMBSTONE_S = 5.0            # messages still in flight for a session stopped here or whose service's token went are
                              # ignored for this long (or until that service's token is back, or a list shows a new
                              # session under the stopped one's id)
@@ -407,8 +409,8 @@ class Dashboard:
             if view is None:
                 view = self._sessions[sid_id] = SessionView(item.node, item.sid)
             if isinstance(item, BoxResult):
-                if view.box is not None and item.published_ns < view.box.published_ns:
-                    return                                     # reordered: keep the newest
+                if view.box is not None and 0 < view.box.published_ns - item.published_ns <= REORDER_WINDOW_NS:
+                    return      # reordered: keep the newest (further back is the edge box's clock set back)
                 if view.init is not None:
                     # computed before the start or reinit: on an earlier frame, unless the camera restarted its
                     # seq count meanwhile (a later stamp)

@@ -758,6 +758,25 @@ def test_charts_are_timed_by_the_dashboard_s_clock_not_the_service_s():
         assert all(abs(point["t"] - now_ms) < 10_000 for point in app.dashboard.sessions_json()[1]["skewed/s"])
 
 
+def test_boxes_go_on_after_the_edge_box_s_clock_steps_back():
+    """A box is kept over a newer one only when it was published just after it (two results crossing on the way):
+    a box stamped a minute ahead, as before an edge box's clock is corrected, held the page for that minute."""
+    from tacf_schemas.keys import box_key
+    from tacf_schemas.models import BoxResult
+
+    def shown(app) -> int | None:
+        sessions = app.dashboard.sessions_json()[0]
+        return sessions[0]["box"]["seq"] if sessions and sessions[0]["box"] else None
+
+    with zenoh.open(make_config(no_service_options())) as session, DashboardApp(session=session, port=0) as app:
+        box = BoxResult(node="edge", sid="s", seq=1, stamp_ns=1, box=(1.0, 2.0, 3.0, 4.0), width=64, height=48,
+                        ok=True, pme=30.0, score=0.5, scale=1.0, processing_ms=5.0,
+                        published_ns=time.time_ns() + 60 * 10**9)
+        assert _wait(lambda: session.put(box_key("edge", "s"), encode(box)) or shown(app) == 1)
+        later = box.model_copy(update={"seq": 2, "stamp_ns": 2, "published_ns": time.time_ns()})
+        assert _wait(lambda: session.put(box_key("edge", "s"), encode(later)) or shown(app) == 2)
+
+
 def test_two_dashboards_on_one_machine_keep_their_logins_apart():
     """Browsers keep a host's cookies for all its ports: with one cookie name, logging in to one dashboard
     logged the browser out of the other."""
