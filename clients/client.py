@@ -304,8 +304,9 @@ class TrackingClient:
                 return replies
             if reply is not None:
                 replies.append(_parse_reply(reply, reply_model, key, self.timeout))
-            elif time.monotonic() >= settle_at and any(r.model is not None for r in replies):
-                return replies
+            elif time.monotonic() >= deadline or (time.monotonic() >= settle_at
+                                                  and any(r.model is not None for r in replies)):
+                return replies      # at the deadline too: with zenoh 1.5, try_recv() never raised after the replies
             else:
                 time.sleep(SETTLE_POLL_S)
 

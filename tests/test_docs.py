@@ -37,6 +37,17 @@ def test_every_extra_is_named_in_the_readme():
     assert extras and [extra for extra in extras if f"[{extra}]" not in README] == []
 
 
+def test_every_lower_bound_is_the_version_the_floor_tests_pin():
+    """.ci/run tests the oldest versions pyproject.toml allows (.ci/floors.txt): a bound raised or lowered without
+    its pin would claim a version nobody tested. The pin may carry more parts (5.0 -> 5.0.0.93)."""
+    project = (ROOT / "pyproject.toml").read_text().split("\n[project]")[1]       # not the build system's
+    bounds = dict(re.findall(r'"([A-Za-z0-9_.-]+)>=([0-9.]+)', project))
+    pins = dict(re.findall(r"^([A-Za-z0-9_.-]+)==([0-9.]+)$", (ROOT / ".ci" / "floors.txt").read_text(), re.M))
+    assert bounds and set(bounds) == set(pins)
+    assert [name for name, bound in bounds.items()
+            if pins.get(name, "").split(".")[:len(bound.split("."))] != bound.split(".")] == []
+
+
 def test_the_docker_image_gets_the_files_the_package_metadata_names():
     """pyproject's readme and license-files must reach `pip install .` in docker/Dockerfile: LICENSE was left out
     of the build context, so the image's package carried no licence and setuptools warned that the build will
