@@ -77,12 +77,14 @@ def decode_frame(frame: Frame) -> np.ndarray:
 
 def encode_frame(image: np.ndarray, seq: int, encoding: str = "jpeg", *, quality: int = 90,
                  stamp_ns: int | None = None) -> Frame:
-    """A Frame of an HxWx3 BGR or HxW gray uint8 image. bgr8 needs 3 channels, mono8 one. FrameError (too_large)
+    """A Frame of an HxWx3 BGR or HxW (HxWx1) gray uint8 image. bgr8 needs 3 channels, mono8 one. FrameError (too_large)
     for an image beyond the wire limits, which every service would refuse."""
     import cv2
 
-    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ValueError("image must be an HxW or HxWx3 uint8 numpy array")
+    if (not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3)
+            or image.ndim == 3 and image.shape[2] not in (1, 3)):     # not 2 or 4: OpenCV's error, or a BGRA PNG
+        raise ValueError("image must be an HxW, HxWx1 or HxWx3 uint8 numpy array, got "
+                         + (f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__))
     height, width = image.shape[:2]
     check_dimensions(width, height)
     channels = 1 if image.ndim == 2 else image.shape[2]

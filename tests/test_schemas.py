@@ -290,6 +290,14 @@ def test_mono8(image):
     assert np.array_equal(decode_frame(encode_frame(gray, 1, "mono8")), gray)
 
 
+@pytest.mark.parametrize("encoding", ["jpeg", "png", "bgr8", "mono8"])
+@pytest.mark.parametrize("channels", [0, 2, 4])
+def test_an_image_of_other_channels_is_a_value_error(encoding, channels):
+    """An HxWx2 image went through to OpenCV, whose cv2.error is not the ValueError the docstring promises."""
+    with pytest.raises(ValueError, match="HxWx3"):
+        encode_frame(np.zeros((8, 8, channels), np.uint8), 1, encoding)
+
+
 def test_header_sizes(image):
     assert jpeg_size(encode_frame(image, 1, "jpeg").data) == (64, 48)
     assert png_size(encode_frame(image, 1, "png").data) == (64, 48)
