@@ -285,10 +285,11 @@ def _read_image(path: Path) -> np.ndarray | None:
             return None
         if image.dtype.kind == "f":
             image = np.nan_to_num(image, nan=float(np.nanmin(image)) if not np.isnan(image).all() else 0.0)
+        # numpy's channels, not cvtColor's: that refused doubles and signed or 32-bit integers with a traceback
         if image.ndim == 2:
-            image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+            image = np.repeat(image[..., None], 3, axis=2)
         elif image.shape[2] == 4:
-            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+            image = np.ascontiguousarray(image[..., :3])
     else:
         image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
     if image is None or image.dtype == np.uint8:

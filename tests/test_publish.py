@@ -224,10 +224,12 @@ def test_a_folder_of_16_bit_images_is_stretched_to_8_bits(tmp_path):
     assert image.min() == 0 and image.max() == 255
 
 
-@pytest.mark.parametrize("pixels", [np.float32, np.uint16])
+@pytest.mark.parametrize("pixels", [np.float32, np.uint16, np.float64, np.int16, np.int32])
 def test_a_folder_of_one_channel_tiffs_is_stretched_to_8_bits(tmp_path, pixels):
     """A radiometric thermal export: one channel of floats (NaN where nothing was measured), which IMREAD_COLOR
-    cannot read: every image was skipped and the folder refused."""
+    cannot read: every image was skipped and the folder refused. Doubles and signed or 32-bit integers (degrees
+    Celsius x 100) ended `tacf publish` with OpenCV's traceback: cvtColor takes 8-bit, 16-bit unsigned and float32
+    pixels only."""
     folder = tmp_path / "radiometric"
     folder.mkdir()
     kelvin = np.tile(np.linspace(250, 320, 64), (48, 1)).astype(pixels)
