@@ -16,9 +16,9 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TextIO
 
+from tacf.eval.datasets.base import read_boxes
 from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.errors import TacfError
@@ -97,7 +97,11 @@ class GroundTruth:
             for candidate in (source.folder / "groundtruth.txt", source.folder.parent / "groundtruth.txt",
                               source.folder / "groundtruth_rect.txt", source.folder.parent / "groundtruth_rect.txt"):
                 if candidate.is_file():
-                    boxes = _read_groundtruth(candidate)
+                    try:        # the eval toolkit's reader: a VOT polygon x1,y1,...,x4,y4 is the box enclosing it
+                        boxes = [tuple(box) for box in read_boxes(candidate).tolist()]
+                    except ValueError as exc:
+                        log.warning("ground truth not used: %s", exc)
+                        return None
                     return cls(boxes=boxes) if boxes else None
         return None
 
@@ -108,21 +112,6 @@ class GroundTruth:
             box = self.boxes[index]
             return box if all(math.isfinite(v) for v in box) and box[2] > 0 and box[3] > 0 else None
         return None
-
-
-def _read_groundtruth(path: Path) -> list[Box]:
-    boxes = []
-    for line in path.read_text().splitlines():
-        parts = line.replace(",", " ").replace("\t", " ").split()
-        if len(parts) < 4:
-            continue
-        try:
-            x, y, w, h = (float(p) for p in parts[:4])
-        except ValueError:
-            boxes.append((math.nan,) * 4)
-            continue
-        boxes.append((x - 1, y - 1, w, h))      # benchmark files are 1-based (MATLAB); the wire is 0-based
-    return boxes
 
 
 class HoldingPublisher:

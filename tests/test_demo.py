@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -25,6 +26,7 @@ from closed_pipe import head
 from mjpeg_camera import MjpegCamera, interrupted_while_a_stream_opens
 
 pytestmark = pytest.mark.zenoh
+VOT_BAG = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences" / "VOT" / "bag"
 
 
 def test_demo_on_the_generated_scene_follows_the_target():
@@ -64,6 +66,23 @@ def test_demo_command_on_a_sequence_folder(tmp_path):
     assert "from ground truth" in done.stdout
     assert "the source ended" in done.stdout          # 40 frames: the demo stops before its 20 s
     assert "boxes on the target" in done.stdout and "done" in done.stdout
+
+
+@pytest.mark.skipif(not VOT_BAG.is_dir(), reason=f"benchmark sequences not found at {VOT_BAG}")
+def test_a_sequence_s_polygon_ground_truth_gives_the_box_enclosing_it(tmp_path):
+    """A VOT sequence (frames and groundtruth.txt in one folder) keeps its boxes as polygons x1,y1,...,x4,y4: the
+    demo read their first four numbers as x,y,w,h and started on a box 438 px wide in a 480 px frame."""
+    import shutil
+
+    from tacf.eval.datasets.base import read_boxes
+
+    for frame in sorted((VOT_BAG / "img").iterdir())[:3]:
+        shutil.copy(frame, tmp_path)
+    polygons = (VOT_BAG / "groundtruth_poly.txt").read_text().splitlines()[:3]
+    (tmp_path / "groundtruth.txt").write_text("\n".join(polygons) + "\n")
+    truth = GroundTruth.for_source(open_source(str(tmp_path)))
+    assert truth is not None
+    assert truth.box(2) == pytest.approx(tuple(read_boxes(VOT_BAG / "groundtruth.txt")[2]))   # their enclosing box
 
 
 @pytest.mark.parametrize("lines", [2, 3])
