@@ -4,8 +4,8 @@
         stats = publish(session, source, "uav1/camera/front", fps=15, encoding="jpeg", quality=85)
 
 Frames carry a seq that increases by one per published frame (also across loops of the source) and the capture
-time `stamp_ns` (time.time_ns() when the frame was read). Publishing uses CongestionControl.DROP: a camera
-stream never blocks on a slow network (ZENOH.md §3.4).
+time `stamp_ns`: time.time_ns() when a live source's frame was read, when a replayed one's is sent. Publishing uses
+CongestionControl.DROP: a camera stream never blocks on a slow network (ZENOH.md §3.4).
 """
 from __future__ import annotations
 
