@@ -284,7 +284,11 @@ def _read_image(path: Path) -> np.ndarray | None:
         if image is None or image.ndim == 3 and image.shape[2] not in (3, 4):
             return None
         if image.dtype.kind == "f":
-            image = np.nan_to_num(image, nan=float(np.nanmin(image)) if not np.isnan(image).all() else 0.0)
+            # NaN (nothing measured) and -inf at the floor, +inf at the top: as the largest float, an inf pixel
+            # stretched the rest of the image to black
+            finite = image[np.isfinite(image)]
+            low, high = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+            image = np.nan_to_num(image, nan=low, posinf=high, neginf=low)
         # numpy's channels, not cvtColor's: that refused doubles and signed or 32-bit integers with a traceback
         if image.ndim == 2:
             image = np.repeat(image[..., None], 3, axis=2)

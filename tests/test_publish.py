@@ -235,10 +235,12 @@ def test_a_folder_of_one_channel_tiffs_is_stretched_to_8_bits(tmp_path, pixels):
     kelvin = np.tile(np.linspace(250, 320, 64), (48, 1)).astype(pixels)
     if pixels == np.float32:
         kelvin[0, :8] = np.nan
+        kelvin[1, :2] = np.inf, -np.inf   # saturated and dead pixels: an inf left the rest of the image black
     cv2.imwrite(str(folder / "000001.tiff"), kelvin)
     image = next(iter(open_source(str(folder)))).image
     assert image.dtype == np.uint8 and image.shape == (48, 64, 3)
     assert image.min() == 0 and image.max() == 255 and image[47, 63].tolist() == [255, 255, 255]
+    assert 120 < image[47, 32, 0] < 135   # half way up the ramp
 
 
 def test_an_image_beyond_the_wire_s_limits_is_skipped_once_frames_went_out(tmp_path, collector):
