@@ -187,7 +187,8 @@ class MavlinkCamera:
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def serve(self, stop: threading.Event) -> None:
-        next_heartbeat = next_status = next_check = 0.0
+        next_heartbeat = next_check = 0.0
+        last_status = -math.inf
         while not stop.is_set():
             try:
                 now = time.monotonic()
@@ -207,9 +208,10 @@ class MavlinkCamera:
                             # boxes arrive in order: once one is from after the (re)start, later ones are too,
                             # even with the seq of a camera that restarted from 0
                             self._box, self._box_arrived, self._started_on = box, now, None
-                if self.state != "idle" and self.status_interval_s > 0 and now >= next_status:
+                # timed from the last status with the interval in force now: a faster rate applies at once
+                if self.state != "idle" and self.status_interval_s > 0 and now >= last_status + self.status_interval_s:
                     self._send_status()
-                    next_status = now + self.status_interval_s
+                    last_status = now
                 message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
                 if message is not None:
                     self._command(message)

@@ -258,6 +258,26 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     camera.hold.clear()
 
 
+def test_a_faster_status_rate_applies_at_once(rig):
+    """A ground station that asks for a faster rate gets the next status at that rate: it used to wait out the
+    interval set before (5 s here) first."""
+    gcs, camera, _, component = rig
+    status_id = mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS
+    try:
+        target = _held_target(camera, component)
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+            mav.MAV_RESULT_ACCEPTED
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, status_id, 5_000_000) == mav.MAV_RESULT_ACCEPTED
+        _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=0.5)                   # one due at the old rate
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1.0) is None, "one every 5 s"
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, status_id, 100_000) == mav.MAV_RESULT_ACCEPTED
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1.0) is not None, "the new rate at once"
+    finally:
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, status_id, 0) == mav.MAV_RESULT_ACCEPTED
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        camera.hold.clear()
+
+
 def test_a_start_answered_too_late_is_stopped_by_a_stop(rig, monkeypatch):
     """A start whose reply came after the timeout may have started the session: the stop that followed said
     ACCEPTED without asking the service, and the session ran on, holding a slot."""
