@@ -77,6 +77,9 @@ VENDOR, MODEL = b"tacf", b"TACF tracker"
 COMMAND_MESSAGES = ["COMMAND_LONG", "COMMAND_INT"]
 # pymavlink's network links, each HOST:PORT after its prefix ("udp:" and no prefix at all: UDP as well)
 NETWORK_LINKS = ("tcp:", "tcpin:", "udpin:", "udpout:", "udpbcast:", "udp:")
+# pymavlink's links that are no HOST:PORT to check: multicast (mcast:[IP:]PORT, or none for its default group) and
+# Unix sockets (unix:PATH, uds:PATH)
+UNCHECKED_LINKS = ("mcast:", "unix:", "uds:")
 
 
 def signing_key_from_passphrase(passphrase: str) -> bytes:
@@ -99,8 +102,8 @@ def check_link(link: str) -> None:
     opened: pymavlink's udpout sends to it in silence for ever, and a port over 65535 fails in the loop."""
     prefix = next((p for p in NETWORK_LINKS if link.startswith(p)), None)
     if prefix is None:
-        if ":" not in link or link.startswith("/"):
-            return                                   # a serial device
+        if ":" not in link or link.startswith(("/", *UNCHECKED_LINKS)):
+            return                                   # a serial device, or a link pymavlink opens as given
         prefix = ""                                  # pymavlink takes HOST:PORT as UDP
     host, _, port = link[len(prefix):].rpartition(":")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:

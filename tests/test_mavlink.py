@@ -693,6 +693,31 @@ def test_a_bad_endpoint_or_sid_is_a_one_line_error(args, says):
     assert done.stderr.startswith("tacf mavlink: ") and says in done.stderr, done.stderr
 
 
+def test_pymavlinks_unix_socket_and_multicast_links_are_taken(tmp_path):
+    """--link takes pymavlink's other connections too: they were read as UDP HOST:PORT and refused ("cannot resolve
+    host 'mcast:239.255.145.50'"). A ground station (or router) on a Unix socket is served like any other."""
+    import socket
+
+    from tacf_clients.mavlink import check_link
+
+    for link in ("mcast:", "mcast:239.255.145.50:14550", "uds:/run/gcs.sock"):
+        check_link(link)
+    path = str(tmp_path / "gcs.sock")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listener:
+        listener.bind(path)
+        listener.listen(1)
+        with MavlinkCamera(f"unix:{path}", KEY, options=no_service_options()) as component, serving(component):
+            ground, _ = listener.accept()
+            with ground:
+                ground.settimeout(10)
+                parser = mav.MAVLink(None)
+                messages = []
+                while not any(m.get_type() == "HEARTBEAT" for m in messages):
+                    messages += parser.parse_buffer(ground.recv(1024)) or []
+                heartbeat = next(m for m in messages if m.get_type() == "HEARTBEAT")
+                assert heartbeat.type == mav.MAV_TYPE_CAMERA
+
+
 def test_a_serial_link_works_and_a_missing_device_is_a_one_line_error():
     """--link takes a serial device (a radio modem): here a pseudo-terminal, the ground station on its other end.
     pymavlink opens serial devices with pyserial, which the [mavlink] extra must bring (without it: a traceback
