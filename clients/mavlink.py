@@ -77,6 +77,9 @@ VENDOR, MODEL = b"tacf", b"TACF tracker"
 COMMAND_MESSAGES = ["COMMAND_LONG", "COMMAND_INT"]
 # pymavlink's network links, each HOST:PORT after its prefix ("udp:" and no prefix at all: UDP as well)
 NETWORK_LINKS = ("tcp:", "tcpin:", "udpin:", "udpout:", "udpbcast:", "udp:")
+# pymavlink's links that are no HOST:PORT to check: multicast (mcast:[IP:]PORT, or none for its default group) and
+# Unix sockets (unix:PATH, uds:PATH)
+UNCHECKED_LINKS = ("mcast:", "unix:", "uds:")
 
 
 def signing_key_from_passphrase(passphrase: str) -> bytes:
@@ -99,8 +102,8 @@ def check_link(link: str) -> None:
     opened: pymavlink's udpout sends to it in silence for ever, and a port over 65535 fails in the loop."""
     prefix = next((p for p in NETWORK_LINKS if link.startswith(p)), None)
     if prefix is None:
-        if ":" not in link or link.startswith("/"):
-            return                                   # a serial device
+        if ":" not in link or link.startswith(("/", *UNCHECKED_LINKS)):
+            return                                   # a serial device, or a link pymavlink opens as given
         prefix = ""                                  # pymavlink takes HOST:PORT as UDP
     host, _, port = link[len(prefix):].rpartition(":")
     if not host or not port.isdigit() or not 0 < int(port) < 65536:
@@ -187,7 +190,8 @@ class MavlinkCamera:
 
     # --- the loop ----------------------------------------------------------------------------------------------
     def serve(self, stop: threading.Event) -> None:
-        next_heartbeat = next_status = next_check = 0.0
+        next_heartbeat = next_check = 0.0
+        last_status = -math.inf
         while not stop.is_set():
             try:
                 now = time.monotonic()
@@ -207,9 +211,10 @@ class MavlinkCamera:
                             # boxes arrive in order: once one is from after the (re)start, later ones are too,
                             # even with the seq of a camera that restarted from 0
                             self._box, self._box_arrived, self._started_on = box, now, None
-                if self.state != "idle" and self.status_interval_s > 0 and now >= next_status:
+                # timed from the last status with the interval in force now: a faster rate applies at once
+                if self.state != "idle" and self.status_interval_s > 0 and now >= last_status + self.status_interval_s:
                     self._send_status()
-                    next_status = now + self.status_interval_s
+                    last_status = now
                 message = self.mav.recv_match(type=COMMAND_MESSAGES, blocking=True, timeout=0.02)
                 if message is not None:
                     self._command(message)

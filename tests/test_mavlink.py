@@ -258,6 +258,26 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     camera.hold.clear()
 
 
+def test_a_faster_status_rate_applies_at_once(rig):
+    """A ground station that asks for a faster rate gets the next status at that rate: it used to wait out the
+    interval set before (5 s here) first."""
+    gcs, camera, _, component = rig
+    status_id = mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS
+    try:
+        target = _held_target(camera, component)
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+            mav.MAV_RESULT_ACCEPTED
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, status_id, 5_000_000) == mav.MAV_RESULT_ACCEPTED
+        _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=0.5)                   # one due at the old rate
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1.0) is None, "one every 5 s"
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, status_id, 100_000) == mav.MAV_RESULT_ACCEPTED
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1.0) is not None, "the new rate at once"
+    finally:
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, status_id, 0) == mav.MAV_RESULT_ACCEPTED
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        camera.hold.clear()
+
+
 def test_a_start_answered_too_late_is_stopped_by_a_stop(rig, monkeypatch):
     """A start whose reply came after the timeout may have started the session: the stop that followed said
     ACCEPTED without asking the service, and the session ran on, holding a slot."""
@@ -671,6 +691,31 @@ def test_a_bad_endpoint_or_sid_is_a_one_line_error(args, says):
                            "--connect", f"tcp/127.0.0.1:{free_port()}"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert done.stderr.startswith("tacf mavlink: ") and says in done.stderr, done.stderr
+
+
+def test_pymavlinks_unix_socket_and_multicast_links_are_taken(tmp_path):
+    """--link takes pymavlink's other connections too: they were read as UDP HOST:PORT and refused ("cannot resolve
+    host 'mcast:239.255.145.50'"). A ground station (or router) on a Unix socket is served like any other."""
+    import socket
+
+    from tacf_clients.mavlink import check_link
+
+    for link in ("mcast:", "mcast:239.255.145.50:14550", "uds:/run/gcs.sock"):
+        check_link(link)
+    path = str(tmp_path / "gcs.sock")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as listener:
+        listener.bind(path)
+        listener.listen(1)
+        with MavlinkCamera(f"unix:{path}", KEY, options=no_service_options()) as component, serving(component):
+            ground, _ = listener.accept()
+            with ground:
+                ground.settimeout(10)
+                parser = mav.MAVLink(None)
+                messages = []
+                while not any(m.get_type() == "HEARTBEAT" for m in messages):
+                    messages += parser.parse_buffer(ground.recv(1024)) or []
+                heartbeat = next(m for m in messages if m.get_type() == "HEARTBEAT")
+                assert heartbeat.type == mav.MAV_TYPE_CAMERA
 
 
 def test_a_serial_link_works_and_a_missing_device_is_a_one_line_error():
