@@ -144,6 +144,10 @@ class TrackerConfig:
     # frame 2's motion (person12_1: AUC 0.06 instead of 0.76). See docs/decisions.md.
     spatial_learning_rate: float = 1.0
     motion_gain: float = 2.0
+    # The motion term shifts the map by gamma_t times the grid; past half the grid the code's roll wraps it round
+    # behind the motion (48 of truck2's 450 motion terms). Stopped at the grid's edge instead: +0.008 one pass on
+    # the 10 UAV sequences, +0.004 over the shifted starts, no sequence lower by more than 0.003 (docs/decisions.md).
+    motion_term_wraps: bool = False
 
     # Colour histogram window (Staple-like, detection only).
     hist_bins: int = 32
@@ -181,8 +185,8 @@ class TrackerConfig:
     motion_search_threshold: float = 0.2
 
     # Output: the target counts as lost when the PME of the fused response falls under this floor. On the 10 UAV
-    # sequences (`tacf eval`'s lost-flag table, 1,282 frames), the `paper` profile's flag at 20 catches 33 % of the
-    # failures (IoU < 0.1) and flags 1 of 908 tracked frames (IoU > 0.5); before the motion search 23 % and none,
+    # sequences (`tacf eval`'s lost-flag table, 1,282 frames), the `paper` profile's flag at 20 catches 25 % of the
+    # failures (IoU < 0.1) and flags 1 of 917 tracked frames (IoU > 0.5); before the motion search 23 % and none,
     # and 25 would have caught 40 % for 0.1 %. The attentions sharpen the response: without them (`kcc`) PME runs
     # at about half (median 40 on tracked frames against 84), so that profile's floor is 10, where it catches 20 %
     # and flags none of 819 (at 20, before the motion search: 7 % of the tracked frames).

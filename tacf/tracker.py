@@ -193,8 +193,8 @@ class Tracker:
         channels = {"hog": 31, "cn": 11}
         self.dimensional = {name: DimensionalAttention(channels[name], cfg.dim_threshold, cfg.dim_floor,
                                                        cfg.dim_learning_rate) for name in self.banks}
-        self.spatiotemporal = {name: SpatiotemporalAttention(cfg.spatial_learning_rate, cfg.motion_gain)
-                               for name in self.banks}
+        self.spatiotemporal = {name: SpatiotemporalAttention(cfg.spatial_learning_rate, cfg.motion_gain,
+                                                             cfg.motion_term_wraps) for name in self.banks}
         self.contextual = ContextualAttention(cfg.context_interval, cfg.context_penalty_total,
                                               cfg.context_challenge_floor, cfg.context_penalty_rate,
                                               cfg.context_lambda2)

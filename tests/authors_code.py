@@ -1,7 +1,7 @@
 """Where the `authors` profile parts from the authors' own output, and why: a parity check, not a product path.
 
 The authors' per-frame boxes on the ten UAV sequences are in ../shared/data/reference/authors_tacf. Our `authors`
-profile departs from that code on purpose in five places that move the boxes from the first frames on:
+profile departs from that code on purpose in six places that move the boxes from the first frames on:
 1. `fast_fft`, `fast_resize` and `fast_kernel`: we grow the filter grid to a fast FFT size (the search area grows
    by a few per cent), shrink patches by 2x2 halvings then bilinearly instead of mexResize's one area resize, and
    take fHOG's Gaussian kernel in its first-order form;
@@ -10,8 +10,9 @@ profile departs from that code on purpose in five places that move the boxes fro
    the colour likelihood, which makes no measurable difference over the misaligned response);
 3. the code writes the box before its scale step, so a reported box keeps the previous frame's size;
 4. `subcell_peak`: we refine the response's peak between cells; the code's peak stays on whole cells;
-5. `motion_search`: after a fast move we also search where the move continues; the code searches once.
-`CodeLikeTracker` undoes those five. Its boxes then equal the authors' on the first frames of every sequence
+5. `motion_search`: after a fast move we also search where the move continues; the code searches once;
+6. `motion_term_wraps`: the code's motion term wraps round the map past half its size; ours stops at its edge.
+`CodeLikeTracker` undoes those six. Its boxes then equal the authors' on the first frames of every sequence
 (tests/test_authors_parity.py), which checks the port itself: features, kernels, filters, windows, colour model,
 dimensional attention, the first frame's context term and the DSST agree to the pixel. Later frames part by one
 upsampled pixel or one scale step, then drift apart as any tracker's trajectory does after a small difference.
@@ -33,12 +34,12 @@ REFERENCE = DATA / "reference" / "authors_tacf"
 
 
 class CodeLikeTracker(Tracker):
-    """The `authors` profile with the five departures above undone."""
+    """The `authors` profile with the six departures above undone."""
 
     def __init__(self):
         super().__init__(TrackerConfig.profile("authors", fast_fft=False, fast_resize=False, fast_kernel=False,
                                                  spatial_learning_rate=0.02, subcell_peak=False,
-                                                 motion_search=False))
+                                                 motion_search=False, motion_term_wraps=True))
 
     def init(self, frame: np.ndarray, box) -> None:
         super().init(frame, box)

@@ -94,12 +94,26 @@ def test_spatial_map_is_largest_at_the_windowed_peak():
 def test_motion_term_adds_a_copy_shifted_along_the_motion():
     spatial_map = np.zeros((10, 10))
     spatial_map[0, 0] = 1.0
-    moved = add_motion(spatial_map, displacement=np.array([0.0, 5.0]), target_hw=np.array([10.0, 10.0]),
+    moved = add_motion(spatial_map, displacement=np.array([0.0, 2.0]), target_hw=np.array([10.0, 10.0]),
                        gain=2.0)
-    gamma = 2 * 5 / np.hypot(10, 10)
+    gamma = 2 * 2 / np.hypot(10, 10)
     shift = int(np.floor(gamma * 10 + 0.5))
-    assert moved[0, shift] == pytest.approx(gamma)
+    assert shift == 3 and moved[0, shift] == pytest.approx(gamma)
     np.testing.assert_array_equal(add_motion(spatial_map, np.zeros(2), np.ones(2) * 10, 2.0), spatial_map)
+
+
+def test_motion_term_stops_at_the_edge_of_the_map_instead_of_wrapping_behind_the_motion():
+    """gamma_t times the grid is 7 of 10 columns here: the code's roll puts the copy at column 7, which in the
+    response's circular layout is 3 columns *against* the motion; stopped at the edge it stays 4 ahead."""
+    spatial_map = np.zeros((10, 10))
+    spatial_map[0, 0] = 1.0
+    motion = dict(displacement=np.array([0.0, 5.0]), target_hw=np.array([10.0, 10.0]), gain=2.0)
+    gamma = 2 * 5 / np.hypot(10, 10)
+    assert add_motion(spatial_map, **motion, wraps=True)[0, 7] == pytest.approx(gamma)
+    stopped = add_motion(spatial_map, **motion)
+    assert stopped[0, 4] == pytest.approx(gamma) and stopped[0, 7] == 0
+    backwards = add_motion(spatial_map, np.array([0.0, -5.0]), motion["target_hw"], 2.0)
+    assert backwards[0, -4] == pytest.approx(gamma)
 
 
 def test_spatial_map_ema():

@@ -32,8 +32,10 @@ def attention_map(response: np.ndarray, window: np.ndarray) -> np.ndarray:
 
 
 def add_motion(spatial_map: np.ndarray, displacement: np.ndarray, target_hw: np.ndarray,
-               gain: float) -> np.ndarray:
-    """S + gamma_t roll(S, shift): favour positions further along the last displacement (image pixels)."""
+               gain: float, wraps: bool = False) -> np.ndarray:
+    """S + gamma_t roll(S, shift): favour positions further along the last displacement (image pixels).
+    The shift is gamma_t times the grid; past half the grid a roll wraps it round behind the motion, so unless
+    `wraps` (the authors' code) it stops at the largest displacement the response holds each way."""
     distance = float(np.hypot(*displacement))
     if distance == 0.0:
         return spatial_map
@@ -41,13 +43,17 @@ def add_motion(spatial_map: np.ndarray, displacement: np.ndarray, target_hw: np.
     relative = displacement / target_hw
     direction = relative / np.hypot(*relative)
     shift = _round_half_away(gamma_t * np.asarray(spatial_map.shape) * direction).astype(int)
+    if not wraps:
+        reach = (np.asarray(spatial_map.shape) - 1) // 2
+        shift = np.clip(shift, -reach, reach)
     return spatial_map + gamma_t * np.roll(spatial_map, tuple(shift), axis=(0, 1))
 
 
 class SpatiotemporalAttention:
-    def __init__(self, learning_rate: float, motion_gain: float):
+    def __init__(self, learning_rate: float, motion_gain: float, motion_wraps: bool = False):
         self.learning_rate = learning_rate
         self.motion_gain = motion_gain
+        self.motion_wraps = motion_wraps
         self.map: np.ndarray | None = None
 
     def propose(self, response: np.ndarray, window: np.ndarray, displacement: np.ndarray | None,
@@ -56,7 +62,7 @@ class SpatiotemporalAttention:
         keep(): a frame searched in two places keeps the map of the search it takes."""
         fresh = attention_map(response, window)
         if displacement is not None:
-            fresh = add_motion(fresh, displacement, target_hw, self.motion_gain)
+            fresh = add_motion(fresh, displacement, target_hw, self.motion_gain, self.motion_wraps)
         if self.map is None:
             return fresh
         return (1 - self.learning_rate) * self.map + self.learning_rate * fresh
