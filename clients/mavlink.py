@@ -415,8 +415,8 @@ class MavlinkCamera:
         if _message_id(message.param1) != mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS:
             return mav.MAV_RESULT_UNSUPPORTED
         interval_us = message.param2
-        if not math.isfinite(interval_us) or interval_us < -1:
-            return mav.MAV_RESULT_DENIED
+        if not math.isfinite(interval_us) or interval_us < 0 and interval_us != -1:
+            return mav.MAV_RESULT_DENIED                # MAVLink defines -1 (off), 0 (default) and intervals only
         self.status_interval_s = (0.0 if interval_us == -1 else
                                   1.0 / DEFAULT_STATUS_HZ if interval_us == 0 else interval_us / 1e6)
         return mav.MAV_RESULT_ACCEPTED

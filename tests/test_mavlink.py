@@ -188,6 +188,10 @@ def test_any_command_gets_an_answer_and_the_component_lives_on(rig):
             (command, params, result)
     assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS, 0) == \
         mav.MAV_RESULT_ACCEPTED
+    # an interval is -1 (off), 0 (the default) or positive: -0.5 turned the status off as if it were -1
+    for interval_us in (-0.5, -1.5):
+        assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS,
+                        interval_us) == mav.MAV_RESULT_DENIED, interval_us
     assert SID not in {info.sid for info in client.list()}
     assert _receive(gcs, "HEARTBEAT", timeout=3) is not None
 
