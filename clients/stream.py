@@ -56,6 +56,8 @@ class ResultStream(Generic[T]):
             log.exception("cannot decode sample on %s", sample.key_expr)
             item = None
         with self._cond:
+            if self._closed:        # decoded while close() emptied the mailbox: nothing is handed out after it
+                return
             if item is None:
                 self.rejected += 1
                 return

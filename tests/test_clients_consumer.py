@@ -125,6 +125,31 @@ def test_callback_form_and_lost_flag(net):
     assert [b.ok for b in got] == [True, False, True]
 
 
+def test_a_sample_decoded_while_the_stream_closes_is_not_handed_out_after_close(net):
+    """close() empties the mailbox; a sample Zenoh was decoding meanwhile landed in it afterwards, and get() (or
+    the callback thread) handed it out after close()."""
+    from tacf_clients.stream import ResultStream
+
+    decoding, closed = threading.Event(), threading.Event()
+
+    def slow_decode(sample):
+        decoding.set()
+        closed.wait(5)
+        return "late"
+
+    stream = ResultStream(net.vehicle, "test/late", slow_decode)
+    net.wait_matched("test/late")
+    net.service.put("test/late", b"x")
+    assert decoding.wait(5)
+    closer = threading.Thread(target=stream.close)
+    closer.start()
+    assert _wait(lambda: stream.closed)
+    closed.set()
+    closer.join(10)
+    assert not closer.is_alive()
+    assert stream.get(timeout=0) is None
+
+
 def test_consumer_opens_its_own_session(net):
     with BoxConsumer(sid="cam9", options=net.options) as boxes:
         net.wait_matched(box_key("edge1", "cam9"))
