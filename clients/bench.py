@@ -89,6 +89,8 @@ def load_feeds(root: Path, count: int) -> list[Feed]:
 
     feeds: list[Feed] = []
     for seq in load_sequences(root):
+        if any(Path(p).suffix.lower() not in (".jpg", ".jpeg") for p in seq.frames):
+            continue                # the files go out as they are, labelled JPEG
         first = cv2.imread(str(seq.frames[0]))
         if first is None or (first.shape[1], first.shape[0]) != FRAME_SIZE:
             continue

@@ -35,6 +35,21 @@ def test_percentiles_are_nearest_rank():
     assert _percentile([float(v) for v in range(1, 21)], 0.95) == 19
 
 
+def test_only_jpeg_sequences_feed_the_benchmark(tmp_path):
+    """Frames go out labelled JPEG as read from disk: a 1280x720 PNG sequence was sent as 'jpeg'."""
+    import cv2
+    import numpy as np
+
+    for name, suffix in (("png", ".png"), ("jpeg", ".jpg")):
+        folder = tmp_path / "data" / "bench" / name / "img"
+        folder.mkdir(parents=True)
+        for i in range(1, 3):
+            cv2.imwrite(str(folder / f"{i:06d}{suffix}"), np.full((720, 1280, 3), 40 * i, np.uint8))
+        (folder.parent / "groundtruth.txt").write_text("100,100,50,50\n100,100,50,50\n")
+    feeds = bench.load_feeds(tmp_path / "data", 2)
+    assert [feed.name for feed in feeds] == ["bench/jpeg", "bench/jpeg"]
+
+
 def _hold_the_gil(seconds: float) -> None:
     """Stall every other Python thread for `seconds`, as a long GC pause or a SIGSTOP would: a busy loop that never
     lets the GIL go (no blocking call, and a switch interval longer than the loop)."""
