@@ -3,7 +3,7 @@
 Deterministic: frame i and box i depend only on the Scene's fields and i, so tests and the demo can check that
 the boxes the service returns follow the target. The camera pans slowly over a textured terrain (colour blobs
 at several scales, fine grain, a couple of roads); the target is a striped "vehicle" that moves on a Lissajous
-path (at most ~3.4 px per frame at the default 640x360) and changes size by about +-10%.
+path (at most 3.6 px per frame at the default 640x360, on whole pixels) and changes size by about +-10%.
 """
 from __future__ import annotations
 
