@@ -26,7 +26,7 @@ import json
 import logging
 import math
 import mimetypes
-import select
+import selectors
 import socket
 import ssl
 import sys
@@ -462,7 +462,10 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def _client_left(self, timeout: float) -> bool:
         """Whether the client of a stream (/events, /mjpeg) closed its end, waiting up to `timeout` s to see it. It
         never sends more (Connection: close), so anything readable is its end (b"") or bytes that nobody will read."""
-        return bool(select.select([self.connection], [], [], timeout)[0]) and not self.connection.recv(4096)
+        with selectors.DefaultSelector() as selector:      # not select(): it refuses descriptors over 1023
+            selector.register(self.connection, selectors.EVENT_READ)
+            readable = bool(selector.select(timeout))
+        return readable and not self.connection.recv(4096)
 
     def _sse(self, event: str, data: dict, retry_ms: int | None = None) -> None:
         text = (f"retry: {retry_ms}\n" if retry_ms else "") + f"event: {event}\ndata: {json.dumps(data)}\n\n"

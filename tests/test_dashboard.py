@@ -545,6 +545,30 @@ def test_a_browser_that_leaves_an_idle_event_stream_is_let_go():
             (app.server.event_clients, app.server.connections)
 
 
+def test_a_browser_on_a_descriptor_over_1023_keeps_its_event_stream():
+    """select() takes descriptors under 1024 only: in a process holding more files and sockets (many cameras,
+    sessions, viewers) the event stream of a browser on a higher one ended at once with a ValueError."""
+    held = []
+    try:
+        while not held or held[-1] < 1100:              # the next sockets get descriptors over 1023
+            held.append(os.open(os.devnull, os.O_RDONLY))
+        with DashboardApp(no_service_options(), port=0) as app:
+            with socket.create_connection(app.server.server_address[:2], timeout=10) as browser:
+                browser.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+                received = b""
+                while b"event: state" not in received:
+                    received += browser.recv(65536)
+                browser.settimeout(2.0)
+                with pytest.raises(socket.timeout):      # open and quiet, not closed (b"")
+                    while browser.recv(65536):
+                        pass
+            assert _wait(lambda: app.server.event_clients == 0 and app.server.connections == 0, timeout=3), \
+                (app.server.event_clients, app.server.connections)
+    finally:
+        for fd in held:
+            os.close(fd)
+
+
 def test_many_viewers_connecting_at_once_are_all_answered_at_once():
     """The listen backlog was the stdlib's 5: of 40 viewers connecting together (a dashboard restarted under open
     pages, a wall of screens), most waited a second or more for the kernel to take their connection."""
