@@ -57,6 +57,9 @@ WRITE_TIMEOUT_S = 10.0           # a browser that does not read for this long is
 # every byte, and a client sending one every few seconds held its thread for good, before any token check.
 HEAD_TIMEOUT_S = 10.0
 MAX_CONNECTIONS = 256            # open at once, a thread each; more are closed as they come (a busy page opens 3-4)
+# the fields each POST action takes (the module docstring's list)
+ACTION_FIELDS = {"/api/start": {"image_key", "box", "seq", "sid", "profile", "overrides", "node"},
+                 "/api/stop": {"sid", "node"}, "/api/reinit": {"sid", "box", "seq", "node"}, "/api/watch": {"key"}}
 MAX_BODY = 64 * 1024
 MAX_DRAINED = 1 << 20            # of a body over MAX_BODY, read this much so that its sender gets the 413, not a reset
 MJPEG_FPS = 10.0
@@ -277,6 +280,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
                     body = self._read_json()
             if body is None:                        # refused, maybe with the body unread: it is not a request
                 self.close_connection = True
+                return
+            unknown = sorted(set(body) - ACTION_FIELDS[path])
+            if unknown:         # a misspelt field ("overide") was ignored: refused, as the wire protocol does
+                self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"unknown field(s) {', '.join(unknown)}; "
+                            f"{path} takes {', '.join(sorted(ACTION_FIELDS[path]))}")
                 return
             self._act(action, body)
         except (BrokenPipeError, ConnectionResetError, TimeoutError):      # the error replies' writes too

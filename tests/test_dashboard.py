@@ -190,6 +190,12 @@ def test_the_overrides_of_a_start_reach_the_service(stack):
             status, body = _post(base + "/api/start", {"image_key": KEY, "box": box, "sid": "refused",
                                                        "overrides": overrides})
             assert status == 400, (overrides, body)
+        # a misspelt field was ignored: the session started with the profile's values and the reply said 200
+        status, body = _post(base + "/api/start", {"image_key": KEY, "box": box, "sid": "refused",
+                                                   "override": {"cell_size": 6}})
+        assert status == 400 and "unknown field(s) override" in body["message"], body
+        status, body = _post(base + "/api/stop", {"sid": "overridden", "nod": "edge1"})
+        assert status == 400 and "unknown field(s) nod" in body["message"], body
         assert "refused" not in [info.sid for info in client.list()]
     finally:
         if any(info.sid == "overridden" for info in client.list()):
