@@ -732,8 +732,8 @@ def test_a_box_of_a_number_too_large_and_a_body_too_large_get_their_4xx():
     with DashboardApp(no_service_options(), port=0) as app:
         base = app.url.rstrip("/")
         huge = int("9" * 400)
-        for path in ("/api/start", "/api/reinit"):
-            status, body = _post(base + path, {"image_key": KEY, "sid": "s", "box": [huge, 1, 2, 3]})
+        for path, request in (("/api/start", {"image_key": KEY}), ("/api/reinit", {})):
+            status, body = _post(base + path, {**request, "sid": "s", "box": [huge, 1, 2, 3]})
             assert status == 400 and "too large" in body["message"], (path, body)
         connection = http.client.HTTPConnection(*app.server.server_address[:2], timeout=10)
         try:
