@@ -385,6 +385,21 @@ def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
         assert ".rs:" not in err                      # the Rust source line Zenoh appends is left out
 
 
+def test_list_and_nodes_print_an_empty_json_list_when_no_node_is_reachable(capsys):
+    """Their help says that with no service answering they exit 1 'with --json after printing []'. With no Zenoh
+    node to connect to, the usual case on a machine where no service was started, they printed nothing at all, so
+    a script reading their JSON got none."""
+    from tacf.cli import main
+
+    zenoh_args = ["--connect", f"tcp/127.0.0.1:{free_port()}"]      # nobody listens there
+    for argv in (["list", "--json"], ["nodes", "--json"]):
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, *zenoh_args])
+        captured = capsys.readouterr()
+        assert exc.value.code == 1 and captured.out.strip() == "[]", (argv, captured)
+        assert captured.err.startswith(f"tacf {argv[0]}: ZenohUnavailable: no Zenoh node reachable"), captured.err
+
+
 def _help(main, command: str, capsys) -> str:
     with pytest.raises(SystemExit):
         main([command, "--help"])
