@@ -144,8 +144,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "Needs pymavlink: pip install 'tacf[mavlink]'.")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key of the camera's frames")
     p.add_argument("--link", required=True,
-                   help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT or a "
-                        "serial device")
+                   help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT, "
+                        "mcast:[IP:]PORT, unix:PATH or a serial device")
     p.add_argument("--baud", type=integer(1), default=57600, help="serial baud rate (default 57600)")
     p.add_argument("--system", type=mavlink_id, default=1, help="MAVLink system id (default 1: the vehicle's)")
     p.add_argument("--component", type=mavlink_id, default=100, help="MAVLink component id (default 100, camera 1)")

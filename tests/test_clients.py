@@ -406,6 +406,15 @@ def _help(main, command: str, capsys) -> str:
     return " ".join(capsys.readouterr().out.split())
 
 
+def test_mavlink_link_help_names_the_multicast_and_unix_socket_links(capsys):
+    """`tacf mavlink --link` takes pymavlink's mcast: and unix: links, as the README says, but its help listed UDP,
+    TCP and serial links only."""
+    from tacf.cli import main
+
+    link_help = _help(main, "mavlink", capsys)
+    assert "mcast:" in link_help and "unix:" in link_help, link_help
+
+
 def test_command_line_mode_help_says_the_mode_each_command_opens(capsys):
     """Every client command's help said `--mode ... (default peer)`, but the one-shot ones open as Zenoh clients
     unless told otherwise: with no node reachable they fail at once, as only a client does."""
