@@ -144,8 +144,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "Needs pymavlink: pip install 'tacf[mavlink]'.")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key of the camera's frames")
     p.add_argument("--link", required=True,
-                   help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT or a "
-                        "serial device")
+                   help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT, "
+                        "mcast:[IP:]PORT, unix:PATH or a serial device")
     p.add_argument("--baud", type=integer(1), default=57600, help="serial baud rate (default 57600)")
     p.add_argument("--system", type=mavlink_id, default=1, help="MAVLink system id (default 1: the vehicle's)")
     p.add_argument("--component", type=mavlink_id, default=100, help="MAVLink component id (default 100, camera 1)")
@@ -318,13 +318,14 @@ def _wait_subscriber(session, source, args: argparse.Namespace, stop: threading.
 
 
 @contextmanager
-def _client(args: argparse.Namespace, one_shot: bool = True):
+def _client(args: argparse.Namespace, one_shot: bool = True, json_list: bool = False):
     """A TrackingClient from the command line's options.
 
     one_shot: the command queries once and exits, so it needs the whole network right after open. Unless told
     otherwise it runs as a Zenoh *client*: the node it connects to routes for it at once, whereas a peer reaches
     the other services through gossip only a moment after open (ZENOH.md 2.3), and missed one in 8 of 20
     measured `list`s.
+    json_list: the command prints a JSON list, empty when no node is reachable (see _reported).
     """
     import dataclasses
 
@@ -334,7 +335,8 @@ def _client(args: argparse.Namespace, one_shot: bool = True):
     options = options_from_args(args)
     if one_shot and options.mode is None and options.config_file is None:
         options = dataclasses.replace(options, mode="client")
-    with _reported(args.command), TrackingClient(options, node=_queried_node(args), timeout=args.timeout) as client:
+    with _reported(args.command, json_list), \
+            TrackingClient(options, node=_queried_node(args), timeout=args.timeout) as client:
         yield client
 
 
@@ -347,10 +349,12 @@ def _queried_node(args: argparse.Namespace) -> str | None:
 
 
 @contextmanager
-def _reported(command: str):
+def _reported(command: str, json_list: bool = False):
     """A client-side error (a bad id, no service answering, no Zenoh node reachable...) as one line on stderr
-    and exit code 1, instead of a traceback; Zenoh settings it refused as a usage error, exit code 2."""
-    from tacf_clients.errors import TacfError, ZenohSettingsError
+    and exit code 1, instead of a traceback; Zenoh settings it refused as a usage error, exit code 2.
+    json_list: the command's output is a JSON list of services, so no node reachable, where no service can answer,
+    prints [] as no service answering does: a script reading it gets JSON either way."""
+    from tacf_clients.errors import TacfError, ZenohSettingsError, ZenohUnavailable
 
     try:
         yield
@@ -358,6 +362,8 @@ def _reported(command: str):
         print(f"tacf {command}: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     except TacfError as exc:
+        if json_list and isinstance(exc, ZenohUnavailable):
+            print("[]")
         print(f"tacf {command}: {type(exc).__name__}: {exc}", file=sys.stderr)
         raise SystemExit(1) from None
 
@@ -413,7 +419,7 @@ def cmd_list(args: argparse.Namespace) -> int:
     from tacf_clients.errors import NoService
     from tacf_clients.watch import session_table
 
-    with _client(args) as client:
+    with _client(args, json_list=args.json) as client:
         try:
             listings = client.services()
         except NoService:           # the --node named did not answer: as no service at all, [] with --json
@@ -440,7 +446,7 @@ def cmd_nodes(args: argparse.Namespace) -> int:
     from tacf_clients.errors import TacfError
     from tacf_clients.watch import columns
 
-    with _client(args) as client:
+    with _client(args, json_list=args.json) as client:
         alive = client.alive_nodes()
         listings: dict[str, list] = {}
         try:

@@ -385,10 +385,34 @@ def test_command_line_without_a_reachable_node_is_a_one_line_error(capsys):
         assert ".rs:" not in err                      # the Rust source line Zenoh appends is left out
 
 
+def test_list_and_nodes_print_an_empty_json_list_when_no_node_is_reachable(capsys):
+    """Their help says that with no service answering they exit 1 'with --json after printing []'. With no Zenoh
+    node to connect to, the usual case on a machine where no service was started, they printed nothing at all, so
+    a script reading their JSON got none."""
+    from tacf.cli import main
+
+    zenoh_args = ["--connect", f"tcp/127.0.0.1:{free_port()}"]      # nobody listens there
+    for argv in (["list", "--json"], ["nodes", "--json"]):
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, *zenoh_args])
+        captured = capsys.readouterr()
+        assert exc.value.code == 1 and captured.out.strip() == "[]", (argv, captured)
+        assert captured.err.startswith(f"tacf {argv[0]}: ZenohUnavailable: no Zenoh node reachable"), captured.err
+
+
 def _help(main, command: str, capsys) -> str:
     with pytest.raises(SystemExit):
         main([command, "--help"])
     return " ".join(capsys.readouterr().out.split())
+
+
+def test_mavlink_link_help_names_the_multicast_and_unix_socket_links(capsys):
+    """`tacf mavlink --link` takes pymavlink's mcast: and unix: links, as the README says, but its help listed UDP,
+    TCP and serial links only."""
+    from tacf.cli import main
+
+    link_help = _help(main, "mavlink", capsys)
+    assert "mcast:" in link_help and "unix:" in link_help, link_help
 
 
 def test_command_line_mode_help_says_the_mode_each_command_opens(capsys):
