@@ -152,7 +152,8 @@ class _Subscriptions(foxglove.websocket.ServerListener):
             self._new.add(channel.topic)
 
     def take_new(self, topic: str) -> bool:
-        """Whether `topic` got a subscriber since the last call: it is owed the newest message, even unchanged."""
+        """Whether `topic` got a subscriber since the last call: it is owed the newest message, even unchanged. It
+        goes to every subscriber and the recording: the SDK's Python API gives no client's sink id (README)."""
         with self._lock:
             if topic not in self._new:
                 return False

@@ -35,6 +35,7 @@ pytestmark = pytest.mark.zenoh
 
 SCENE = Scene.from_spec("scene:320x240")
 KEY = "test/foxglove/cam"
+UNKNOWN_CHANNEL = "Unknown channel ID: "    # the status foxglove-sdk's server answers a refused subscription with
 
 
 def decode_protobuf(schema_name: str, descriptors: bytes, payload: bytes):
@@ -97,6 +98,8 @@ class FoxgloveClient:
             self.services_advertised.extend(body["services"])
         elif op == "serviceCallFailure":
             self._replies[body["callId"]] = (False, body["message"])
+        elif op == "status" and body["message"].startswith(UNKNOWN_CHANNEL):
+            self._subscribe_again(int(body["message"].removeprefix(UNKNOWN_CHANNEL)))
 
     @property
     def services(self) -> dict[str, int]:
@@ -115,9 +118,21 @@ class FoxgloveClient:
     def subscribe(self, topic: str) -> None:
         assert self.pump_until(lambda: self.topic_id(topic) is not None), f"{topic} is advertised"
         self._subscriptions[self._next_id] = self.topic_id(topic)
-        self.ws.send(json.dumps({"op": "subscribe",
-                                 "subscriptions": [{"id": self._next_id, "channelId": self.topic_id(topic)}]}))
+        self._send_subscribe(self._next_id)
         self._next_id += 1
+
+    def _send_subscribe(self, sub_id: int) -> None:
+        self.ws.send(json.dumps({"op": "subscribe",
+                                 "subscriptions": [{"id": sub_id, "channelId": self._subscriptions[sub_id]}]}))
+
+    def _subscribe_again(self, channel_id: int) -> None:
+        """foxglove-sdk 0.30 sends a new channel's advertisement before it records the channel as advertised to the
+        client: a subscription sent at once can be refused as unknown (a few runs in 30 on a loaded machine). That
+        is the SDK's race, not the bridge's, so the subscription is sent again while the channel is advertised. A
+        channel the bridge withdrew is not: its unadvertise came before the refusal, and the test still fails."""
+        if channel_id in self.channels:
+            for sub_id in [s for s, c in self._subscriptions.items() if c == channel_id]:
+                self._send_subscribe(sub_id)
 
     def call(self, service: str, request, encoding: str = "json") -> tuple[bool, object]:
         """(True, the reply's JSON) or (False, the failure's message)."""
@@ -376,6 +391,7 @@ def test_the_message_that_takes_the_last_box_off_is_stamped_with_the_cameras_clo
             publish()
             if any(m.points for m in fox.received(f"/{key}/tracks")):
                 break
+        assert any(m.points for m in fox.received(f"/{key}/tracks")), "boxes arrive"
         ok, info = fox.call("/tacf/stop", {"sid": "fox-old-clock"})
         assert ok, info
         for _ in range(100):
