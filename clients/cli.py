@@ -109,7 +109,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(p, add_zenoh_arguments, node_help=argparse.SUPPRESS, mode_default="client; peer with --follow")
     p.set_defaults(func=cmd_nodes)
 
-    p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal")
+    p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal",
+                              description="Show the newest box and health of every session (or of session SID) "
+                                          "on every service (or on --node's), refreshed every --interval "
+                                          "seconds; on Ctrl-C or after --duration, end on the table of what "
+                                          "was received.")
     p.add_argument("sid", metavar="SID", nargs="?", default="*", help="session id (default: all sessions)")
     p.add_argument("--node", help="only this service")
     p.add_argument("--interval", type=positive_number, default=0.5, help="refresh period in seconds (default 0.5)")
