@@ -326,11 +326,16 @@ def test_closing_the_client_ends_its_streams():
         ended.set()
     reader = threading.Thread(target=iterate)
     reader.start()
+    # the reader's subscriber is declared (a local one matches): a close before it made iter_boxes raise instead
+    probe = client.session.declare_publisher("tacf/edge/sessions/abc/box")
+    assert wait_until(lambda: probe.matching_status.matching, 10), "the reader never subscribed"
+    probe.undeclare()
     stream = client.subscribe(on_box=lambda box: None)
-    time.sleep(0.3)
     client.close()
     reader.join(5)
-    assert ended.is_set() and stream.closed
+    assert ended.is_set()
+    # the drop hook that closes a stream runs on its own Zenoh thread after close(), not before close() returns
+    assert wait_until(lambda: stream.closed, 5)
     assert wait_until(lambda: not stream._thread.is_alive(), 5)
 
 
