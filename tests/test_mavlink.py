@@ -196,6 +196,37 @@ def test_any_command_gets_an_answer_and_the_component_lives_on(rig):
     assert _receive(gcs, "HEARTBEAT", timeout=3) is not None
 
 
+def _packed_command(gcs, command: int, *params: float) -> bytes:
+    """COMMAND_LONG to the camera as it goes on the wire, for a datagram the test puts together itself."""
+    params = list(params) + [0.0] * (7 - len(params))
+    return gcs.mav.command_long_encode(1, mav.MAV_COMP_ID_CAMERA, command, 0, *params).pack(gcs.mav)
+
+
+@pytest.mark.parametrize("cut", [1, 20], ids=["a lone start marker", "a command cut short"])
+def test_a_garbled_datagram_costs_no_later_command(rig, cut):
+    """Over UDP each datagram holds whole messages. pymavlink parses the link as one stream, so a datagram that
+    ends inside a message took the next datagrams to complete it: after a lone 0xFD (MAVLink 2's start marker) the
+    next command's own marker read as a length of 253, and the 6 commands that followed went unanswered."""
+    gcs = rig[0]
+    gcs.write(_packed_command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING)[:cut])
+    answered = sum(_command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING, timeout=2.0) == mav.MAV_RESULT_ACCEPTED
+                   for _ in range(10))
+    assert answered == 10, f"{answered} of 10 commands answered after the garbled datagram"
+
+
+def test_every_command_of_a_datagram_is_answered(rig):
+    """A datagram may carry several messages back to back (a router batches them): each is answered."""
+    gcs = rig[0]
+    commands = (mav.MAV_CMD_CAMERA_STOP_TRACKING, mav.MAV_CMD_REQUEST_CAMERA_INFORMATION, mav.MAV_CMD_GET_HOME_POSITION)
+    gcs.write(b"".join(_packed_command(gcs, command) for command in commands))
+    acks = {}
+    while len(acks) < len(commands) and (ack := _receive(gcs, "COMMAND_ACK", timeout=5)) is not None:
+        acks[ack.command] = ack.result
+    assert acks == {mav.MAV_CMD_CAMERA_STOP_TRACKING: mav.MAV_RESULT_ACCEPTED,
+                    mav.MAV_CMD_REQUEST_CAMERA_INFORMATION: mav.MAV_RESULT_ACCEPTED,
+                    mav.MAV_CMD_GET_HOME_POSITION: mav.MAV_RESULT_UNSUPPORTED}
+
+
 def _held_target(camera, component) -> tuple:
     """Hold the camera (a still camera: the target is where the operator drags) until the component's newest
     frame, which a drag is put on, is a held one; the target's box on it. A fixed sleep after the hold left a
