@@ -542,8 +542,27 @@ def test_ctrl_c_ends_the_wait_for_a_subscriber_without_publishing():
     finally:
         proc.kill()
     assert time.monotonic() - started < 3
-    assert proc.returncode == 0, err
+    assert proc.returncode == 130, err
     assert "nothing published" in err and "publishing anyway" not in err and "published" not in out
+
+
+def test_ctrl_c_ends_publish_with_130_after_closing_its_session(collector):
+    """`tacf publish` exited 0 on Ctrl-C, where `tacf demo` and `tacf bench` exit 130: a script could not tell a
+    run cut short from a source played to its end."""
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", "scene", "--key", KEY, "--fps", "20",
+           "--connect", f"tcp/127.0.0.1:{collector.port}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert len(collector.wait(3, timeout=30)) >= 3, "the publisher's frames arrived"
+        proc.send_signal(signal.SIGINT)
+        started = time.monotonic()
+        out, err = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+    assert time.monotonic() - started < 3, "no hang at exit (ZENOH.md 8): the session was closed first"
+    assert proc.returncode == 130, err          # not -2 (killed by the signal) nor 134/139 (a crash at exit)
+    assert out.startswith("published ") and err.splitlines()[-1] == "tacf publish: interrupted", out + err
+    assert "Traceback" not in err
 
 
 # ----------------------------------------------------------------------------------------------- live streams
