@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import http.server
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -514,6 +515,65 @@ def test_publish_command_line_ends_on_a_looped_folder_it_cannot_read(tmp_path, c
     assert done.returncode == 2
     assert done.stderr.splitlines()[-1] == f"tacf publish: none of the 2 images in {tmp_path} can be read"
     assert done.stderr.count("cannot read") == 2 and "Traceback" not in done.stderr
+
+
+@pytest.fixture
+def unprivileged(tmp_path) -> list[str]:
+    """The prefix that runs a command without the power to read what file modes forbid it. Root (the tests run as
+    root here) reads everything: setpriv runs the command as root still, but without the capabilities that override
+    file modes (CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH), so that modes apply to it as to the files' owner. Not as user
+    nobody: the interpreter may lie under root's home, which only root may enter (it does here, under pyenv)."""
+    if os.geteuid() != 0:
+        return []
+    if not shutil.which("setpriv"):
+        pytest.skip("no setpriv (util-linux) to run a command without root's power to read every file")
+    prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
+    locked = tmp_path / "probe"
+    locked.mkdir()
+    locked.chmod(0)
+    probe = subprocess.run(prefix + [sys.executable, "-c", "import os, sys, tacf_clients; os.listdir(sys.argv[1])",
+                                     str(locked)], capture_output=True, text=True, timeout=60)
+    if "PermissionError" not in probe.stderr:
+        reason = probe.stderr.strip()[-300:] or "root still lists a chmod 000 folder"
+        pytest.skip(f"cannot take root's power to read every file here: {reason}")
+    return prefix
+
+
+def _locked_source(kind: str, tmp_path: Path) -> tuple[Path, Path]:
+    """A source of this kind that may not be read: (the path given to publish, the path the error should name)."""
+    images = _frames(2)
+    if kind == "image folder":
+        source = locked = _write_folder(tmp_path / "folder", images)
+    elif kind == "sequence folder":                         # <seq>/img/*.png, given as <seq>
+        source, locked = tmp_path / "seq", _write_folder(tmp_path / "seq" / "img", images)
+    elif kind == "video file":
+        source = locked = _write_video(tmp_path / "clip.avi", images)
+    elif kind == "single image":
+        source = locked = tmp_path / "one.png"
+        cv2.imwrite(str(source), images[0])
+    else:                                                   # a video in a folder that may not be entered
+        locked = tmp_path / "private"
+        locked.mkdir()
+        source = _write_video(locked / "clip.avi", images)
+        locked.chmod(0)
+        return source, source                               # stat() of the video itself is what fails
+    locked.chmod(0)
+    return source, locked
+
+
+@pytest.mark.parametrize("kind", ["image folder", "sequence folder", "video file", "single image",
+                                  "video in a locked folder"])
+def test_publish_says_which_source_it_may_not_read(kind, tmp_path, unprivileged):
+    """A folder it could not list ended `tacf publish` with a PermissionError traceback, a video file or image with
+    OpenCV's "cannot open video source" (no reason given): one line naming the path, exit 2, as for other bad
+    sources."""
+    source, named = _locked_source(kind, tmp_path)
+    cmd = unprivileged + [sys.executable, "-m", "tacf.cli", "publish", str(source), "--key", KEY, "--frames", "1",
+                          "--connect", f"tcp/127.0.0.1:{free_port()}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.splitlines()[-1] == f"tacf publish: cannot read {named}: permission denied", done.stderr
+    assert "Traceback" not in done.stderr
 
 
 def test_publish_refuses_frames_beyond_the_wire_limits(tmp_path, collector):
