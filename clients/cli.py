@@ -282,7 +282,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop, source, _reported("publish"), \
                 open_session(options_from_args(args)) as session:
             if args.wait_subscriber > 0 and not _wait_subscriber(session, source, args, stop):
-                return 0
+                return 130          # stopped meanwhile; the session is closed on the way out of the `with`
             stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
                             max_frames=args.frames, stop=stop)
     except (SourceError, FrameError) as exc:       # FrameError: frames beyond the wire limits, which no service takes
@@ -297,6 +297,9 @@ def cmd_publish(args: argparse.Namespace) -> int:
     if not stats.matched:
         print(f"tacf publish: no subscriber ever listened on {args.key}: the frames reached nobody (no session "
               "follows the key, or access control keeps them from the network)", file=sys.stderr)
+    if stop.is_set():
+        print("tacf publish: interrupted", file=sys.stderr)
+        return 130                  # 128 + SIGINT, as tacf demo and tacf bench answer a Ctrl-C
     return 0
 
 

@@ -7,7 +7,8 @@ the SDK's server alone it never connects. The messages are the same under both n
 everything `tacf foxglove` offers once it was given the name it checks for; README "Foxglove and Lichtblick"). So
 the SDK's server listens on a loopback address of its own, and this relay takes the public address: it accepts
 either name, opens one connection to the SDK's server per client, and passes every message through unchanged both
-ways. It also terminates TLS (wss://), so the SDK's server never needs the certificate. The SDK's server checks no
+ways, and the close code and reason when one side leaves (a connection that broke, with no close frame, as 1001).
+It also terminates TLS (wss://), so the SDK's server never needs the certificate. The SDK's server checks no
 Origin, so it must stay out of web pages' reach: FoxgloveBridge puts it on a random one of 127.0.0.0/8's 2**24
 addresses, which no page can find, where 127.0.0.1's ports could be scanned.
 
@@ -35,6 +36,7 @@ from urllib.parse import urlsplit
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed, WebSocketException
+from websockets.frames import CloseCode
 from websockets.http11 import Request, Response
 
 from tacf_clients.dashboard_access import is_loopback
@@ -148,11 +150,25 @@ class SubprotocolRelay:
 
 
 async def _pass_on(source, sink) -> None:
-    """Every message of source to sink, text as text and binary as binary, until either side closes."""
+    """Every message of source to sink, text as text and binary as binary, until either side closes; then closes
+    sink with the code and reason source was closed with, so that each end learns why the other left."""
     try:
         async for message in source:
             await sink.send(message)
     except ConnectionClosed:
         pass
     finally:
-        await sink.close()
+        await sink.close(*_close_to_pass_on(source))
+
+
+def _close_to_pass_on(source) -> tuple[int, str]:
+    """The close code and reason source got, as they may be sent on: websockets refuses on receipt every code that
+    may not be sent, except the two it reports itself (RFC 6455 7.1.5, 7.4.1), which no frame may carry."""
+    code, reason = source.protocol.close_code, source.protocol.close_reason   # on the connection from websockets 15
+    if code is None or code == CloseCode.NO_STATUS_RCVD:   # still open (sink failed first), or closed with no code
+        return CloseCode.NORMAL_CLOSURE, ""
+    if code == CloseCode.ABNORMAL_CLOSURE:
+        # no close frame: the connection broke (a crash, a network cut). 1001 says the peer went away, which is
+        # all the relay knows; 1011 would blame the server for what may have been the viewer's network.
+        return CloseCode.GOING_AWAY, "connection lost"
+    return code, reason

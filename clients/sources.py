@@ -8,7 +8,9 @@ stream stalls) is reopened with growing pauses until it delivers again or the ca
 """
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -316,7 +318,17 @@ def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = Tr
     - an existing folder: image folder (or a sequence folder containing ``img/``);
     - an existing file: video file;
     - any other existing path (a camera device such as /dev/video0, a named pipe): live source.
+
+    A path this user may not read (the file or folder, one above it, a sequence's img/) raises ValueError naming it.
     """
+    try:
+        return _open_source(spec, loop, reconnect, should_stop)
+    except PermissionError as exc:  # a traceback from a folder's listing, or OpenCV's "cannot open" without a reason
+        raise ValueError(f"cannot read {exc.filename}: permission denied") from None
+
+
+def _open_source(spec: str | int | Path, loop: bool, reconnect: bool,
+                 should_stop: Callable[[], bool]) -> FrameSource:
     text = str(spec)
     path = Path(text).expanduser()
     if isinstance(spec, int) or (text.isdigit() and not path.exists()):
@@ -327,6 +339,8 @@ def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = Tr
         return SceneSource(Scene.from_spec(text))
     if "://" in text:
         return CaptureSource(text, loop=loop, reconnect=reconnect, should_stop=should_stop)
+    if path.exists() and not os.access(path, os.R_OK):    # checked, not tried: opening a named pipe waits for a writer
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
     if path.is_dir():
         return ImageFolderSource(path, loop=loop)
     if path.is_file():

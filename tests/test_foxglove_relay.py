@@ -22,19 +22,33 @@ BLOCK = bytes(256 * 1024)
 
 
 @contextmanager
-def upstream_server(flood: bool):
+def upstream_server(flood: bool, closes: list | None = None):
     """A WebSocket server on a free loopback port that speaks foxglove.sdk.v1 only: it echoes what it gets, and
-    with `flood` also sends 256 KB messages as fast as the connection takes them. Yields its port."""
+    with `flood` also sends 256 KB messages as fast as the connection takes them. Told "close CODE REASON" it
+    closes with them, told "drop" it drops the TCP connection without a close frame (a crash); the close code
+    and reason each connection got are appended to `closes`. Yields its port."""
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()
 
     async def handler(connection):
-        if flood:
-            while True:
-                await connection.send(BLOCK)
-        async for message in connection:
-            await connection.send(message)
+        try:
+            if flood:
+                while True:
+                    await connection.send(BLOCK)
+            async for message in connection:
+                if message == "drop":
+                    connection.transport.abort()
+                elif isinstance(message, str) and message.startswith("close "):
+                    _, code, reason = message.split(" ", 2)
+                    await connection.close(int(code), reason)
+                else:
+                    await connection.send(message)
+        except ConnectionClosed:
+            pass
+        finally:
+            if closes is not None:
+                closes.append((connection.protocol.close_code, connection.protocol.close_reason))
 
     async def start():
         return await serve(handler, "127.0.0.1", 0, subprotocols=["foxglove.sdk.v1"], compression=None)
@@ -143,5 +157,57 @@ def test_a_connection_that_never_finished_its_handshake_does_not_hold_up_the_shu
                 except ConnectionResetError:
                     pass                                                    # dropped with a reset: as good
                 sock.close()
+        finally:
+            relay.close()
+
+
+def wait_for(condition, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return condition()
+
+
+@pytest.mark.parametrize("how, code, reason", [
+    ("close 4002 session limit reached", 4002, "session limit reached"),  # an application's own code
+    ("close 1011 internal error", 1011, "internal error"),
+    ("drop", 1001, "connection lost"),      # no close frame (1006): may not be sent on, the peer went away
+])
+def test_the_servers_close_code_and_reason_reach_the_viewer(how, code, reason):
+    """The relay used to close the viewer's side with 1000 whatever the SDK's server closed with: a viewer could not
+    tell a refusal or a server error from a normal end."""
+    with upstream_server(flood=False) as upstream_port:
+        relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0)
+        try:
+            with connect(f"ws://127.0.0.1:{relay.port}", subprotocols=["foxglove.websocket.v1"],
+                         open_timeout=5) as ws:
+                ws.send(how)
+                with pytest.raises(ConnectionClosed):
+                    ws.recv(timeout=5)
+                assert (ws.protocol.close_code, ws.protocol.close_reason) == (code, reason)
+        finally:
+            relay.close()
+
+
+@pytest.mark.parametrize("close, code, reason", [
+    ((4001, "viewer closed the layout"), 4001, "viewer closed the layout"),
+    ((1001, ""), 1001, ""),                  # a browser tab that navigates away
+    ((None, ""), 1000, ""),                  # a close frame with no code (1005): may not be sent on; a normal end
+    ("drop", 1001, "connection lost"),       # no close frame (1006)
+])
+def test_the_viewers_close_code_and_reason_reach_the_server(close, code, reason):
+    closes: list = []
+    with upstream_server(flood=False, closes=closes) as upstream_port:
+        relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0)
+        try:
+            with connect(f"ws://127.0.0.1:{relay.port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5) as ws:
+                ws.send("hello")
+                assert ws.recv(timeout=5) == "hello"                        # relayed: the upstream side is open
+                if close == "drop":
+                    ws.socket.shutdown(socket.SHUT_RDWR)
+                else:
+                    ws.close(*close)
+                assert wait_for(lambda: closes), "the server's side was closed"
+            assert closes == [(code, reason)]
         finally:
             relay.close()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import http.server
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -516,6 +517,65 @@ def test_publish_command_line_ends_on_a_looped_folder_it_cannot_read(tmp_path, c
     assert done.stderr.count("cannot read") == 2 and "Traceback" not in done.stderr
 
 
+@pytest.fixture
+def unprivileged(tmp_path) -> list[str]:
+    """The prefix that runs a command without the power to read what file modes forbid it. Root (the tests run as
+    root here) reads everything: setpriv runs the command as root still, but without the capabilities that override
+    file modes (CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH), so that modes apply to it as to the files' owner. Not as user
+    nobody: the interpreter may lie under root's home, which only root may enter (it does here, under pyenv)."""
+    if os.geteuid() != 0:
+        return []
+    if not shutil.which("setpriv"):
+        pytest.skip("no setpriv (util-linux) to run a command without root's power to read every file")
+    prefix = ["setpriv", "--bounding-set", "-dac_override,-dac_read_search"]
+    locked = tmp_path / "probe"
+    locked.mkdir()
+    locked.chmod(0)
+    probe = subprocess.run(prefix + [sys.executable, "-c", "import os, sys, tacf_clients; os.listdir(sys.argv[1])",
+                                     str(locked)], capture_output=True, text=True, timeout=60)
+    if "PermissionError" not in probe.stderr:
+        reason = probe.stderr.strip()[-300:] or "root still lists a chmod 000 folder"
+        pytest.skip(f"cannot take root's power to read every file here: {reason}")
+    return prefix
+
+
+def _locked_source(kind: str, tmp_path: Path) -> tuple[Path, Path]:
+    """A source of this kind that may not be read: (the path given to publish, the path the error should name)."""
+    images = _frames(2)
+    if kind == "image folder":
+        source = locked = _write_folder(tmp_path / "folder", images)
+    elif kind == "sequence folder":                         # <seq>/img/*.png, given as <seq>
+        source, locked = tmp_path / "seq", _write_folder(tmp_path / "seq" / "img", images)
+    elif kind == "video file":
+        source = locked = _write_video(tmp_path / "clip.avi", images)
+    elif kind == "single image":
+        source = locked = tmp_path / "one.png"
+        cv2.imwrite(str(source), images[0])
+    else:                                                   # a video in a folder that may not be entered
+        locked = tmp_path / "private"
+        locked.mkdir()
+        source = _write_video(locked / "clip.avi", images)
+        locked.chmod(0)
+        return source, source                               # stat() of the video itself is what fails
+    locked.chmod(0)
+    return source, locked
+
+
+@pytest.mark.parametrize("kind", ["image folder", "sequence folder", "video file", "single image",
+                                  "video in a locked folder"])
+def test_publish_says_which_source_it_may_not_read(kind, tmp_path, unprivileged):
+    """A folder it could not list ended `tacf publish` with a PermissionError traceback, a video file or image with
+    OpenCV's "cannot open video source" (no reason given): one line naming the path, exit 2, as for other bad
+    sources."""
+    source, named = _locked_source(kind, tmp_path)
+    cmd = unprivileged + [sys.executable, "-m", "tacf.cli", "publish", str(source), "--key", KEY, "--frames", "1",
+                          "--connect", f"tcp/127.0.0.1:{free_port()}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.splitlines()[-1] == f"tacf publish: cannot read {named}: permission denied", done.stderr
+    assert "Traceback" not in done.stderr
+
+
 def test_publish_refuses_frames_beyond_the_wire_limits(tmp_path, collector):
     with pytest.raises(FrameError, match="exceeds the limits"):                 # 16.8 Mpx at most
         encode_frame(np.zeros((4097, 4097), np.uint8), 0, "mono8")
@@ -542,8 +602,27 @@ def test_ctrl_c_ends_the_wait_for_a_subscriber_without_publishing():
     finally:
         proc.kill()
     assert time.monotonic() - started < 3
-    assert proc.returncode == 0, err
+    assert proc.returncode == 130, err
     assert "nothing published" in err and "publishing anyway" not in err and "published" not in out
+
+
+def test_ctrl_c_ends_publish_with_130_after_closing_its_session(collector):
+    """`tacf publish` exited 0 on Ctrl-C, where `tacf demo` and `tacf bench` exit 130: a script could not tell a
+    run cut short from a source played to its end."""
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", "scene", "--key", KEY, "--fps", "20",
+           "--connect", f"tcp/127.0.0.1:{collector.port}"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert len(collector.wait(3, timeout=30)) >= 3, "the publisher's frames arrived"
+        proc.send_signal(signal.SIGINT)
+        started = time.monotonic()
+        out, err = proc.communicate(timeout=10)
+    finally:
+        proc.kill()
+    assert time.monotonic() - started < 3, "no hang at exit (ZENOH.md 8): the session was closed first"
+    assert proc.returncode == 130, err          # not -2 (killed by the signal) nor 134/139 (a crash at exit)
+    assert out.startswith("published ") and err.splitlines()[-1] == "tacf publish: interrupted", out + err
+    assert "Traceback" not in err
 
 
 # ----------------------------------------------------------------------------------------------- live streams
