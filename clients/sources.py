@@ -324,7 +324,7 @@ def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = Tr
     try:
         return _open_source(spec, loop, reconnect, should_stop)
     except PermissionError as exc:  # a traceback from a folder's listing, or OpenCV's "cannot open" without a reason
-        raise ValueError(f"cannot read {exc.filename}: permission denied") from None
+        raise ValueError(f"cannot read {exc.filename or spec}: permission denied") from None
 
 
 def _open_source(spec: str | int | Path, loop: bool, reconnect: bool,
