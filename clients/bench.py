@@ -12,14 +12,19 @@ published inside the window:
 - latency_ms: frame stamped and put -> its BoxResult received here (one clock, one machine), p50/p95/p99/max;
 - frames_sent, boxes_received, dropped = frames sent that got no box (superseded in a worker's latest-only slot,
   or lost in transit);
-- rss_mb_per_session: mean RSS of the worker processes, and pss_mb_per_session, their proportional set size
-  (pages shared with other processes, libraries and what the fork server loaded for every worker, divided among
-  those that map them: what each session really adds); pss_mb_total: the PSS of the service and every process
-  it started (workers, fork server, resource tracker), the whole footprint;
-- cpu_percent: CPU time of the service and its workers over the window / window length (100 = one core);
+- rss_mb_per_session: mean RSS of the worker processes at the window's end, and pss_mb_per_session, their
+  proportional set size (pages shared with other processes, libraries and what the fork server loaded for every
+  worker, divided among those that map them: what each session really adds); pss_mb_total: the PSS of the service
+  and every process it started (workers, fork server, resource tracker), the whole footprint;
+- cpu_percent: CPU time of the service and its processes over the window / window length (100 = one core),
+  a worker that died in the window (its CPU time up to its death) and the one started in its place included;
+- worker_restarts: workers the service restarted in the window (after a crash or a hang), as it counts them;
 - over_time: total RSS and PSS (MB) and open file descriptors of the service and its processes, sampled 20
   times over the window, so a long run (`--seconds 600`) is a soak test: all must stay flat (PSS also shows pages
   the workers share with the fork server being copied into each, which RSS cannot).
+
+The processes are found under the service's pid (Linux /proc) at every sample, so a restarted worker is measured
+from the first sample after it started.
 
 A looped sequence restarts with the target elsewhere; the session then tracks whatever it holds, which costs
 the same per frame, so the figures stay load figures, not accuracy.
@@ -176,12 +181,27 @@ def _descendants(pid: int) -> list[int]:
     return found
 
 
+def _processes(service_pid: int) -> list[int]:
+    """The service and every process under it, parents before their children, found anew at each call: a worker
+    the service restarts is a new process."""
+    return [service_pid, *_descendants(service_pid)]
+
+
 def _cpu_seconds(pid: int) -> float:
+    """CPU time of pid and of its children that exited and were waited for: utime + stime + cutime + cstime. A
+    worker that dies is waited for by its parent (the fork server, or the service when workers are spawned), and
+    the kernel then adds all the CPU time it used to that parent's cutime and cstime."""
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     except OSError:
         return 0.0
-    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS   # utime + stime
+    return sum(int(v) for v in fields[11:15]) / CLOCK_TICKS
+
+
+def _tree_cpu_seconds(service_pid: int) -> float:
+    """CPU time of the service and its processes, those that ended included. Read parents first: a worker waited
+    for between its parent's read and its own is missed (microseconds), never counted twice."""
+    return sum(map(_cpu_seconds, _processes(service_pid)))
 
 
 def _memory_mb(pid: int, file: str, field: str) -> float | None:
@@ -211,12 +231,26 @@ def _mean(values) -> float | None:
     return round(sum(values) / len(values), 1) if values else None
 
 
-def _is_worker(pid: int) -> bool:
-    """A session worker, not multiprocessing's resource tracker or fork server (the workers' parent)."""
-    try:
-        return b"resource_tracker" not in Path(f"/proc/{pid}/cmdline").read_bytes() and not _children(pid)
-    except OSError:
-        return False
+def _workers(service_pid: int) -> list[int]:
+    """The session workers: the children of the service's fork server, or, spawned, the service's own children but
+    multiprocessing's resource tracker. By name, not by having no children: a fork server whose only worker has
+    just died has none."""
+    found = []
+    for pid in _children(service_pid):
+        try:
+            command = Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"forkserver" in command:
+            found += _children(pid)
+        elif b"resource_tracker" not in command:
+            found.append(pid)
+    return found
+
+
+def _restarts(client) -> int:
+    """Worker restarts of the service's sessions so far, as the service counts them."""
+    return sum(info.restarts for info in client.list())
 
 
 def _percentile(values: list[float], q: float) -> float | None:
@@ -299,16 +333,15 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
             _pause(0.1, stop, service)
         _pause(warmup, stop, service)
         service_pid = service.process.pid
-        children = _descendants(service_pid)
-        workers = [pid for pid in children if _is_worker(pid)]
-        processes = [service_pid, *children]
-        cpu_before, wall_before = sum(map(_cpu_seconds, processes)), time.monotonic()
+        restarts_before = _restarts(client)
+        cpu_before, wall_before = _tree_cpu_seconds(service_pid), time.monotonic()
         first_seq = [len(s) for s in publisher.sent]
         over_time = {"seconds": [], "rss_mb": [], "pss_mb": [], "open_fds": []}
         with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False,
                   disable=not progress) as bar:
             while (elapsed := time.monotonic() - wall_before) < seconds:
                 if elapsed >= len(over_time["seconds"]) * seconds / 20:
+                    processes = _processes(service_pid)
                     over_time["seconds"].append(round(elapsed, 1))
                     over_time["rss_mb"].append(round(_total_mb(processes, "status", "VmRSS:")))
                     over_time["pss_mb"].append(round(_total_mb(processes, "smaps_rollup", "Pss:")))
@@ -317,10 +350,12 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
                 _pause(max(0.0, min(0.2, next_sample - elapsed, seconds - elapsed)), stop, service)
                 bar.update(min(round(seconds), int(time.monotonic() - wall_before)) - bar.n)
         last_seq = [len(s) - 1 for s in publisher.sent]
-        cpu_percent = 100 * (sum(map(_cpu_seconds, processes)) - cpu_before) / (time.monotonic() - wall_before)
+        cpu_percent = 100 * (_tree_cpu_seconds(service_pid) - cpu_before) / (time.monotonic() - wall_before)
+        workers = _workers(service_pid)
         rss = _mean(_memory_mb(pid, "status", "VmRSS:") for pid in workers)
         pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
-        pss_total = round(_total_mb(processes, "smaps_rollup", "Pss:"), 1)
+        pss_total = round(_total_mb(_processes(service_pid), "smaps_rollup", "Pss:"), 1)
+        worker_restarts = _restarts(client) - restarts_before
         _pause(2.0, stop, service)   # let the boxes of the window's last frames arrive
         with lock:
             sid_index = {f"feed{i}": i for i in range(n)}
@@ -348,7 +383,8 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
                        "p99": _percentile(latency, 0.99), "max": _percentile(latency, 1.0)},
         "frames_sent": frames_sent, "boxes_received": boxes, "dropped": frames_sent - boxes,
         "rss_mb_per_session": rss, "pss_mb_per_session": pss, "pss_mb_total": pss_total,
-        "cpu_percent": round(cpu_percent, 1), "cpus": os.cpu_count(), "over_time": over_time,
+        "cpu_percent": round(cpu_percent, 1), "cpus": os.cpu_count(), "worker_restarts": worker_restarts,
+        "over_time": over_time,
         "sequences": sorted({f.name for f in feeds}), "load_average": [round(v, 2) for v in os.getloadavg()],
     }
 

@@ -20,9 +20,11 @@ from tacf.cli import main
 from tacf_clients import bench, local_service
 from tacf_clients.bench import Feed, FeedPublisher, _percentile
 from tacf_clients.local_service import free_port
-from tacf_clients.zconfig import ZenohOptions, make_config
+from tacf_clients.zconfig import ZenohOptions, make_config, open_session
+import busy_tracker
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences"
+TESTS = Path(__file__).resolve().parent
+DATA = TESTS.parents[1] / "shared" / "data" / "sequences"
 
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"benchmark sequences not found at {DATA}")
 
@@ -100,7 +102,7 @@ def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
     assert 0 < latency["p50"] <= latency["p95"] <= latency["p99"] <= latency["max"]
     assert report["rss_mb_per_session"] > 50 and report["pss_mb_per_session"] > 10
     assert report["pss_mb_total"] > 2 * report["pss_mb_per_session"]   # the service and its fork server besides
-    assert 0 < report["cpu_percent"] <= 100 * report["cpus"]
+    assert 0 < report["cpu_percent"] <= 100 * report["cpus"] and report["worker_restarts"] == 0
     over_time = report["over_time"]
     assert len(over_time["seconds"]) == len(over_time["rss_mb"]) == len(over_time["pss_mb"]) == \
         len(over_time["open_fds"]) >= 10
@@ -266,3 +268,65 @@ def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(tmp_path):
     assert bench_run.returncode == 130 and "interrupted" in err, err[-500:]
     assert json.loads(out.read_text())["feeds"] == 1
     assert not _serve_processes("bench"), "the service outlived the bench"
+
+
+def _forked_workers(service_pid: int) -> list[int]:
+    """The children of the service's fork server: its session workers."""
+    servers = [pid for pid in bench._children(service_pid)
+               if b"forkserver" in Path(f"/proc/{pid}/cmdline").read_bytes()]
+    return [pid for server in servers for pid in bench._children(server)]
+
+
+@needs_data
+def test_a_worker_restarted_in_the_window_is_measured_with_the_one_it_replaced(tmp_path, monkeypatch):
+    """The benchmark listed the service's processes once, as the window opened. A worker killed in the window
+    took the CPU time it had used before the window off the total (the run reported less than nothing), and the
+    worker the service started in its place was measured for neither CPU nor memory (with one feed, no session
+    memory at all). Each frame costs the busy tracker a known CPU time, so the boxes give a floor for the CPU
+    used in the window whatever the machine's load."""
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(TESTS), os.environ.get("PYTHONPATH")])))
+    services = []
+
+    class BusyService(local_service.LocalService):        # the bench's service, with the busy tracker
+        def __init__(self, *args, extra_args=(), **kwargs):
+            super().__init__(*args, extra_args=(*extra_args, "--tracker-factory", "busy_tracker:busy_tracker"),
+                             **kwargs)
+            services.append(self)
+
+    monkeypatch.setattr(local_service, "LocalService", BusyService)
+    warmup, seconds, killed = 1.0, 6.0, []
+
+    def kill_the_worker_in_the_window() -> None:
+        deadline = time.monotonic() + 60
+        while not (services and services[0].process and _forked_workers(services[0].process.pid)):
+            if time.monotonic() > deadline:
+                return
+            time.sleep(0.1)
+        first_box = threading.Event()
+        with open_session(services[0].options) as session:
+            session.declare_subscriber(f"tacf/{bench.NODE}/sessions/feed0/box", lambda _: first_box.set())
+            if not first_box.wait(60):
+                return
+        time.sleep(warmup + seconds / 3)        # the window opens about `warmup` after the first box
+        worker, = _forked_workers(services[0].process.pid)
+        os.kill(worker, signal.SIGKILL)
+        killed.append(worker)
+
+    killer = threading.Thread(target=kill_the_worker_in_the_window)
+    killer.start()
+    out = tmp_path / "bench.json"
+    try:
+        status = main(["bench", "service", str(DATA), "--fps", "5", "--seconds", str(seconds), "--warmup",
+                       str(warmup), "--json", str(out), "--no-progress"])
+    finally:
+        killer.join()
+    assert status == 0 and killed, "the worker was killed during the run"
+    report = json.loads(out.read_text())
+    cpu_seconds = report["cpu_percent"] / 100 * seconds
+    # the boxes of the last frame or two can come after the window's last CPU reading; clock ticks are 10 ms
+    floor = 0.9 * busy_tracker.CPU_S * (report["boxes_received"] - 2)
+    assert cpu_seconds >= floor, (cpu_seconds, floor, report)
+    assert report["rss_mb_per_session"] is not None and report["rss_mb_per_session"] > 20, report
+    rss = report["over_time"]["rss_mb"]
+    assert rss[-1] > rss[0] - report["rss_mb_per_session"] / 2, rss       # the new worker is in the last sample
+    assert report["worker_restarts"] == 1
