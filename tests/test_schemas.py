@@ -6,6 +6,7 @@ import math
 import subprocess
 import sys
 
+import cv2
 import jsonschema
 import msgpack
 import numpy as np
@@ -20,7 +21,7 @@ from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Fr
                           parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
                           validate_id, validate_image_key)
 from tacf_schemas.export import JSON_DIR, drift, write
-from tacf_schemas.images import FrameError, decode_frame, encode_frame, jpeg_size, png_size
+from tacf_schemas.images import FrameError, check_frame, decode_frame, encode_frame, jpeg_size, png_size
 from tacf_schemas.limits import MAX_FRAME_PIXELS
 from wire_cases import BEYOND_SCHEMA, CASES
 
@@ -323,6 +324,20 @@ def test_frame_errors(fields, code):
     with pytest.raises(FrameError) as info:
         decode_frame(_frame(**fields))
     assert info.value.code == code
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_a_16_bit_png_is_refused_from_its_header(channels):
+    """decode_frame refuses 16-bit pixels, but only after OpenCV decoded them all (a 130 kB PNG of 4096x4096 RGBA:
+    1 s and 256 MB); check_frame, which the service applies to the frames a start carries, let them through, so
+    such a start was accepted and its frame then rejected by the worker, which initialised on another frame."""
+    pixels = np.zeros((48, 64, channels) if channels > 1 else (48, 64), np.uint16)
+    frame = Frame(seq=1, stamp_ns=1, encoding="png", width=64, height=48,
+                  data=cv2.imencode(".png", pixels)[1].tobytes())
+    for check in (check_frame, decode_frame):
+        with pytest.raises(FrameError) as info:
+            check(frame)
+        assert info.value.code == "unsupported_encoding"
 
 
 def test_jpeg_size_mismatch_rejected_before_decoding(image):
