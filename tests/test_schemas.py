@@ -132,6 +132,26 @@ def test_integral_floats_are_ints_on_the_wire():
     assert request.overrides == {"cell_size": 6, "learning_rate": 0.5, "use_motion": True}
 
 
+def _pairs(*pairs) -> bytes:
+    """A msgpack map of these (key, value) pairs in this order, a key possibly twice (packb takes a dict)."""
+    return msgpack.Packer().pack_map_pairs(pairs)
+
+
+@pytest.mark.parametrize("payload,model", [
+    (_pairs(("sid", "s1"), ("sid", "s2")), StopRequest),
+    (_pairs(*_frame_fields().items(), ("seq", 1000)), Frame),
+    (b"\x83" + b"".join(msgpack.packb(x) for x in ("image_key", "cam", "box", [1, 2, 3, 4], "overrides"))
+     + _pairs(("cell_size", 4), ("cell_size", 6)), StartRequest),
+], ids=["a field", "a frame's seq", "an override"])
+def test_a_field_given_twice_is_refused(payload, model):
+    """msgpack keeps the last value of a key given twice: the first was dropped without a word (a misspelt field
+    is refused so that nothing is silently ignored), and a worker, which peeks at a frame's first "seq" to count
+    the frames its ring dropped, read another seq than the decoder."""
+    with pytest.raises(DecodeError) as info:
+        decode(payload, model)
+    assert info.value.code == "malformed" and "twice" in info.value.message
+
+
 def _schema_takes(model: str, message: dict) -> bool:
     schema = json.loads((JSON_DIR / f"{model}.json").read_text())
     validator = jsonschema.validators.validator_for(schema)(schema)
