@@ -5,6 +5,7 @@ decode never lets a msgpack or pydantic exception escape: every failure is a Dec
 """
 from __future__ import annotations
 
+from collections import Counter
 from typing import TypeVar
 
 import msgpack
@@ -50,13 +51,23 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
         raise DecodeError("invalid", f"{model.__name__}: {type(exc).__name__}: {str(exc)[:200]}") from None
 
 
+def _map(pairs: list) -> dict:
+    """A msgpack map as a dict, refusing a key given twice: msgpack keeps the last value, so the first was dropped
+    without a word, and the worker, which peeks at a frame's first "seq", read another seq than the decoder."""
+    fields = dict(pairs)
+    if len(fields) != len(pairs):
+        twice = next(key for key, count in Counter(key for key, _ in pairs).items() if count > 1)
+        raise ValueError(f"key {twice!r} given twice")
+    return fields
+
+
 def _unpack(payload: bytes | bytearray | memoryview, name: str) -> object:
     try:
-        return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True,
+        return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True, object_pairs_hook=_map,
                                max_bin_len=MAX_FRAME_BYTES, max_str_len=1 << 20,
                                max_array_len=1 << 16, max_map_len=1 << 10, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated types (ValueError, ExtraData, TypeError...)
-        raise DecodeError("malformed", f"{name}: not msgpack ({type(exc).__name__}: {str(exc)[:200]})") from None
+        raise DecodeError("malformed", f"{name}: malformed msgpack ({type(exc).__name__}: {str(exc)[:200]})") from None
 
 
 def decode_error_reply(payload: bytes | bytearray | memoryview) -> Error | str:

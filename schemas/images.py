@@ -2,8 +2,9 @@
 OpenCV is loaded only to encode or decode pixels, so check_frame serves processes that never need it.
 
 decode_frame accepts jpeg, png, bgr8 and mono8 and returns an HxWx3 BGR or HxW gray uint8 array. Encoded
-images have their header read *before* decoding, so a frame whose real size differs from width/height, or a
-decompression bomb, is rejected without allocating its pixels. Every failure is a FrameError with a `code`.
+images have their header read *before* decoding, so a frame whose real size differs from width/height, a
+decompression bomb or a 16-bit PNG is rejected without allocating its pixels. Every failure is a FrameError with
+a `code`.
 """
 from __future__ import annotations
 
@@ -57,6 +58,10 @@ def check_frame(frame: Frame) -> None:
     if header_size != (width, height):
         raise FrameError("size_mismatch", f"{frame.encoding} image is {header_size[0]}x{header_size[1]} but "
                                           f"the frame says {width}x{height}")
+    if frame.encoding == "png" and len(data) > 24 and data[24] > 8:      # IHDR's bit depth
+        # decode_frame refuses such pixels too, but only once OpenCV has decoded them all (a 130 kB PNG of 4096x4096
+        # 16-bit RGBA: 1 s and 256 MB), and the service checks a start's frames with this function alone
+        raise FrameError("unsupported_encoding", f"png with {data[24]}-bit samples; only 8-bit is supported")
 
 
 def decode_frame(frame: Frame) -> np.ndarray:

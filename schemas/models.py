@@ -71,7 +71,9 @@ WIRE_INT = BeforeValidator(_wire_number)
 Id = Annotated[str, Field(pattern=ID_PATTERN, min_length=1, max_length=MAX_ID_LENGTH)]
 Seq = Annotated[int, Field(ge=0, lt=2**63), WIRE_INT]
 StampNs = Annotated[int, Field(ge=0, lt=2**63), WIRE_INT]
-Count = Annotated[int, Field(ge=0), WIRE_INT]
+# int64, as seqs: unbounded, an integral float such as 1e300 was taken as a 301-digit int that msgpack cannot
+# encode again (nor most languages hold)
+Count = Annotated[int, Field(ge=0, lt=2**63), WIRE_INT]
 Width = Annotated[int, Field(ge=1, le=MAX_FRAME_WIDTH), WIRE_INT]
 Height = Annotated[int, Field(ge=1, le=MAX_FRAME_HEIGHT), WIRE_INT]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]

@@ -58,3 +58,12 @@ def test_the_docker_image_gets_the_files_the_package_metadata_names():
     let_in = (ROOT / ".dockerignore").read_text().split()
     copied = " ".join(re.findall(r"^COPY (.*)$", (ROOT / "docker" / "Dockerfile").read_text(), re.M)).split()
     assert named and [name for name in named if f"!{name}" not in let_in or name not in copied] == []
+
+
+def test_the_docker_build_fetches_nothing_but_its_base_image():
+    """BASE lets a machine that cannot reach Docker Hub build on a mirror's copy of python:3.11-slim, but a
+    `# syntax=docker/dockerfile:1` line makes BuildKit (Docker's builder since Engine 23) fetch that frontend image
+    from Docker Hub before it reads anything else, so such a build failed at its first line. The builder's own
+    frontend reads every instruction the Dockerfile uses."""
+    dockerfile = (ROOT / "docker" / "Dockerfile").read_text()
+    assert not re.search(r"^#\s*syntax\s*=", dockerfile, re.M | re.I)

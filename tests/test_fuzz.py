@@ -155,6 +155,7 @@ def check_decode(payload: bytes, model) -> None:
 @example(("Frame", b"\x91" * 100_000 + b"\xc0"))                        # deep nesting
 @example(("SessionList", b"\x81\xa8sessions" + b"\x91" * 5000 + b"\x80"))
 @example(("StartRequest", b"\x00" * (MAX_PAYLOAD_BYTES + 1)))
+@example(("Health", msgpack.packb({**msgpack.unpackb(PAYLOADS["Health"]), "frames_dropped": 1e300})))  # no uint64
 def test_mutated_payloads_decode_or_raise_decode_error(case):
     name, payload = case
     check_decode(payload, MODELS[name])

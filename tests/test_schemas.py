@@ -6,6 +6,7 @@ import math
 import subprocess
 import sys
 
+import cv2
 import jsonschema
 import msgpack
 import numpy as np
@@ -20,7 +21,7 @@ from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Fr
                           parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
                           validate_id, validate_image_key)
 from tacf_schemas.export import JSON_DIR, drift, write
-from tacf_schemas.images import FrameError, decode_frame, encode_frame, jpeg_size, png_size
+from tacf_schemas.images import FrameError, check_frame, decode_frame, encode_frame, jpeg_size, png_size
 from tacf_schemas.limits import MAX_FRAME_PIXELS
 from wire_cases import BEYOND_SCHEMA, CASES
 
@@ -129,6 +130,26 @@ def test_integral_floats_are_ints_on_the_wire():
                      StartRequest)
     assert request.seq == 7 and request.box == (1.0, 2.0, 3.0, 4.0)
     assert request.overrides == {"cell_size": 6, "learning_rate": 0.5, "use_motion": True}
+
+
+def _pairs(*pairs) -> bytes:
+    """A msgpack map of these (key, value) pairs in this order, a key possibly twice (packb takes a dict)."""
+    return msgpack.Packer().pack_map_pairs(pairs)
+
+
+@pytest.mark.parametrize("payload,model", [
+    (_pairs(("sid", "s1"), ("sid", "s2")), StopRequest),
+    (_pairs(*_frame_fields().items(), ("seq", 1000)), Frame),
+    (b"\x83" + b"".join(msgpack.packb(x) for x in ("image_key", "cam", "box", [1, 2, 3, 4], "overrides"))
+     + _pairs(("cell_size", 4), ("cell_size", 6)), StartRequest),
+], ids=["a field", "a frame's seq", "an override"])
+def test_a_field_given_twice_is_refused(payload, model):
+    """msgpack keeps the last value of a key given twice: the first was dropped without a word (a misspelt field
+    is refused so that nothing is silently ignored), and a worker, which peeks at a frame's first "seq" to count
+    the frames its ring dropped, read another seq than the decoder."""
+    with pytest.raises(DecodeError) as info:
+        decode(payload, model)
+    assert info.value.code == "malformed" and "twice" in info.value.message
 
 
 def _schema_takes(model: str, message: dict) -> bool:
@@ -323,6 +344,20 @@ def test_frame_errors(fields, code):
     with pytest.raises(FrameError) as info:
         decode_frame(_frame(**fields))
     assert info.value.code == code
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_a_16_bit_png_is_refused_from_its_header(channels):
+    """decode_frame refuses 16-bit pixels, but only after OpenCV decoded them all (a 130 kB PNG of 4096x4096 RGBA:
+    1 s and 256 MB); check_frame, which the service applies to the frames a start carries, let them through, so
+    such a start was accepted and its frame then rejected by the worker, which initialised on another frame."""
+    pixels = np.zeros((48, 64, channels) if channels > 1 else (48, 64), np.uint16)
+    frame = Frame(seq=1, stamp_ns=1, encoding="png", width=64, height=48,
+                  data=cv2.imencode(".png", pixels)[1].tobytes())
+    for check in (check_frame, decode_frame):
+        with pytest.raises(FrameError) as info:
+            check(frame)
+        assert info.value.code == "unsupported_encoding"
 
 
 def test_jpeg_size_mismatch_rejected_before_decoding(image):

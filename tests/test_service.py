@@ -533,6 +533,9 @@ def test_an_int_override_sent_as_a_float_without_fraction_is_that_int(service, c
      "invalid_config"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), frames=[Frame(
         seq=3, stamp_ns=0, encoding="jpeg", width=64, height=48, data=b"not a jpeg")])), "frame_rejected"),
+    ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), frames=[Frame(   # 16-bit: no worker decodes it
+        seq=3, stamp_ns=0, encoding="png", width=64, height=48,
+        data=cv2.imencode(".png", np.zeros((48, 64), np.uint16))[1].tobytes())])), "frame_rejected"),
     ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "seq": 4, "frames": [{
         "seq": 3, "stamp_ns": 0, "encoding": "mono8", "width": 2, "height": 1, "data": b"ab"}]}), "invalid_request"),
     ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "frames": [

@@ -137,6 +137,8 @@ CASES: list[Case] = [
     Case("Health", "fps true", _with(HEALTH, fps=True), False),
     Case("Health", "negative count", _with(HEALTH, frames_dropped=-1), False),
     Case("Health", "count as text", _with(HEALTH, frames_dropped="1"), False),
+    Case("Health", "count past int64", _with(HEALTH, frames_received=2**63), False),
+    Case("Health", "count as an integral float past int64", _with(HEALTH, frames_received=1e300), False),
     Case("Health", "message too long", _with(HEALTH, message=LONG_TEXT), False),
     # ------------------------------------------------------------ SessionInfo, SessionList
     Case("SessionInfo", "minimal", INFO, True),
@@ -148,6 +150,7 @@ CASES: list[Case] = [
     Case("SessionList", "empty", {"node": "edge", "max_sessions": 4}, True),
     Case("SessionList", "one session", {"node": "edge", "max_sessions": 4.0, "sessions": [INFO]}, True),
     Case("SessionList", "negative capacity", {"node": "edge", "max_sessions": -1}, False),
+    Case("SessionList", "capacity as an integral float past int64", {"node": "edge", "max_sessions": 1e300}, False),
     Case("SessionList", "a session missing fields", {"node": "edge", "max_sessions": 4, "sessions": [{"sid": "s"}]},
          False),
     # ------------------------------------------------------------ Error
