@@ -531,6 +531,8 @@ def test_an_int_override_sent_as_a_float_without_fraction_is_that_int(service, c
      "invalid_config"),
     ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "overrides": {"cell_size": 4.5}}),
      "invalid_config"),
+    ("start", msgpack.packb({"image_key": "cam", "box": [1, 1, 5, 5], "overrides": {"inner_padding": float("nan")}}),
+     "invalid_config"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), frames=[Frame(
         seq=3, stamp_ns=0, encoding="jpeg", width=64, height=48, data=b"not a jpeg")])), "frame_rejected"),
     ("start", encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), frames=[Frame(   # 16-bit: no worker decodes it

@@ -4,9 +4,10 @@ tests/test_schemas.py checks each against the published JSON Schema (schemas/jso
 (codec.decode of its msgpack): both must take it or both refuse it, as `valid` says.
 
 Messages are written in JSON's terms. What JSON cannot say is left out of CASES: NaN and infinities (the decoder
-refuses them in every float field), and msgpack's bin versus str (bytes fields such as Frame.data take bin only,
-text fields str only: test_decode_is_as_strict_as_the_json_schema). BEYOND_SCHEMA lists what the decoder refuses
-although the schema cannot state it.
+refuses them in every float field but a tracker override's, which the service refuses as invalid_config), and
+msgpack's bin versus str (bytes fields such as Frame.data take bin only, text fields str only:
+test_decode_is_as_strict_as_the_json_schema). BEYOND_SCHEMA lists what the decoder refuses although the schema
+cannot state it.
 """
 from __future__ import annotations
 
