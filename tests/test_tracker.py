@@ -143,6 +143,7 @@ def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     ((500, 10, 20, 20), "outside"),
     ((-40, 10, 20, 20), "outside"),
     ((0, 0, 5000, 5000), "larger than the 100x100 image"),       # took 16 s to initialise, 1e5 ran out of memory
+    ((10**400, 10, 20, 20), "finite numbers .* past the float range"),   # numpy's OverflowError
 ])
 def test_bad_boxes_raise_clear_errors(box, message):
     with pytest.raises(ValueError, match=message):
