@@ -29,7 +29,10 @@ LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_st
           "lambda1": 1e6, "scale_lambda": 1e6, "cn_poly_a": 1e3,
           # each of these far past its ceiling (1e20, 1e38, 1e39, 1e100) took PME to 0 on every frame: a frozen box
           "context_penalty_total": 1e3, "context_lambda2": 1e6, "dim_floor": 10.0, "dim_threshold": 10.0,
-          "motion_gain": 100.0, "scale_sigma_factor": 1e3}
+          "motion_gain": 100.0, "scale_sigma_factor": 1e3,
+          # a challenge factor is a PME ratio, the context's over the target's: a floor above every ratio splits the
+          # penalties evenly whatever it is, and past 1e154 its square overflowed (inf / inf, the model NaN for good)
+          "context_challenge_floor": 1e3}
 # Floors where > 0 is not enough. The models are float32: 1/lambda overflows under ~3e-39 and lambda over 3.4e38,
 # turning the filters NaN; 1e-12 .. 1e6 leaves wide margins around the paper's 5e-5 and the code's 1e-4 (from ~1
 # up the filters are all regularisation and barely follow the target, but nothing breaks). A label's sigma is

@@ -241,8 +241,9 @@ def test_config_refuses_combinations_the_tracker_cannot_run(overrides, message):
     (dict(cn_poly_b=1e5), r"\(1 \+ cn_poly_a\) \*\* cn_poly_b.* must be <= 1e\+12, got 10\*\*3.01e\+04"),
     (dict(cn_poly_a=1e6, cn_poly_b=1.0), r"cn_poly_a must be in \[0, 1000\], got 1000000.0"),  # CN answered nothing
     (dict(cn_poly_b=0.0), r"cn_poly_b must be > 0, got 0.0"),                        # likewise
-    (dict(context_challenge_floor=0.0), r"context_challenge_floor must be >= 0.001, got 0.0"),  # 0/0 penalties
+    (dict(context_challenge_floor=0.0), r"context_challenge_floor must be in \[0.001, 1000\], got 0.0"),  # 0/0
     # PME 0 on every frame, the box frozen
+    (dict(context_challenge_floor=1e300), r"context_challenge_floor must be in \[0.001, 1000\]"),  # inf / inf penalties
     (dict(context_penalty_total=1e20), r"context_penalty_total must be in \[0, 1000\], got 1e\+20"),
     (dict(context_lambda2=1e38), r"context_lambda2 must be in \[0, 1e\+06\], got 1e\+38"),
     (dict(dim_floor=1e39), r"dim_floor must be in \[0.001, 10\], got 1e\+39"),
@@ -267,7 +268,7 @@ def test_config_bounds_keep_the_profiles_and_their_ends():
                           cn_poly_a=1e3, cn_poly_b=3.9, context_challenge_floor=1e-3, hist_bins=2,
                           likelihood_floor=1.0, num_scales=5, fixed_area=48.0 * 4**2)
     TrackerConfig.profile(context_penalty_total=1e3, context_lambda2=1e6, dim_floor=10.0, dim_threshold=-10.0,
-                          motion_gain=100.0, scale_sigma_factor=1e3)
+                          motion_gain=100.0, scale_sigma_factor=1e3, context_challenge_floor=1e3)
     TrackerConfig.profile(context_penalty_total=0.0, context_lambda2=0.0, dim_floor=1e-3, dim_threshold=10.0,
                           motion_gain=0.0, scale_sigma_factor=1e-3)
 
