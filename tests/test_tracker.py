@@ -127,6 +127,24 @@ def test_bad_frames_raise_clear_errors(frame, message):
         Tracker().init(frame, (1, 1, 10, 10))
 
 
+def test_frames_of_any_memory_layout_are_tracked_as_their_copies():
+    """A sliding_window_view's rows overlap in memory, which OpenCV's Mat refuses: init raised cv2.error
+    ("_step >= minstep") from inside the resize. Views, broadcast and Fortran-ordered frames give the boxes of their
+    contiguous copies."""
+    rng = np.random.default_rng(8)
+    colour = texture(rng, (120, 320, 3), blur=2)
+    row = texture(rng, (1, 400), blur=2)[0]
+    frames = [np.lib.stride_tricks.sliding_window_view(row, 160)[:120],  # each row the last one moved by a pixel
+              np.broadcast_to(row[:160], (120, 160)), np.asfortranarray(colour), colour[::-1, ::2, ::-1]]
+    for frame in frames:
+        boxes = []
+        for copy in (frame, np.ascontiguousarray(frame)):
+            tracker = Tracker()
+            tracker.init(copy, (50, 40, 20, 16))
+            boxes.append([tracker.update(copy).box for _ in range(2)])
+        assert boxes[0] == boxes[1]
+
+
 def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     """Tracker("kcc") failed only in init, with "'str' object has no attribute 'fixed_area'"."""
     for config in ("kcc", {"cell_size": 4}, TrackerConfig.profile):
