@@ -236,6 +236,8 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     (dict(context_lambda2=-1.0), r"context_lambda2 must be in \[0, 1e\+06\]"),    # turned the model NaN, for good
     (dict(cn_poly_a=-1.0, cn_poly_b=0.5), r"cn_poly_a must be in \[0, 1000\]"),   # likewise
     (dict(hog_kernel_sigma=1e-6), "hog_kernel_sigma must be >= 0.01"),    # likewise
+    (dict(hog_kernel_sigma=1e3), r"lambda1 \* hog_kernel_sigma\*\*4.* <= 1e\+06, got 5e\+07"),   # flat HOG responses:
+    (dict(hog_kernel_sigma=2.0, lambda1=1e6), r"lambda1 \* hog_kernel_sigma\*\*4"),           # kcc's box froze
     (dict(hist_bins=3), "power of two up to 64"),                         # failed in init
     (dict(hist_bins=256), "power of two up to 64"),                       # 16.7 M bins: 9 s and 1 GB for 3 frames
     (dict(fixed_area=16.0), "the filter's cells"),                        # one cell: failed in init
@@ -287,6 +289,7 @@ def test_config_bounds_keep_the_profiles_and_their_ends():
                           likelihood_floor=1.0, num_scales=5, fixed_area=48.0 * 4**2)
     TrackerConfig.profile(context_penalty_total=1e3, context_lambda2=1e6, dim_floor=10.0, dim_threshold=-10.0,
                           motion_gain=100.0, scale_sigma_factor=1e3, context_challenge_floor=1e3)
+    TrackerConfig.profile(lambda1=1e-12, hog_kernel_sigma=3e4)   # lambda1 * sigma**4 = 8.1e5: still tracks
     TrackerConfig.profile(context_penalty_total=0.0, context_lambda2=0.0, dim_floor=1e-3, dim_threshold=10.0,
                           motion_gain=0.0, scale_sigma_factor=1e-3)
 
