@@ -294,6 +294,21 @@ def test_config_bounds_keep_the_profiles_and_their_ends():
                           motion_gain=0.0, scale_sigma_factor=1e-3)
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_the_heaviest_context_term_allowed_stays_finite():
+    """At the ceilings of context_lambda2 and context_penalty_total a context patch is scaled up to a million
+    times: float32 rounding made the Gaussian kernel's exponent hugely positive, exp overflowed ("overflow
+    encountered in square") and the inf context energy zeroed the filters of 7-8 of the 31 HOG channels."""
+    images, truth = moving_target_sequence(frames=8)
+    for profile in ("paper", "authors"):
+        tracker = Tracker(TrackerConfig.profile(profile, context_lambda2=1e6, context_penalty_total=1e3,
+                                                context_interval=1))
+        tracker.init(images[0], truth[0])
+        results = [tracker.update(image) for image in images[1:]]
+        assert np.abs(tracker.banks["hog"].model_filter_hat).max(axis=(1, 2)).min() > 0   # no channel switched off
+        assert box_iou(results[-1].box, truth[-1]) > 0.6
+
+
 def test_config_takes_numpy_scalars_as_the_python_values_they_are():
     """A sweep read from an array: np.int64 was refused as an int and np.float32 as a float, while np.float64
     passed (a float subclass). They are stored as Python values, so that to_dict() stays JSON."""
