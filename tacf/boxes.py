@@ -14,6 +14,8 @@ def check_box(box, frame_shape) -> np.ndarray:
     box (a 5000x5000 box on a 320x240 frame took 16 s to initialise, a 1e5 one failed allocating 120 GB)."""
     try:
         values = np.asarray(box, dtype=np.float64).reshape(-1)
+    except OverflowError:  # an int past the float range (10**400); not printed: over 4,300 digits, str() raises
+        raise ValueError("box must be four finite numbers (x, y, w, h), got one past the float range") from None
     except (TypeError, ValueError):
         raise ValueError(f"box must be four numbers (x, y, w, h), got {box!r}") from None
     if values.size != 4 or not np.all(np.isfinite(values)):

@@ -29,7 +29,10 @@ LIMITS = {"cell_size": 16, "fixed_area": 1000.0**2, "num_scales": 129, "scale_st
           "lambda1": 1e6, "scale_lambda": 1e6, "cn_poly_a": 1e3,
           # each of these far past its ceiling (1e20, 1e38, 1e39, 1e100) took PME to 0 on every frame: a frozen box
           "context_penalty_total": 1e3, "context_lambda2": 1e6, "dim_floor": 10.0, "dim_threshold": 10.0,
-          "motion_gain": 100.0, "scale_sigma_factor": 1e3}
+          "motion_gain": 100.0, "scale_sigma_factor": 1e3,
+          # a challenge factor is a PME ratio, the context's over the target's: a floor above every ratio splits the
+          # penalties evenly whatever it is, and past 1e154 its square overflowed (inf / inf, the model NaN for good)
+          "context_challenge_floor": 1e3}
 # Floors where > 0 is not enough. The models are float32: 1/lambda overflows under ~3e-39 and lambda over 3.4e38,
 # turning the filters NaN; 1e-12 .. 1e6 leaves wide margins around the paper's 5e-5 and the code's 1e-4 (from ~1
 # up the filters are all regularisation and barely follow the target, but nothing breaks). A label's sigma is
@@ -53,6 +56,12 @@ MIN_KERNEL_SIGMA = 0.01                     # 1e-6 turned the HOG model NaN
 # Color Names' cells sum to 1, so x.z / N <= 1 and the polynomial kernel is at most (1 + a)^b; float32 squares its
 # transform, up to MAX_CELLS times that: 1e12 keeps it finite with a margin (a = 100, b = 50 turned the model NaN).
 MAX_CN_KERNEL = 1e12
+# Off its DC term the HOG kernel's spectrum falls as 1 / hog_kernel_sigma^2 once the sigma is wide, and the filter's
+# answer as 1 / (lambda1 sigma^4), until float32 loses it beside the response's constant part. Only that product
+# counts (kcc with HOG alone: about the same boxes for any pair): at 1e6 a generated target was still followed (IoU
+# 0.64-0.74; 0.97 at the profiles' 6e-6), at 1e7 lost, its responses flat on some frames (PME 0, the box frozen);
+# on the first 25 frames of five UAV sequences, mean IoU 0.1 at 1e7 and boxes frozen from 2e7.
+MAX_HOG_DAMPING = 1e6
 
 
 def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> None:
@@ -206,6 +215,10 @@ class TrackerConfig:
         problems = []
         if self.hog_kernel_sigma < MIN_KERNEL_SIGMA:
             problems.append(f"hog_kernel_sigma must be >= {MIN_KERNEL_SIGMA}, got {self.hog_kernel_sigma}")
+        hog_damping = self.lambda1 * self.hog_kernel_sigma**4
+        if hog_damping > MAX_HOG_DAMPING:
+            problems.append(f"lambda1 * hog_kernel_sigma**4, which damps the HOG filter's answer, must be <= "
+                            f"{MAX_HOG_DAMPING:g}, got {hog_damping:g}")
         # cn_poly_b * log10(1 + cn_poly_a): (1 + a) ** b itself overflows a Python float (b = 1e5)
         cn_kernel_digits = self.cn_poly_b * math.log10(1 + max(self.cn_poly_a, 0.0))
         if cn_kernel_digits > math.log10(MAX_CN_KERNEL):

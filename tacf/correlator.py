@@ -22,6 +22,12 @@ FIRST_ORDER_EXPONENT = 4.5e-3
 # TrackerConfig.fast_kernel: the first-order kernel wherever u stays under this, within u^2 / 2 <= 0.045 of the exact
 # one. On the 15 sequences of ../shared/data the bound on u reaches 0.27 at most and u itself 0.11 (docs/decisions.md).
 FAST_KERNEL_EXPONENT = 0.3
+# The Gaussian kernel's exponent -u is never positive (Cauchy-Schwarz), but float32 computes it as a difference of
+# large terms. On real frames it comes out at most 1.3e-7 above 0 (fast_kernel off, the first 60 frames of the 15
+# sequences); for a context patch scaled up a million times (context_lambda2 and context_penalty_total at their
+# ceilings) at up to 2,560: exp overflowed, and the inf context energy zeroed HOG channels' filters. The cap is far
+# above rounding on real frames, whose kernels keep every bit (the boxes are the same).
+MAX_GAUSSIAN_EXPONENT = 1e-3
 
 
 def gaussian_label(grid_hw: tuple[int, int], sigma: float) -> np.ndarray:
@@ -54,6 +60,7 @@ class GaussianKernel:
         # OpenCV's float32 exp is ~6x faster than numpy's here and as close to the float64 exp (both within
         # 2e-7); the boxes on the UAV sequences are identical with either (docs/speed.md).
         rows = cross.reshape(-1, cross.shape[-1])  # OpenCV takes 2-D arrays
+        np.minimum(rows, MAX_GAUSSIAN_EXPONENT, out=rows)
         cv2.exp(rows, rows)
         return rows.reshape(cross.shape)
 

@@ -81,6 +81,8 @@ def check_frame(frame, expected_shape=None) -> np.ndarray:
     if expected_shape is not None and frame.shape != expected_shape:
         raise ValueError(f"frame shape {frame.shape} differs from the initial frame's {expected_shape}; "
                          "call init() again for a new video")
+    if frame.strides[0] < frame[0].nbytes:  # rows overlapping in memory (a sliding_window_view): OpenCV refuses them
+        frame = np.ascontiguousarray(frame)
     return frame
 
 

@@ -127,6 +127,24 @@ def test_bad_frames_raise_clear_errors(frame, message):
         Tracker().init(frame, (1, 1, 10, 10))
 
 
+def test_frames_of_any_memory_layout_are_tracked_as_their_copies():
+    """A sliding_window_view's rows overlap in memory, which OpenCV's Mat refuses: init raised cv2.error
+    ("_step >= minstep") from inside the resize. Views, broadcast and Fortran-ordered frames give the boxes of their
+    contiguous copies."""
+    rng = np.random.default_rng(8)
+    colour = texture(rng, (120, 320, 3), blur=2)
+    row = texture(rng, (1, 400), blur=2)[0]
+    frames = [np.lib.stride_tricks.sliding_window_view(row, 160)[:120],  # each row the last one moved by a pixel
+              np.broadcast_to(row[:160], (120, 160)), np.asfortranarray(colour), colour[::-1, ::2, ::-1]]
+    for frame in frames:
+        boxes = []
+        for copy in (frame, np.ascontiguousarray(frame)):
+            tracker = Tracker()
+            tracker.init(copy, (50, 40, 20, 16))
+            boxes.append([tracker.update(copy).box for _ in range(2)])
+        assert boxes[0] == boxes[1]
+
+
 def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     """Tracker("kcc") failed only in init, with "'str' object has no attribute 'fixed_area'"."""
     for config in ("kcc", {"cell_size": 4}, TrackerConfig.profile):
@@ -143,6 +161,7 @@ def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     ((500, 10, 20, 20), "outside"),
     ((-40, 10, 20, 20), "outside"),
     ((0, 0, 5000, 5000), "larger than the 100x100 image"),       # took 16 s to initialise, 1e5 ran out of memory
+    ((10**400, 10, 20, 20), "finite numbers .* past the float range"),   # numpy's OverflowError
 ])
 def test_bad_boxes_raise_clear_errors(box, message):
     with pytest.raises(ValueError, match=message):
@@ -217,6 +236,8 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     (dict(context_lambda2=-1.0), r"context_lambda2 must be in \[0, 1e\+06\]"),    # turned the model NaN, for good
     (dict(cn_poly_a=-1.0, cn_poly_b=0.5), r"cn_poly_a must be in \[0, 1000\]"),   # likewise
     (dict(hog_kernel_sigma=1e-6), "hog_kernel_sigma must be >= 0.01"),    # likewise
+    (dict(hog_kernel_sigma=1e3), r"lambda1 \* hog_kernel_sigma\*\*4.* <= 1e\+06, got 5e\+07"),   # flat HOG responses:
+    (dict(hog_kernel_sigma=2.0, lambda1=1e6), r"lambda1 \* hog_kernel_sigma\*\*4"),           # kcc's box froze
     (dict(hist_bins=3), "power of two up to 64"),                         # failed in init
     (dict(hist_bins=256), "power of two up to 64"),                       # 16.7 M bins: 9 s and 1 GB for 3 frames
     (dict(fixed_area=16.0), "the filter's cells"),                        # one cell: failed in init
@@ -240,8 +261,9 @@ def test_config_refuses_combinations_the_tracker_cannot_run(overrides, message):
     (dict(cn_poly_b=1e5), r"\(1 \+ cn_poly_a\) \*\* cn_poly_b.* must be <= 1e\+12, got 10\*\*3.01e\+04"),
     (dict(cn_poly_a=1e6, cn_poly_b=1.0), r"cn_poly_a must be in \[0, 1000\], got 1000000.0"),  # CN answered nothing
     (dict(cn_poly_b=0.0), r"cn_poly_b must be > 0, got 0.0"),                        # likewise
-    (dict(context_challenge_floor=0.0), r"context_challenge_floor must be >= 0.001, got 0.0"),  # 0/0 penalties
+    (dict(context_challenge_floor=0.0), r"context_challenge_floor must be in \[0.001, 1000\], got 0.0"),  # 0/0
     # PME 0 on every frame, the box frozen
+    (dict(context_challenge_floor=1e300), r"context_challenge_floor must be in \[0.001, 1000\]"),  # inf / inf penalties
     (dict(context_penalty_total=1e20), r"context_penalty_total must be in \[0, 1000\], got 1e\+20"),
     (dict(context_lambda2=1e38), r"context_lambda2 must be in \[0, 1e\+06\], got 1e\+38"),
     (dict(dim_floor=1e39), r"dim_floor must be in \[0.001, 10\], got 1e\+39"),
@@ -266,9 +288,25 @@ def test_config_bounds_keep_the_profiles_and_their_ends():
                           cn_poly_a=1e3, cn_poly_b=3.9, context_challenge_floor=1e-3, hist_bins=2,
                           likelihood_floor=1.0, num_scales=5, fixed_area=48.0 * 4**2)
     TrackerConfig.profile(context_penalty_total=1e3, context_lambda2=1e6, dim_floor=10.0, dim_threshold=-10.0,
-                          motion_gain=100.0, scale_sigma_factor=1e3)
+                          motion_gain=100.0, scale_sigma_factor=1e3, context_challenge_floor=1e3)
+    TrackerConfig.profile(lambda1=1e-12, hog_kernel_sigma=3e4)   # lambda1 * sigma**4 = 8.1e5: still tracks
     TrackerConfig.profile(context_penalty_total=0.0, context_lambda2=0.0, dim_floor=1e-3, dim_threshold=10.0,
                           motion_gain=0.0, scale_sigma_factor=1e-3)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_the_heaviest_context_term_allowed_stays_finite():
+    """At the ceilings of context_lambda2 and context_penalty_total a context patch is scaled up to a million
+    times: float32 rounding made the Gaussian kernel's exponent hugely positive, exp overflowed ("overflow
+    encountered in square") and the inf context energy zeroed the filters of 7-8 of the 31 HOG channels."""
+    images, truth = moving_target_sequence(frames=8)
+    for profile in ("paper", "authors"):
+        tracker = Tracker(TrackerConfig.profile(profile, context_lambda2=1e6, context_penalty_total=1e3,
+                                                context_interval=1))
+        tracker.init(images[0], truth[0])
+        results = [tracker.update(image) for image in images[1:]]
+        assert np.abs(tracker.banks["hog"].model_filter_hat).max(axis=(1, 2)).min() > 0   # no channel switched off
+        assert box_iou(results[-1].box, truth[-1]) > 0.6
 
 
 def test_config_takes_numpy_scalars_as_the_python_values_they_are():
