@@ -48,6 +48,20 @@ def test_every_lower_bound_is_the_version_the_floor_tests_pin():
             if pins.get(name, "").split(".")[:len(bound.split("."))] != bound.split(".")] == []
 
 
+def test_the_readme_gives_every_floor_of_the_package_and_its_extras():
+    """The README gives each lower bound of the package and of its extras at its version (the floors' list of
+    "Dependencies", or a pin such as foxglove-sdk's): the list written when the bounds were raised left out the
+    mavlink extra's pyserial 3.5. The test extra's bounds are .ci/floors.txt's to list."""
+    project = (ROOT / "pyproject.toml").read_text().split("\n[project]")[1]
+    extras = project.split("[project.optional-dependencies]")[1].split("\n[")[0]
+    declared = project.split("\ndependencies = [")[1].split("\n]")[0] + re.sub(r"^test = \[.*?^\]", "", extras,
+                                                                                   flags=re.M | re.S)
+    bounds = re.findall(r'"([A-Za-z0-9_.-]+)>=([0-9.]+)', declared)
+    shown_as = {"opencv-contrib-python-headless": "OpenCV"}
+    assert bounds and [f"{name}>={bound}" for name, bound in bounds if not re.search(
+        rf"{re.escape(shown_as.get(name, name))}(?: |>=){re.escape(bound)}(?![0-9]|\.[0-9])", README)] == []
+
+
 def test_the_docker_image_gets_the_files_the_package_metadata_names():
     """pyproject's readme and license-files must reach `pip install .` in docker/Dockerfile: LICENSE was left out
     of the build context, so the image's package carried no licence and setuptools warned that the build will
