@@ -45,3 +45,10 @@ def overlapping(pos, size_hw, frame_shape) -> np.ndarray:
     frame, where ordinary targets are, nothing changes."""
     half = np.asarray(size_hw, dtype=np.float64) / 2
     return np.clip(pos, 1 - half, np.asarray(frame_shape[:2]) - 1 + half)
+
+
+def visible_fraction(pos, size_hw, frame_shape) -> float:
+    """The fraction of the box of size (height, width) around pos (row, col) that lies inside the frame."""
+    pos, half = np.asarray(pos, dtype=np.float64), np.asarray(size_hw, dtype=np.float64) / 2
+    inside = np.minimum(pos + half, frame_shape[:2]) - np.maximum(pos - half, 0)
+    return float(np.prod(np.clip(inside / (2 * half), 0, 1)))

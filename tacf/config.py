@@ -172,6 +172,10 @@ class TrackerConfig:
     scale_learning_rate: float = 0.025
     scale_lambda: float = 1e-4
     scale_model_max_area: float = 512.0
+    # The scale filter measures and learns only while at least this fraction of the box lies in the frame: beyond
+    # it the scale patches are repeated border pixels, and a target leaving through a corner grew the box up to
+    # 5.9 times, ok all along (scale.ScaleFilter.sees_enough). 0 is the code's: always (docs/decisions.md).
+    scale_min_visible: float = 0.5
 
     # Engineering: grow the filter grid to a fast FFT size (a few per cent more search area); shrink patches by
     # exact 2x2 halvings then bilinearly instead of one area resize (geometry.resize_auto; docs/decisions.md).
@@ -206,7 +210,7 @@ class TrackerConfig:
                                      "scale_sigma_factor", "scale_model_max_area"),
                      rates=("learning_rate", "context_penalty_rate", "dim_learning_rate", "spatial_learning_rate",
                             "hist_learning_rate", "likelihood_floor", "scale_learning_rate",
-                            "motion_search_threshold"))
+                            "scale_min_visible", "motion_search_threshold"))
         self._check_combinations()
 
     def _check_combinations(self) -> None:

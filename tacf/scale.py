@@ -3,7 +3,8 @@
 The filter is a single-channel correlation filter along the scale axis: one feature vector per candidate scale,
 stacked into a matrix, Fourier-transformed over the scale axis only. Detection picks the scale whose response is
 the first maximum and multiplies the current scale factor by it; training keeps a running numerator and
-denominator (EMA with `scale_learning_rate`, set at the first call).
+denominator (EMA with `scale_learning_rate`, set at the first call). Neither runs while less than
+`scale_min_visible` of the box lies in the frame (`ScaleFilter.sees_enough`).
 
 Layout: MATLAB keeps Xs as (D, num_scales); here it is stored transposed, (num_scales, D), so each scale's
 feature vector is contiguous, and the FFT runs over axis 0. Each vector is flattened in MATLAB's column-major
@@ -22,6 +23,7 @@ import numpy as np
 import scipy.fft
 from scipy.signal.windows import hann
 
+from tacf.boxes import visible_fraction
 from tacf.config import TrackerConfig
 from tacf.features import fhog_batch
 from tacf.fft import squared_magnitude
@@ -126,6 +128,7 @@ class ScaleFilter:
         self._lambda = cfg.scale_lambda
         self._num_scales = cfg.num_scales
         self._fast_resize = cfg.fast_resize
+        self._min_visible = cfg.scale_min_visible
         self._base_target_sz = np.asarray(base_target_sz, dtype=np.float64)
         self._batch_features = fhog_batch if features is None else _one_by_one(features)
 
@@ -156,11 +159,15 @@ class ScaleFilter:
         return self._model_sz.copy()
 
     def update_model(self, image: np.ndarray, pos, scale_factor: float) -> None:
-        """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11).
+        """Train at (pos, scale_factor): the first call sets num/den, later calls blend them in (section 11), those
+        on a box mostly beyond the frame excepted (sees_enough).
 
         What the last estimate() on this same image computed is reused: all of it when the rectangles are the same
         (the scale did not change), else the feature vectors of the patches that recur.
         """
+        if self._num is not None and not self.sees_enough(image, pos, scale_factor):
+            self._recent = None
+            return
         num, den = filter_terms(self._label_hat, self._sample_hat(image, pos, scale_factor))
         self._recent = None  # the next image is another
         if self._num is None:
@@ -171,10 +178,13 @@ class ScaleFilter:
         self._den = (1 - rate) * self._den + rate * den
 
     def estimate(self, image: np.ndarray, pos, scale_factor: float) -> float:
-        """The new scale factor: scale_factor times the best relative scale, clamped (section 11, detection)."""
+        """The new scale factor: scale_factor times the best relative scale, clamped (section 11, detection); the
+        same one, clamped, while the box lies mostly beyond the frame (sees_enough)."""
         if self._num is None:
             raise RuntimeError("ScaleFilter.estimate() called before update_model()")
         self._recent = None
+        if not self.sees_enough(image, pos, scale_factor):
+            return float(np.clip(scale_factor, self._min_scale, self._max_scale))
         sample_hat = self._sample_hat(image, pos, scale_factor)
         response = scale_response(self._num, self._den, sample_hat, self._lambda, self._num_scales)
         if not np.all(np.isfinite(response)) or response.max() <= response.min():
@@ -184,6 +194,14 @@ class ScaleFilter:
         best = int(np.argmax(response))  # first maximum, like MATLAB's find(... == max)
         new_factor = scale_factor * self._factors[best]
         return float(np.clip(new_factor, self._min_scale, self._max_scale))
+
+    def sees_enough(self, image: np.ndarray, pos, scale_factor: float) -> bool:
+        """Whether at least scale_min_visible of the box at scale_factor lies in the image. Beyond the image the
+        scale patches are its border pixels repeated: beyond a corner one flat colour, which has no fHOG features,
+        so the smaller scales, more of which lies there, answer less and the first maximum moves to larger ones:
+        a target leaving through a corner grew the box up to 5.9 times in 20 frames (tests/test_tracker.py)."""
+        box_hw = self._base_target_sz * scale_factor
+        return visible_fraction(pos, box_hw, image.shape) >= self._min_visible
 
     def _sample_hat(self, image: np.ndarray, pos, scale_factor: float) -> np.ndarray:
         """FFT over the scale axis of the windowed scale sample, (num_scales // 2 + 1, D)."""

@@ -9,9 +9,11 @@ section 15 lists as the baseline's): a linear correlation filter with one denomi
 filter's (0.3) rather than used as a window. Scale is Staple's DSST (33 scales, step 1.02), not KCC's kernel
 scale correlator: the one departure from the paper's baseline.
 
-Two details follow this project's TACF rather than Staple's code: the box is reported at the current frame's
-scale (Staple's lags one frame), and the histogram masks keep the first frame's proportions of the normalised
-patch (Staple redraws them each frame from areas whose proportions barely change).
+Three details follow this project's TACF rather than Staple's code: the box is reported at the current frame's
+scale (Staple's lags one frame), the histogram masks keep the first frame's proportions of the normalised
+patch (Staple redraws them each frame from areas whose proportions barely change), and the scale filter rests
+while the box lies mostly beyond the frame (`scale_min_visible`; Staple's grew it up to 9 times as a target left
+through a corner).
 
 Per frame: LOCALISE (filter response, cropped and upsampled; the mean foreground likelihood of every target-sized
 window around the last position; their blend's peak), SCALE (DSST), UPDATE (filter, histograms, scale model).
@@ -60,12 +62,14 @@ class StapleConfig:
     scale_learning_rate: float = 0.025
     scale_lambda: float = 1e-3
     scale_model_max_area: float = 32.0 * 16
+    scale_min_visible: float = 0.5
     fast_resize: bool = False
 
     def __post_init__(self) -> None:
         check_fields(self, positive=("cell_size", "fixed_area", "padding", "output_sigma_factor",
                                      "scale_sigma_factor", "scale_model_max_area"),
-                     rates=("learning_rate", "merge_factor", "hist_learning_rate", "scale_learning_rate"))
+                     rates=("learning_rate", "merge_factor", "hist_learning_rate", "scale_learning_rate",
+                            "scale_min_visible"))
 
 
 def window_means(likelihood: np.ndarray, window_hw) -> np.ndarray:

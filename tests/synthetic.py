@@ -34,6 +34,28 @@ def moving_target_sequence(frames=40, size=(240, 320), target=(30, 24), velocity
     return images, np.array(boxes, dtype=float)
 
 
+def leaving_sequence(direction, size=(240, 320), target=(16, 20), speed=(2.0, 3.0), seed=7, before=30, after=20):
+    """A textured target on a textured background whose centre reaches the frame's edge, or corner, after `before`
+    frames, moving `speed` (rows, cols) a frame in `direction` (-1, 0 or 1 on each axis: (1, 1) leaves through the
+    bottom-right corner), then `after` frames on; returns frames and 0-based (x, y, w, h) truth, part outside."""
+    rng = np.random.default_rng(seed)
+    background = texture(rng, size + (3,), blur=4)
+    sprite = cv2.add(texture(rng, target + (3,), blur=1), 60)
+    step = np.multiply(direction, speed)
+    end = np.array(size) * (np.array(direction) + 1) / 2  # the edge, or corner, the target leaves through
+    images, boxes = [], []
+    for k in range(before + after):
+        top_left = np.round(end + (k - before) * step - np.array(target) / 2).astype(int)
+        first, last = np.maximum(top_left, 0), np.minimum(top_left + target, size)  # the part still in the frame
+        image = background.copy()
+        if np.all(first < last):
+            image[first[0]:last[0], first[1]:last[1]] = sprite[first[0] - top_left[0]:last[0] - top_left[0],
+                                                               first[1] - top_left[1]:last[1] - top_left[1]]
+        images.append(image)
+        boxes.append((top_left[1], top_left[0], target[1], target[0]))
+    return images, np.array(boxes, dtype=float)
+
+
 def assert_follows(results, truth):
     """The boxes of results (one per frame after the first) stay on the generated target, to its last frames."""
     overlaps = [box_iou(r.box, t) for r, t in zip(results, truth[1:])]

@@ -232,10 +232,29 @@ def test_grayscale_frames_work():
 @pytest.mark.parametrize("pos", [(5.0, 5.0), (-30.0, 150.0), (235.0, 330.0)])
 def test_target_partly_or_wholly_outside_the_image_does_not_crash(pos):
     image = textured_image((240, 320))
-    sf = make_filter([40, 50], image.shape[:2], features=fhog)
+    # scale_min_visible 0, as the code: the patches are sampled however little of the box is in the frame
+    sf = make_filter([40, 50], image.shape[:2], features=fhog, cfg=CFG.replace(scale_min_visible=0.0))
     sf.update_model(image, np.array(pos), 1.0)
     new_factor = sf.estimate(image, np.array(pos) + 3, 1.1)
     assert np.isfinite(new_factor) and sf.min_scale <= new_factor <= sf.max_scale
+
+
+def test_a_box_mostly_beyond_the_frame_neither_moves_nor_teaches_the_scale():
+    """Under scale_min_visible (half) of the box in the frame, the scale patches are mostly repeated border pixels:
+    the filter keeps the scale factor and its model; from half the box in the frame on it estimates and learns."""
+    image = textured_image((240, 320))
+    sf = make_filter([40, 50], image.shape[:2], features=fhog)
+    sf.update_model(image, np.array([200.0, 280.0]), 1.0)
+    model = sf._num.copy(), sf._den.copy()
+    beyond_corner = np.array([250.0, 330.0])  # 10 x 15 pixels of the 40 x 50 box in the frame
+    assert not sf.sees_enough(image, beyond_corner, 1.0)
+    assert sf.estimate(image, beyond_corner, 1.1) == 1.1
+    sf.update_model(image, beyond_corner, 1.0)
+    assert np.array_equal(sf._num, model[0]) and np.array_equal(sf._den, model[1])
+    half_in = np.array([240.0, 160.0])  # the box's upper half
+    assert sf.sees_enough(image, half_in, 1.0)
+    sf.update_model(image, half_in, 1.0)
+    assert not np.array_equal(sf._num, model[0])
 
 
 @pytest.mark.parametrize("channels", [3, 1])
