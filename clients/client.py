@@ -191,7 +191,9 @@ class TrackingClient:
 
     def results(self, sid: str = keys.WILDCARD, *, node: str | None = None,
                 latest_only: bool = False) -> ResultStream[BoxResult | Health]:
-        """Iterator form of `subscribe`: `for item in client.results(sid): ...` yields BoxResult and Health."""
+        """Iterator form of `subscribe`, yielding BoxResult and Health: `with client.results(sid) as stream: for item
+        in stream: ...`. Close the stream (the `with`) when done: a loop that breaks out leaves it open, and its Zenoh
+        subscriber and callback thread live on until its Zenoh session closes (300 left open: 300 threads)."""
         return self._stream(sid, node, latest_only, None)
 
     def iter_boxes(self, sid: str, *, node: str | None = None, timeout: float | None = None) -> Iterator[BoxResult]:

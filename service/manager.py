@@ -587,8 +587,10 @@ class SessionManager:
             else:
                 backoff = RESTART_BACKOFF_S[min(len(session.crashes), len(RESTART_BACKOFF_S)) - 1]
                 session.restart_at = now + backoff
+            # Under the lock, as the check above: a stop that came in between published "stopped" first, and this
+            # "failed" became the last word on a stopped session.
+            self._publish_health(session, "failed", session.message)
         log.warning("session %s: %s", session.sid, session.message)
-        self._publish_health(session, "failed", session.message)
 
     def _restart(self, session: Session) -> None:
         with self._lock:

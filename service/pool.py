@@ -70,9 +70,10 @@ class WorkerHandle:
                 pass
 
     def discard(self) -> None:
-        """End a worker that serves nothing: SIGTERM (no graceful stop needed), then close its pipe."""
-        self.process.terminate()
+        """End a worker that serves nothing: close its pipe, which stops it, then SIGTERM, which ends it at once
+        if it has read that end (a worker not asked to stop ignores SIGTERM, worker.Worker.on_sigterm)."""
         self.close()
+        self.process.terminate()
 
     def close(self) -> None:
         """End the writer thread, then close the pipe, never under the reader nor under a write. A write still in
@@ -182,12 +183,12 @@ class WorkerPool:
             return list(self._spares)
 
     def retire(self) -> list[WorkerHandle]:
-        """Empty the pool for a shutdown and SIGTERM every spare (a spare serves nothing: no graceful stop). The
-        caller reaps their processes and closes them."""
+        """Empty the pool for a shutdown and ask every spare to stop (a SIGTERM before that is ignored, as one
+        sent to the whole process group is). The caller reaps their processes and closes them."""
         with self._lock:
             spares, self._spares = self._spares, []
         for spare in spares:
-            spare.process.terminate()
+            spare.outbox.put(("stop",))
         return spares
 
 

@@ -10,10 +10,15 @@ thread pool before its first call, and Zenoh is not imported at all (its runtime
 import gc
 import signal
 
-# A terminal's Ctrl-C reaches the whole process group. multiprocessing makes the fork server ignore SIGINT only
-# after this module is loaded: a Ctrl-C meanwhile would end it with a KeyboardInterrupt traceback on the terminal.
-# (Workers ignore SIGINT as well: the service stops them.)
-signal.signal(signal.SIGINT, signal.SIG_IGN)
+# A signal to the whole process group is the service's to act on: a terminal's Ctrl-C or hangup, systemd's SIGTERM
+# to every process of the unit, `timeout`'s to its group. The service stops its workers, then this server (which
+# ends when the service's pipe to it closes). Killed by such a signal, the server took every worker's exit report
+# with it: the service reported each session failed ("worker exited with code 255"), not stopped. multiprocessing
+# makes the server ignore SIGINT only after this module is loaded: a Ctrl-C meanwhile would end it with a
+# KeyboardInterrupt traceback on the terminal. Workers forked from here inherit all three ignored
+# (worker.run_worker).
+for _signal in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM):
+    signal.signal(_signal, signal.SIG_IGN)
 
 from .worker import hold_blas_to_one_thread  # noqa: E402  (imports neither numpy nor Zenoh)
 

@@ -161,7 +161,11 @@ def run_worker(spec: WorkerSpec, conn) -> None:
     logging.basicConfig(level=spec.log_level,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     worker = Worker(spec, conn)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)           # a terminal's Ctrl-C goes to the service
+    # A signal to the whole process group (a terminal's Ctrl-C or hangup, systemd's SIGTERM to every process of the
+    # unit) is the service's: it stops its workers itself. SIGTERM gets its handler once connected (on_sigterm).
+    for name in ("SIGINT", "SIGHUP", "SIGTERM"):
+        if hasattr(signal, name):
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
     try:
         worker.run()
     except Exception:
@@ -197,11 +201,13 @@ class Worker:
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
     def on_sigterm(self, *_) -> None:
-        """The service asked politely first (a stop command); SIGTERM means now: leave at once, even from
-        inside a tracker update. Leaving the `with zenoh.open(...)` block still closes the session, which
-        withdraws the session's liveliness token."""
-        self.request_stop()
-        raise SystemExit(0)
+        """Once the service has asked to stop (a stop command, or its pipe closed), SIGTERM means now: leave at
+        once, even from inside a tracker update. Leaving the `with zenoh.open(...)` block still closes the session,
+        which withdraws the session's liveliness token. Before that, the SIGTERM was sent to the whole process group
+        (systemd stopping the unit, `timeout`), and the service, which got it too, stops this worker itself: left
+        alone, the session ends "stopped"; leaving then made the service report it failed."""
+        if self._stop.is_set():
+            raise SystemExit(0)
 
     def request_stop(self) -> None:
         self._stop.set()
@@ -223,8 +229,8 @@ class Worker:
         conf = worker_config(self.spec.zenoh, list(self.spec.endpoints))
         try:
             with zenoh.open(conf) as session:
-                # SIGTERM kept its default action until now, ending the process at once: a Python handler runs only
-                # between bytecodes, and zenoh.open blocks up to connect/timeout_ms (5 s) when the service is gone.
+                # SIGTERM was ignored until now: a Python handler runs only between bytecodes, and zenoh.open blocks
+                # up to connect/timeout_ms (5 s) when the service is gone (then the pipe's end stops the worker).
                 self._connected = True
                 signal.signal(signal.SIGTERM, self.on_sigterm)
                 assigned = False
@@ -326,9 +332,9 @@ class Worker:
                 log.warning("service pipe closed: stopping")
                 self.request_stop()
                 if not self._connected:
-                    # Still in zenoh.open, which tries to reach the gone service for seconds: end now (SIGTERM's
-                    # default action). A worker the fork server made after the service had exited lands here.
-                    os.kill(os.getpid(), signal.SIGTERM)
+                    # Still in zenoh.open, which tries to reach the gone service for seconds: end now. A worker the
+                    # fork server made after the service had exited lands here.
+                    os._exit(0)
                 return
             if message[0] == "assign":
                 self.job = message[1]

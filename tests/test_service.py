@@ -378,6 +378,33 @@ def test_a_worker_crash_met_by_a_stop_leaves_stopped_the_last_health(service, cl
         results.close()
 
 
+def test_a_stop_while_the_supervisor_reports_a_crash_leaves_stopped_the_last_health(service, client, feed,
+                                                                                     monkeypatch):
+    """The supervisor checked the session under the lock, then published "failed" after releasing it: a stop in
+    between published "stopped" first, and "failed" was the last word a dashboard kept of a stopped session."""
+    import tacf_service.manager as manager
+
+    results = Collector(client, NODE, "reported")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], sid="reported")
+        assert wait_until(lambda: len(results.results()) >= 3, 30)
+        reporting, publish = threading.Event(), manager.SessionManager._publish_health
+
+        def slow_to_report(self, session, state, message):
+            if state == "failed":           # the supervisor's thread set aside between its check and its report
+                reporting.set()
+                time.sleep(0.5)
+            return publish(self, session, state, message)
+        monkeypatch.setattr(manager.SessionManager, "_publish_health", slow_to_report)
+        os.kill(service.manager.worker_pids()["reported"], signal.SIGKILL)
+        assert reporting.wait(10)
+        assert call(client, NODE, "stop", StopRequest(sid="reported")).state == "stopped"
+        time.sleep(0.5)                                 # what it published is on its way by now
+        assert results.health[-1].state == "stopped", [h.state for h in results.health]
+    finally:
+        results.close()
+
+
 def test_two_reinits_at_once_leave_the_newer_box(endpoint, client, feed, monkeypatch):
     """The older of two reinits at once was written to the worker last (its catch-up frames were still being picked
     when the newer went out): the worker tracked the older box, and the service, waiting for the newer one's

@@ -349,6 +349,36 @@ def test_sighup_stops_the_service_cleanly(tmp_path, endpoint):
         serve.cleanup()
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP], ids=["systemd-sigterm", "hangup"])
+def test_a_signal_to_the_whole_process_group_stops_the_sessions_instead_of_failing_them(tmp_path, endpoint, client,
+                                                                                        sig):
+    """systemd stops a unit with SIGTERM to each of its processes, `timeout` signals its process group, a closed
+    terminal hangs up its own: the workers and their fork server got the signal too, and died of it before the
+    service stopped them. The service took that for crashes: "worker exited with code 255" in its log, and each
+    session's last health "failed", or no "stopped" at all."""
+    serve = Serve(tmp_path, endpoint, own_group=True)
+    results = Collector(client, NODE, "group")
+    try:
+        with FramePublisher(client, "proc/group", MovingTargetScene(320, 240, speed=1.0), fps=10) as feed:
+            assert wait_until(lambda: service_alive(client) and feed.seq >= 3, 30), serve.log()
+            call(client, NODE, "start", StartRequest(image_key=feed.key, box=feed.truth[feed.seq], sid="group",
+                                                     profile="kcc"), timeout=30)
+            assert wait_until(lambda: len(results.results()) >= 3, 30), serve.log()
+            family = descendants(serve.proc.pid)
+            heard = len(results.health)
+            started = time.monotonic()
+            os.killpg(serve.proc.pid, sig)
+            assert serve.proc.wait(timeout=5) == 0, serve.log()[-2000:]
+            assert time.monotonic() - started < 2.0
+            assert no_children_left(family), cmdlines(alive(family))
+            assert wait_until(lambda: results.health[-1].state == "stopped", 2.0), [h.state for h in results.health]
+            assert "failed" not in {h.state for h in results.health[heard:]}, [h.state for h in results.health]
+            assert "exited" not in serve.log(), serve.log()[-2000:]
+    finally:
+        results.close()
+        serve.cleanup()
+
+
 def _status(sid: str):
     return StatusRequest(sid=sid)
 
