@@ -6,6 +6,7 @@ decode never lets a msgpack or pydantic exception escape: every failure is a Dec
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterable
 from typing import TypeVar
 
 import msgpack
@@ -51,9 +52,12 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
         raise DecodeError("invalid", f"{model.__name__}: {type(exc).__name__}: {str(exc)[:200]}") from None
 
 
-def _map(pairs: list) -> dict:
+def _map(pairs: Iterable[tuple[object, object]]) -> dict:
     """A msgpack map as a dict, refusing a key given twice: msgpack keeps the last value, so the first was dropped
-    without a word, and the worker, which peeks at a frame's first "seq", read another seq than the decoder."""
+    without a word, and the worker, which peeks at a frame's first "seq", read another seq than the decoder.
+    msgpack's C extension passes the pairs as a list, its pure-Python fallback (PyPy, MSGPACK_PUREPYTHON, a build
+    without the extension such as msgpack 1.0.0's on Python 3.10+, which has no wheel) as a generator up to 1.2.0."""
+    pairs = list(pairs)
     fields = dict(pairs)
     if len(fields) != len(pairs):
         twice = next(key for key, count in Counter(key for key, _ in pairs).items() if count > 1)

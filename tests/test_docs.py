@@ -59,7 +59,7 @@ def test_the_readme_gives_every_floor_of_the_package_and_its_extras():
     bounds = re.findall(r'"([A-Za-z0-9_.-]+)>=([0-9.]+)', declared)
     shown_as = {"opencv-contrib-python-headless": "OpenCV"}
     assert bounds and [f"{name}>={bound}" for name, bound in bounds if not re.search(
-        rf"{re.escape(shown_as.get(name, name))}(?: |>=){re.escape(bound)}(?![0-9]|\.[0-9])", README)] == []
+        rf"{re.escape(shown_as.get(name, name))}(?:\s+|>=){re.escape(bound)}(?![0-9]|\.[0-9])", README)] == []
 
 
 def test_the_docker_image_gets_the_files_the_package_metadata_names():

@@ -1105,7 +1105,15 @@ def test_the_matlab_toolkit_s_mat_results_are_read_under_the_tracker_s_name(tmp_
     assert scored["auc"] == pytest.approx(12 / 21) and scored["fps"] == pytest.approx(20.0)   # 6 px down: IoU 0.6
     save(toolkit / "drift_IVT.mat", np.zeros((n, 6)), kind="ivtAff")
     (toolkit / "drift_BAD.mat").write_text("not a MAT file")
-    for name, says in (("IVT", "type 'ivtAff'; only 'rect'"), ("BAD", "not a MATLAB toolkit result"),
+    # scipy's parser raises what it trips over: IndexError for 20-126 bytes of text, TypeError or OSError ("could
+    # not read bytes", no file named) for a file cut short; each must come out as the file's ValueError
+    (toolkit / "drift_TEXT.mat").write_text("not a MAT file, only a line of text\n")
+    cut = (toolkit / "drift_KCF.mat").read_bytes()
+    (toolkit / "drift_CUT.mat").write_bytes(cut[:127])
+    (toolkit / "drift_CUTLATER.mat").write_bytes(cut[:200])
+    refused = "not a MATLAB toolkit result"
+    for name, says in (("IVT", "type 'ivtAff'; only 'rect'"), ("BAD", refused), ("TEXT", f"drift_TEXT.mat: {refused}"),
+                       ("CUT", f"drift_CUT.mat: {refused}"), ("CUTLATER", f"drift_CUTLATER.mat: {refused}"),
                        ("MISSING", "<last part>_MISSING.mat")):
         caplog.clear()
         assert main(["eval", str(data), "--results", f"{name}={toolkit}", "--out", str(out), "--no-progress"]) == 2

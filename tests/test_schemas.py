@@ -152,6 +152,20 @@ def test_a_field_given_twice_is_refused(payload, model):
     assert info.value.code == "malformed" and "twice" in info.value.message
 
 
+def test_maps_passed_as_a_generator_decode_as_lists_do(monkeypatch):
+    """msgpack's pure-Python fallback hands object_pairs_hook a generator up to 1.2.0 (the C extension a list): the
+    floors' msgpack 1.0.0, which has no wheel for Python 3.10+, installs as that fallback, and every decode failed."""
+    unpackb = msgpack.unpackb
+
+    def as_the_fallback(payload, object_pairs_hook, **kwargs):
+        return unpackb(payload, object_pairs_hook=lambda pairs: object_pairs_hook(iter(pairs)), **kwargs)
+
+    monkeypatch.setattr(msgpack, "unpackb", as_the_fallback)
+    assert decode(_pairs(("sid", "s1")), StopRequest).sid == "s1"
+    with pytest.raises(DecodeError, match="twice"):
+        decode(_pairs(("sid", "s1"), ("sid", "s2")), StopRequest)
+
+
 def _schema_takes(model: str, message: dict) -> bool:
     schema = json.loads((JSON_DIR / f"{model}.json").read_text())
     validator = jsonschema.validators.validator_for(schema)(schema)

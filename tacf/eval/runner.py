@@ -15,6 +15,7 @@ Result folders written by other toolkits (`tacf eval --results NAME=DIR`) are re
 """
 from __future__ import annotations
 
+import io
 import itertools
 import logging
 import multiprocessing
@@ -311,11 +312,14 @@ def _read_toolkit_mat(mat_file: Path) -> tuple[np.ndarray, float]:
     struct is the one-pass run (the later ones are SRE's or TRE's), its `res` the 1-based x,y,w,h rows (type
     'rect') and its `fps` the speed the toolkit measured."""
     from scipy.io import loadmat
-    from scipy.io.matlab import MatReadError
 
+    data = mat_file.read_bytes()   # outside the try: a file that cannot be read says so as an OSError of its own
     try:
-        results = loadmat(mat_file, simplify_cells=True)["results"]
-    except (MatReadError, NotImplementedError, ValueError, KeyError) as exc:   # e.g. a v7.3 (HDF5) file
+        results = loadmat(io.BytesIO(data), simplify_cells=True)["results"]
+    except Exception as exc:   # noqa: BLE001 - scipy's parser, not ours, fails here
+        # A v7.3 (HDF5) file raises NotImplementedError, a file without `results` KeyError, but a short or damaged
+        # one whatever scipy's parser trips over: IndexError, TypeError, OSError, zlib.error, UnboundLocalError,
+        # ZeroDivisionError ... (scipy 1.13-1.17 alike, e.g. IndexError for any 20-126 bytes of text).
         raise ValueError(f"{mat_file}: not a MATLAB toolkit result (a `results` cell in a v5/v7 MAT file): "
                          f"{type(exc).__name__}: {exc}") from None
     run = results[0] if isinstance(results, list) else results   # a 1 x 1 cell comes out as its struct
