@@ -8,20 +8,15 @@ thread pool before its first call, and Zenoh is not imported at all (its runtime
 2.5; each worker opens its session after the fork).
 """
 import gc
-import signal
 
-# A signal to the whole process group is the service's to act on: a terminal's Ctrl-C or hangup, systemd's SIGTERM
-# to every process of the unit, `timeout`'s to its group. The service stops its workers, then this server (which
-# ends when the service's pipe to it closes). Killed by such a signal, the server took every worker's exit report
-# with it: the service reported each session failed ("worker exited with code 255"), not stopped. multiprocessing
-# makes the server ignore SIGINT only after this module is loaded: a Ctrl-C meanwhile would end it with a
-# KeyboardInterrupt traceback on the terminal. Workers forked from here inherit all three ignored
-# (worker.run_worker).
-for _signal in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM):
-    signal.signal(_signal, signal.SIG_IGN)
+from .worker import hold_blas_to_one_thread, ignore_group_signals   # imports neither numpy nor Zenoh
 
-from .worker import hold_blas_to_one_thread  # noqa: E402  (imports neither numpy nor Zenoh)
-
+# Killed by a signal to the whole process group, this server took every worker's exit report with it: the service
+# reported each session failed ("worker exited with code 255"), not stopped. The service stops its workers, then
+# this server (which ends when the service's pipe to it closes). multiprocessing makes the server ignore SIGINT
+# only after this module is loaded: a Ctrl-C during the imports below would end it with a KeyboardInterrupt
+# traceback on the terminal. Workers forked from here inherit the signals ignored.
+ignore_group_signals()
 hold_blas_to_one_thread()
 
 import cv2  # noqa: E402

@@ -155,17 +155,22 @@ def hold_blas_to_one_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
+def ignore_group_signals() -> None:
+    """Ignore the signals a whole process group gets (a terminal's Ctrl-C or hangup, systemd's SIGTERM to every
+    process of the unit, `timeout`'s): they are the service's to act on, and it stops its workers itself. A worker
+    gives SIGTERM a handler once connected (Worker.on_sigterm)."""
+    for name in ("SIGINT", "SIGHUP", "SIGTERM"):
+        if hasattr(signal, name):   # Windows, where workers are spawned, has no SIGHUP
+            signal.signal(getattr(signal, name), signal.SIG_IGN)
+
+
 def run_worker(spec: WorkerSpec, conn) -> None:
     """Process entry point (the target of the worker's Process)."""
     hold_blas_to_one_thread()
     logging.basicConfig(level=spec.log_level,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     worker = Worker(spec, conn)
-    # A signal to the whole process group (a terminal's Ctrl-C or hangup, systemd's SIGTERM to every process of the
-    # unit) is the service's: it stops its workers itself. SIGTERM gets its handler once connected (on_sigterm).
-    for name in ("SIGINT", "SIGHUP", "SIGTERM"):
-        if hasattr(signal, name):
-            signal.signal(getattr(signal, name), signal.SIG_IGN)
+    ignore_group_signals()      # inherited from the fork server already; a spawned worker needs it here
     try:
         worker.run()
     except Exception:
