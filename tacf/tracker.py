@@ -25,7 +25,7 @@ import numpy as np
 from tacf.allocator import keep_freed_memory
 from tacf.attention import ContextualAttention, DimensionalAttention, SpatiotemporalAttention, context_offsets, pme
 from tacf.attention.spatiotemporal import to_response_origin
-from tacf.boxes import box_around, check_box, overlapping
+from tacf.boxes import box_around, check_box, overlapping, visible_fraction
 from tacf.colour import ColourModel
 from tacf.config import TrackerConfig
 from tacf.correlator import (FAST_KERNEL_EXPONENT, FIRST_ORDER_EXPONENT, CorrelatorBank, GaussianKernel,
@@ -56,7 +56,7 @@ class TrackResult:
     box: tuple[float, float, float, float]  # x, y, w, h: 0-based pixels, top-left origin
     pme: float  # peak-to-median energy of the fused response: high = confident
     score: float  # peak value of the fused response
-    ok: bool  # False when the PME falls under TrackerConfig.lost_pme (target probably lost)
+    ok: bool  # False when the PME falls under TrackerConfig.lost_pme or the box has left the frame (lost_min_visible)
     scale: float  # current size relative to the initial box
 
 
@@ -258,9 +258,12 @@ class Tracker:
 
         self._to_learn = frame, detection.hog_response
         confidence = pme(detection.fused)
-        # A PME of 0 is a response without a peak (flat, or not finite), and the box did not move: never ok.
+        # A PME of 0 is a response without a peak (flat, or not finite), and the box did not move: never ok. Nor is
+        # a box almost wholly beyond the frame, where a target that has left leaves it (TrackerConfig.lost_min_visible).
+        in_view = visible_fraction(self.pos, self.target_hw, self._frame_shape) >= self.config.lost_min_visible
         return TrackResult(box=self.box, pme=confidence, score=float(detection.fused.max()),
-                           ok=confidence > 0 and confidence >= self.config.lost_pme, scale=self.scale_factor)
+                           ok=confidence > 0 and confidence >= self.config.lost_pme and in_view,
+                           scale=self.scale_factor)
 
     def _shows_fill(self, frame: np.ndarray, pos: np.ndarray) -> bool:
         """Whether the box around pos, grown SURROUND times a side, is one flat fill (FILL)."""

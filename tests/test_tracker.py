@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from tacf import Tracker, TrackerConfig, TrackResult
+from tacf.boxes import visible_fraction
 from tacf.eval.metrics import box_iou
 from tacf.staple import Staple
 from synthetic import assert_follows, leaving_sequence, moving_target_sequence, texture
@@ -526,6 +527,29 @@ def test_a_target_leaving_through_a_corner_does_not_grow_the_box(tracker_type, c
         tracker.init(images[0], truth[0])
         grown = [r.scale for r in map(tracker.update, images[1:]) if r.ok]
         assert max(grown) < 1.5, (target, max(grown))
+
+
+def _in_view(box, frame_shape) -> float:
+    x, y, w, h = box
+    return visible_fraction((y + h / 2, x + w / 2), (h, w), frame_shape)
+
+
+def test_a_box_left_beyond_the_frame_is_not_ok():
+    """Once the target has left, the search follows the background at the frame's edge with PMEs of 20-43, over
+    the lost floor: a box all but wholly beyond the frame was ok, and a consumer pointing a gimbal at ok boxes
+    pointed it off the frame. Now a box under lost_min_visible in view is not ok; one that drifts back onto the
+    background in view still is (through the top-right and bottom-left corners here). While the target is half
+    in view or more, it is followed and ok."""
+    beyond = []
+    for direction in list(CORNERS.values()) + [(0, 1), (1, 0)]:
+        for target in ((16, 20), (30, 24)):
+            images, truth = leaving_sequence(direction, target=target)
+            tracker = Tracker()
+            tracker.init(images[0], truth[0])
+            results = [tracker.update(image) for image in images[1:]]
+            assert all(r.ok for r, box in zip(results, truth[1:]) if _in_view(box, images[0].shape) >= 0.5)
+            beyond += [r for r in results if _in_view(r.box, images[0].shape) < 0.1]
+    assert len(beyond) >= 20 and not any(r.ok for r in beyond), [(r.ok, round(r.pme)) for r in beyond]
 
 
 def test_a_still_target_stays_put_with_whole_cell_peaks():
