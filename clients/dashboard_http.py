@@ -45,6 +45,7 @@ from tacf_clients.dashboard import Dashboard
 from tacf_clients.dashboard_access import DashboardAccess
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, DuplicateSession, InvalidRequest, NoService,
                                  RequestTimeout, ServiceUnavailable, TacfError, TooManySessions, UnknownSession)
+from tacf_schemas.codec import RepeatedKeyError, unique_keys
 from tacf_schemas.models import SEQ
 
 log = logging.getLogger(__name__)
@@ -516,7 +517,10 @@ class DashboardHandler(BaseHTTPRequestHandler):
         if len(data) < length:                     # the client gave up: what came is not the request it meant
             return None
         try:
-            body = json.loads(data)
+            body = json.loads(data, object_pairs_hook=unique_keys)
+        except RepeatedKeyError as exc:                  # json would keep the last value and drop the first unseen
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"{exc}: give each field once")
+            return None
         except (ValueError, RecursionError) as exc:      # also a 5000-digit number, and [[[[... too deep
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", f"not JSON: {exc}")
             return None

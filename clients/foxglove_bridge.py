@@ -48,6 +48,7 @@ from pydantic import ValidationError
 from tacf_clients.dashboard import Dashboard
 from tacf_clients.dashboard_access import is_loopback
 from tacf_clients.foxglove_relay import SubprotocolRelay
+from tacf_schemas.codec import RepeatedKeyError, unique_keys
 from tacf_schemas.images import FrameError
 from tacf_schemas.models import ReinitRequest, StartRequest, StopRequest
 
@@ -407,7 +408,9 @@ def _call(handler, request) -> bytes:
     text is what the Foxglove client is shown (the SDK replies serviceCallFailure with it); nothing a client
     sends gets further than that."""
     try:
-        fields = json.loads(request.payload or b"{}")
+        fields = json.loads(request.payload or b"{}", object_pairs_hook=unique_keys)
+    except RepeatedKeyError as exc:             # json would keep the last value and drop the first unseen
+        raise ValueError(f"bad request: {exc}: give each field once") from None
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"the request is not JSON: {exc}") from None
     if not isinstance(fields, dict):

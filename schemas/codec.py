@@ -2,6 +2,7 @@
 
 decode never lets a msgpack or pydantic exception escape: every failure is a DecodeError with a `code`
 ("too_large", "malformed", "invalid") and a one-line message fit for an Error reply or a log line.
+unique_keys, which refuses a map that gives a key twice, serves the JSON entry points too.
 """
 from __future__ import annotations
 
@@ -52,22 +53,28 @@ def decode(payload: bytes | bytearray | memoryview, model: type[M]) -> M:
         raise DecodeError("invalid", f"{model.__name__}: {type(exc).__name__}: {str(exc)[:200]}") from None
 
 
-def _map(pairs: Iterable[tuple[object, object]]) -> dict:
-    """A msgpack map as a dict, refusing a key given twice: msgpack keeps the last value, so the first was dropped
-    without a word, and the worker, which peeks at a frame's first "seq", read another seq than the decoder.
-    msgpack's C extension passes the pairs as a list, its pure-Python fallback (PyPy, MSGPACK_PUREPYTHON, a build
-    without the extension such as msgpack 1.0.0's on Python 3.10+, which has no wheel) as a generator up to 1.2.0."""
+class RepeatedKeyError(ValueError):
+    """A msgpack map or JSON object that gives a key twice (unique_keys)."""
+
+
+def unique_keys(pairs: Iterable[tuple[object, object]]) -> dict:
+    """A map as a dict, refusing a key given twice: the object_pairs_hook of every msgpack and JSON parse of what
+    comes from outside (the wire here; the dashboard's HTTP API, the Foxglove service calls, the state file). Both
+    parsers keep the last value, so the first was dropped without a word, and two readers of one message could see
+    two messages (the worker, which peeks at a frame's first "seq", read another seq than the decoder). msgpack's C
+    extension passes the pairs as a list, its pure-Python fallback (PyPy, MSGPACK_PUREPYTHON, a build without the
+    extension such as msgpack 1.0.0's on Python 3.10+, which has no wheel) as a generator up to 1.2.0."""
     pairs = list(pairs)
     fields = dict(pairs)
     if len(fields) != len(pairs):
         twice = next(key for key, count in Counter(key for key, _ in pairs).items() if count > 1)
-        raise ValueError(f"key {twice!r} given twice")
+        raise RepeatedKeyError(f"key {twice!r} given twice")
     return fields
 
 
 def _unpack(payload: bytes | bytearray | memoryview, name: str) -> object:
     try:
-        return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True, object_pairs_hook=_map,
+        return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True, object_pairs_hook=unique_keys,
                                max_bin_len=MAX_FRAME_BYTES, max_str_len=1 << 20,
                                max_array_len=1 << 16, max_map_len=1 << 10, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated types (ValueError, ExtraData, TypeError...)

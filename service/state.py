@@ -30,6 +30,7 @@ except ImportError:         # Windows
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from tacf_schemas.codec import unique_keys
 from tacf_schemas.models import Box, Count, Id, Override, Seq, StampNs
 
 log = logging.getLogger(__name__)
@@ -108,7 +109,7 @@ class StateStore:
             log.error("cannot read state file %s: %s", self.path, exc)
             return []
         try:
-            doc = json.loads(data)
+            doc = json.loads(data, object_pairs_hook=unique_keys)    # a key given twice: which one was meant?
             entries = doc["sessions"] if isinstance(doc, dict) else None
             if not isinstance(entries, list):
                 raise ValueError("no 'sessions' list")

@@ -21,6 +21,10 @@ if TYPE_CHECKING:
 _RUST_LOCATION = re.compile(r"\s*at \S+\.rs:\d+\.?")
 # A value Zenoh refuses comes wrapped: Json5Err(Message { msg: "...", location: Some(...) }); the msg says it all.
 _JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*)".*', re.DOTALL)
+# A config file's comes as JSON error: Message { msg: "...", location: Some(Location { line: L, column: C }) }; there
+# the place helps (for a field given twice, that of the object holding it).
+_FILE_MESSAGE = re.compile(r'JSON error: Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*)", '
+                           r'location: Some\(Location \{ line: (?P<line>\d+), column: (?P<column>\d+) \}\) \}')
 
 
 @dataclass(frozen=True)
@@ -78,9 +82,11 @@ def base_config(config_file: str | Path | None) -> "zenoh.Config":
 
 
 def zenoh_error_text(exc: BaseException) -> str:
-    """A zenoh.ZError as one line for a person: without the Rust source locations, the JSON5 wrapper and the line
+    """A zenoh.ZError as one line for a person: without the Rust source locations, the JSON5 wrappers and the line
     breaks (a JSON5 syntax error spans lines)."""
     text = _RUST_LOCATION.sub("", str(exc))
     if match := _JSON5_MESSAGE.search(text):
         text = text[:match.start()] + match.group("msg")
+    elif match := _FILE_MESSAGE.search(text):
+        text = f"{text[:match.start()]}{match['msg']} (line {match['line']}, column {match['column']})"
     return " ".join(text.split())

@@ -473,6 +473,8 @@ def test_command_line_bad_zenoh_settings_are_one_line_usage_errors(capsys, tmp_p
 
     broken = tmp_path / "broken.json5"
     broken.write_text("{ mode: ")
+    twice = tmp_path / "twice.json5"            # Zenoh refuses a field given twice, in a wrapper of Rust's Debug
+    twice.write_text('{\n  mode: "client",\n  scouting: { multicast: { enabled: false, enabled: true } },\n}')
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -485,6 +487,8 @@ def test_command_line_bad_zenoh_settings_are_one_line_usage_errors(capsys, tmp_p
                  f"bad Zenoh configuration ({tmp_path / 'missing.json5'}): No such file"),
                 (["publish", "scene", "--key", "cam/a", "--zenoh-config", str(broken)],
                  f"bad Zenoh configuration ({broken}): "),
+                (["list", "--zenoh-config", str(twice)],
+                 f"bad Zenoh configuration ({twice}): duplicate field `enabled` (line 3, column 26)"),
                 (["publish", "scene", "--key", "cam/a", "--listen", taken],
                  f"cannot open a Zenoh session: Can not create a new TCP listener bound to {taken}")):
             with pytest.raises(SystemExit) as exc:
@@ -492,7 +496,7 @@ def test_command_line_bad_zenoh_settings_are_one_line_usage_errors(capsys, tmp_p
             err = capsys.readouterr().err
             assert exc.value.code == 2 and len(err.splitlines()) == 1, err
             assert err.startswith(f"tacf {argv[0]}: {reason}"), err
-            assert "Json5Err" not in err and ".rs:" not in err, err
+            assert "Json5Err" not in err and "Message {" not in err and ".rs:" not in err, err
 
 
 def test_list_across_two_services(service, client, camera):

@@ -726,6 +726,23 @@ def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
         assert app.dashboard.image_keys() == []
 
 
+def test_a_field_given_twice_is_refused_not_read_as_its_last_value():
+    """json keeps the last value of a key given twice: {"key": A, "key": B} watched B without a word, as a repeated
+    override or sid kept its last value, where a proxy or a log in front reading the first would have seen another
+    request than the one done. A key spelt with an escape is the same key."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        base = app.url.rstrip("/")
+        for path, body, key in (
+                ("/api/watch", b'{"key": "test/dashboard/first", "key": "test/dashboard/second"}', "key"),
+                ("/api/watch", b'{"key": "test/dashboard/first", "k\\u0065y": "test/dashboard/second"}', "key"),
+                ("/api/start", b'{"image_key": "test/dashboard/first", "box": [1, 2, 30, 40], '
+                               b'"overrides": {"cell_size": 4, "cell_size": 6}}', "cell_size"),
+                ("/api/stop", b'{"sid": "a", "sid": "b"}', "sid")):
+            assert _post(base + path, body) == (400, {"error": "invalid_request",
+                                                      "message": f"key {key!r} given twice: give each field once"})
+        assert app.dashboard.image_keys() == []
+
+
 def test_a_box_of_a_number_too_large_and_a_body_too_large_get_their_4xx():
     """A 400-digit integer in a box raised OverflowError in the handler: no reply at all. A body over the limit
     got its 413 only once the client stopped sending; one still sending got a reset (a broken pipe) instead."""

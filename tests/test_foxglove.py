@@ -551,6 +551,10 @@ def test_closing_with_a_connection_in_its_handshake_finishes_the_recording_at_on
     (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "seq": "7"}).encode(), "seq"),
     (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "seq": True}).encode(), "seq"),
     (json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "overrides": {"cell_size": "6"}}).encode(), "cell_size"),
+    # json keeps the last of a key given twice: the first was dropped without a word, and the session started
+    (b'{"image_key": "%s", "box": [1, 2, 30, 40], "box": [5, 6, 30, 40]}' % KEY.encode(), "'box' given twice"),
+    (b'{"image_key": "%s", "box": [1, 2, 30, 40], "overrides": {"cell_size": 0, "cell_size": 6}}' % KEY.encode(),
+     "'cell_size' given twice"),
 ])
 def test_a_bad_start_request_gets_a_clear_failure(client, request_bytes, expected):
     ok, message = client.call("/tacf/start", request_bytes)

@@ -443,6 +443,18 @@ def test_an_unreadable_or_foreign_state_file_is_kept_aside_and_the_table_starts_
     assert (tmp_path / kept_as).read_bytes() == content
 
 
+def test_a_state_file_that_gives_a_key_twice_is_kept_aside_naming_the_key(tmp_path, caplog):
+    """A hand edit that added a second "box" to an entry restored the session on the last one, without a word:
+    which one was meant is unknown, and the service never writes such a file."""
+    path = tmp_path / "state.json"
+    content = (b'{"version": 1, "sessions": [{"sid": "a", "image_key": "cam", "profile": "kcc", '
+               b'"box": [1, 2, 3, 4], "box": [5, 6, 7, 8], "created_ns": 1}]}')
+    path.write_bytes(content)
+    assert StateStore(path).load() == []
+    assert (tmp_path / "state.json.corrupt").read_bytes() == content
+    assert f"state file {path} is corrupt (key 'box' given twice)" in caplog.text
+
+
 def test_a_session_twice_in_the_state_file_is_restored_once(tmp_path):
     path = tmp_path / "state.json"
     entry = PersistedSession(sid="a", image_key="cam", profile="kcc", box=(1.0, 2.0, 3.0, 4.0), created_ns=1)
