@@ -411,7 +411,7 @@ def _call(handler, request) -> bytes:
         fields = json.loads(request.payload or b"{}", object_pairs_hook=unique_keys)
     except RepeatedKeyError as exc:             # json would keep the last value and drop the first unseen
         raise ValueError(f"bad request: {exc}: give each field once") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (ValueError, RecursionError) as exc:      # also a 5000-digit number, and [[[[... too deep
         raise ValueError(f"the request is not JSON: {exc}") from None
     if not isinstance(fields, dict):
         raise ValueError("the request must be a JSON object")

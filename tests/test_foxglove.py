@@ -555,6 +555,9 @@ def test_closing_with_a_connection_in_its_handshake_finishes_the_recording_at_on
     (b'{"image_key": "%s", "box": [1, 2, 30, 40], "box": [5, 6, 30, 40]}' % KEY.encode(), "'box' given twice"),
     (b'{"image_key": "%s", "box": [1, 2, 30, 40], "overrides": {"cell_size": 0, "cell_size": 6}}' % KEY.encode(),
      "'cell_size' given twice"),
+    # what json refuses past its own syntax: Python's digit limit on ints, and its recursion limit
+    (b'{"seq": ' + b"9" * 5000 + b"}", "not JSON"),
+    (b"[" * 100_000 + b"]" * 100_000, "not JSON"),
 ])
 def test_a_bad_start_request_gets_a_clear_failure(client, request_bytes, expected):
     ok, message = client.call("/tacf/start", request_bytes)
