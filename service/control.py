@@ -4,10 +4,13 @@ One queryable on tacf/<node>/control/* (so `tacf/*/control/list` reaches every s
 a query into one of two bounded lanes, never blocking: a full Zenoh FIFO handler would stall Zenoh's RX task for
 the query's link (ZENOH.md §3.4), and over a router that link carries every client, frames and liveliness alike.
 start/stop/reinit (up to seconds each) go to a lane served by CONTROL_THREADS threads, status/list and anything
-else to a lane of their own, so that a flood of slow queries delays no status. A query that finds its lane full
-is answered at once with Error "unavailable" (busy; retry). Each query is answered inside `with query:`. Replies
-go out on the concrete key tacf/<node>/control/<op> as the op's reply model; every failure is reply_err(Error)
-with a code, never an exception escaping into Zenoh.
+else to a lane of their own, so that a flood of slow queries delays no status. A lane is full at QUERY_QUEUE queries
+waiting, or when a query's payload would take the bytes it holds, waiting or being answered, past what its threads
+could answer at once, each a query of the wire's largest size (a start may carry frames: 64 starts of 48 MiB each
+waiting took 3.2 GB). A query that finds its lane full is answered at once with Error "unavailable" (busy; retry),
+one larger than the wire allows with "invalid_request". Each query is answered inside `with query:`. Replies go
+out on the concrete key tacf/<node>/control/<op> as the op's reply model; every failure is reply_err(Error) with a
+code, never an exception escaping into Zenoh.
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import time
 
 from tacf_schemas import (CONTROL_OPS, CONTROL_REQUESTS, MSGPACK_ENCODING, DecodeError, Error, ListRequest,
                           ReinitRequest, StartRequest, StatusRequest, StopRequest, control_key, decode, encode)
+from tacf_schemas.limits import MAX_PAYLOAD_BYTES
 
 from .errors import ServiceError
 from .manager import SessionManager
@@ -31,6 +35,16 @@ SLOW_OPS = frozenset({"start", "stop", "reinit"})
 _EMPTY_MAP = b"\x80"        # msgpack {}: a query without payload is a request with default fields
 
 
+class _Lane:
+    """The queries waiting for a lane's threads, and the payload bytes of those the lane holds, waiting or being
+    answered (the control server's admission lock guards `held`)."""
+
+    def __init__(self, threads: int):
+        self.queries: queue.Queue = queue.Queue()
+        self.budget = threads * MAX_PAYLOAD_BYTES       # each thread may be answering a query of the largest size
+        self.held = 0
+
+
 class ControlServer:
     def __init__(self, zenoh_session, node: str, manager: SessionManager, threads: int = CONTROL_THREADS):
         import zenoh
@@ -39,8 +53,8 @@ class ControlServer:
         self._encoding = zenoh.Encoding(MSGPACK_ENCODING)
         # Unbounded queues: _admit bounds them (within a query or two when callbacks of several links race), so
         # that close() can always queue the end markers.
-        self._slow: queue.Queue = queue.Queue()
-        self._quick: queue.Queue = queue.Queue()
+        self._slow = _Lane(threads)
+        self._quick = _Lane(QUICK_THREADS)
         # A query admitted after the end markers would wait behind them unanswered: admitting and closing take
         # turns, and a closed server refuses at once.
         self._admission = threading.Lock()
@@ -67,7 +81,7 @@ class ControlServer:
         with self._admission:
             self._closed = True
             for lane, _ in self._threads:
-                lane.put(None)
+                lane.queries.put(None)
         deadline = time.monotonic() + timeout
         for _, thread in self._threads:
             thread.join(timeout=max(0.0, deadline - time.monotonic()))
@@ -81,27 +95,39 @@ class ControlServer:
         """On Zenoh's callback thread: queue the query in its lane, or refuse it at once when the lane is full."""
         op = str(query.key_expr).rsplit("/", 1)[-1]
         lane = self._slow if op in SLOW_OPS else self._quick
+        size = len(query.payload) if query.payload is not None else 0
         with self._admission:
-            closed, waiting = self._closed, lane.qsize()
-            if not closed and waiting < QUERY_QUEUE:
-                lane.put(query)
+            closed, waiting, held = self._closed, lane.queries.qsize(), lane.held
+            if not closed and size <= MAX_PAYLOAD_BYTES and waiting < QUERY_QUEUE and held + size <= lane.budget:
+                lane.queries.put((query, size))
+                lane.held += size
                 return
-        message = (f"node {self.node!r} is shutting down" if closed
-                   else f"node {self.node!r} is busy, {waiting} control queries waiting; retry")
+        if closed:
+            error = Error(code="unavailable", node=self.node, message=f"node {self.node!r} is shutting down")
+        elif size > MAX_PAYLOAD_BYTES:          # decode refuses it: never held, and never "busy; retry"
+            error = Error(code="invalid_request", node=self.node,
+                          message=f"payload of {size} bytes exceeds {MAX_PAYLOAD_BYTES}")
+        else:
+            error = Error(code="unavailable", node=self.node,
+                          message=f"node {self.node!r} is busy, {waiting} control queries waiting, "
+                                  f"{held / 2**20:.0f} MiB of payload held; retry")
         with query:
-            self._reply_err(query, Error(code="unavailable", node=self.node, message=message))
+            self._reply_err(query, error)
 
-    def _serve(self, lane: queue.Queue) -> None:
+    def _serve(self, lane: _Lane) -> None:
         while True:
-            query = lane.get()
-            if query is None:
+            item = lane.queries.get()
+            if item is None:
                 return                  # closed
+            query, size = item
             with query:
                 try:
                     self._answer(query)
                 except Exception:
                     log.exception("control query %s failed", query.selector)
                     self._reply_err(query, Error(code="internal", message="internal error", node=self.node))
+            with self._admission:
+                lane.held -= size
 
     def _answer(self, query) -> None:
         op = str(query.key_expr).rsplit("/", 1)[-1]

@@ -23,9 +23,11 @@ zenoh = pytest.importorskip("zenoh")
 from tacf_clients.local_service import free_port
 from tacf_clients.local_service import LocalService
 from tacf_clients.scene import Scene
-from tacf_schemas import (MSGPACK_ENCODING, Error, Frame, ReinitRequest, SessionInfo, StartRequest, StatusRequest,
-                          StopRequest, box_key, control_key, decode, encode, health_key, service_liveliness_key)
+from tacf_schemas import (MSGPACK_ENCODING, Error, Frame, ListRequest, ReinitRequest, SessionInfo, StartRequest,
+                          StatusRequest, StopRequest, box_key, control_key, decode, encode, health_key,
+                          service_liveliness_key)
 from tacf_schemas.images import encode_frame
+from tacf_schemas.limits import MAX_FRAME_BYTES, MAX_PAYLOAD_BYTES
 import tacf_service.pool as service_pool
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions
@@ -452,6 +454,43 @@ def test_a_flood_of_slow_control_queries_delays_no_other_client(tmp_path):
         svc.close()
         for session in (flooder, other):
             session.close()
+
+
+def test_large_control_queries_past_a_lanes_byte_budget_are_refused_as_busy():
+    """While every control thread holds a start waiting for a frame that never comes, one client fires starts that
+    each carry a raw 4096x4096 frame (48 MiB, the wire's largest query). As many as the threads could answer at
+    once are admitted, the rest refused at once as busy (all used to wait, up to 64 of them: 3.2 GB of service
+    memory), and a query larger than the wire allows is refused as invalid at once, never held."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    svc = TrackingService(ServiceOptions(node="hoarded", zenoh=ZenohOptions(listen=(endpoint,)), init_wait_s=10.0,
+                                         spare_workers=0)).open()
+    client = zenoh.open(peer_config(connect=[endpoint]))
+    try:
+        def fire(payload: bytes):
+            return client.get(control_key("hoarded", "start"), payload=payload, timeout=30,
+                              encoding=zenoh.Encoding(MSGPACK_ENCODING))
+
+        box = (1.0, 1.0, 10.0, 10.0)
+        waiting = [fire(encode(StartRequest(image_key="faults/cam/silent", box=box, sid=f"waiting{i}")))
+                   for i in range(CONTROL_THREADS)]
+        assert wait_until(lambda: len(svc.manager.list().sessions) == CONTROL_THREADS, 10)
+        frame = Frame(seq=1, stamp_ns=1, encoding="bgr8", width=4096, height=4096, data=bytes(MAX_FRAME_BYTES))
+        large = encode(StartRequest(image_key="faults/cam/silent", box=box, seq=1, frames=[frame]))
+        pending = [fire(large) for _ in range(CONTROL_THREADS + 2)]
+        # The service takes queries off a link in order: once this one is answered, each start is in or refused.
+        call(client, "hoarded", "list", ListRequest())
+        first = [replies.try_recv() for replies in pending]
+        errors = [decode(reply.err.payload.to_bytes(), Error) for reply in first if reply is not None]
+        assert [e.code for e in errors] == ["unavailable"] * 2, errors
+        assert all("busy" in e.message for e in errors), errors
+        with pytest.raises(ControlError) as refused:
+            call(client, "hoarded", "start", bytes(MAX_PAYLOAD_BYTES + 1))
+        assert refused.value.code == "invalid_request", refused.value
+        admitted = [replies for replies, reply in zip(pending, first) if reply is None]
+        assert not any(replies.try_recv() for replies in waiting + admitted)     # still waiting for their threads
+    finally:
+        svc.close()
+        client.close()
 
 
 # ---------------------------------------------------------------------------------------------- router
