@@ -14,6 +14,7 @@ import importlib
 
 _LAZY = {
     "TrackingClient": "tacf_clients.client",
+    "LEAST_LOADED": "tacf_clients.client",
     "BoxConsumer": "tacf_clients.consumer",
     "TrackedBox": "tacf_clients.consumer",
     "FramePublisher": "tacf_clients.publisher",

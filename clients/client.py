@@ -43,6 +43,8 @@ SETTLE_POLL_S = 0.005   # how often a lookup that may end early looks for replie
 BoxLike = Sequence[float]
 #: `start(..., node=LEAST_LOADED)` runs the session on the least-loaded service ("auto", an id no service takes).
 LEAST_LOADED = keys.LEAST_LOADED
+# Read by API callers and, through the command line's error line, by people at a shell.
+SAY_WHICH_NODE = "pass node=... (--node on the command line)"
 
 
 @dataclass(frozen=True)
@@ -233,7 +235,7 @@ class TrackingClient:
             raise AmbiguousNode(f"several services answer as node {', '.join(map(repr, twins))}: give each its own "
                                 "node id (tacf serve --node); a session started there would run on each of them")
         if len(nodes) > 1:
-            raise AmbiguousNode(f"{len(nodes)} services on the network ({', '.join(nodes)}): pass node=...")
+            raise AmbiguousNode(f"{len(nodes)} services on the network ({', '.join(nodes)}): {SAY_WHICH_NODE}")
         return nodes[0]
 
     def _call_session(self, sid: str, node: str | None, op: str, request: WireModel) -> SessionInfo:
@@ -257,7 +259,7 @@ class TrackingClient:
         replies = self._query(keys.WILDCARD, "status", StatusRequest(sid=sid), SessionInfo, deadline, settle=True)
         found = sorted({r.model.node for r in replies if r.model is not None})
         if len(found) > 1:
-            raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: pass node=...")
+            raise AmbiguousSession(f"session {sid!r} exists on {', '.join(found)}: {SAY_WHICH_NODE}")
         if found:
             self._remember_node(sid, found[0])
             return found[0]

@@ -120,13 +120,13 @@ class ZenohSettingsError(ZenohUnavailable):
 
 
 class AmbiguousNode(TacfError):
-    """Several services are on the network and the call does not say which one: pass node=..."""
+    """Several services are on the network and the call does not say which one: pass node=... (--node)."""
 
     code = "ambiguous_node"
 
 
 class AmbiguousSession(TacfError):
-    """The session id exists on several services: pass node=... to say which."""
+    """The session id exists on several services: pass node=... (--node) to say which."""
 
     code = "ambiguous_session"
 

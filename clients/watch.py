@@ -53,6 +53,9 @@ def _fmt(value, spec: str, missing: str = "-") -> str:
     return missing if value is None else format(value, spec)
 
 
+ENDED = ("stopped", "failed")
+
+
 def describe_session(info: SessionInfo) -> str:
     """One line about a session, for `tacf start|stop|status`."""
     text = (f"{info.sid} on {info.node}: {info.state}, key {info.image_key}, profile {info.profile}, "
@@ -61,8 +64,9 @@ def describe_session(info: SessionInfo) -> str:
         text += f", init seq {info.init_seq}"
     if info.health is not None:
         h = info.health
-        text += (f", {h.fps:.1f} fps, {h.processing_ms_p95:.1f} ms p95, processed {h.frames_processed}, "
-                 f"lost {h.frames_lost}, dropped {h.frames_dropped}")
+        if info.state not in ENDED:     # an ended session's rates read 0, as if it were broken
+            text += f", {h.fps:.1f} fps, {h.processing_ms_p95:.1f} ms p95"
+        text += f", processed {h.frames_processed}, lost {h.frames_lost}, dropped {h.frames_dropped}"
         if h.message:                   # why it failed, is lost or waits (no frames, a cropped feed...)
             text += f": {h.message}"
     return text

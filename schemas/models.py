@@ -218,7 +218,7 @@ class BoxResult(WireModel):
     box: Box
     width: Width                # the frame's size, so that consumers can
     height: Height              # normalise the box without knowing the camera
-    ok: bool                    # False: the target is lost (PME under the tracker's threshold)
+    ok: bool                    # False: the target is lost (PME under the tracker's floor, or the box left the frame)
     pme: FiniteFloat
     score: FiniteFloat
     scale: FiniteFloat

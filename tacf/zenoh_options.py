@@ -33,7 +33,7 @@ class ZenohOptions:
     service's worker processes.
 
     connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the side's default, () = none.
-    listen: endpoints to listen on; empty = the side's default.
+    listen: endpoints to listen on; empty = the side's default. One endpoint may be given as a string, here and above.
     config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
     mode: "peer", "client" or "router"; None keeps the file's mode (or peer without a file).
     extra: (key path, JSON5 value) pairs, applied last (a service applies them to its own session, not its workers').
@@ -44,6 +44,12 @@ class ZenohOptions:
     config_file: str | Path | None = None
     mode: str | None = None
     extra: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        # One endpoint given as a string is that endpoint: taken as a sequence, its characters were the endpoints.
+        for name in ("connect", "listen"):
+            if isinstance(getattr(self, name), str):
+                object.__setattr__(self, name, (getattr(self, name),))
 
     def refusal(self, exc: BaseException) -> str:
         """Why Zenoh refused these settings, naming the config file when there is one: ' (FILE): reason'."""

@@ -60,6 +60,17 @@ def test_error_classes_cover_every_wire_code():
     assert all(issubclass(cls, ServiceError) for cls in ERRORS.values())
 
 
+def test_the_client_api_takes_one_endpoint_as_a_string_and_exports_least_loaded(service):
+    """A newcomer's first client: ZenohOptions(connect="tcp/...") was split into its characters ("Endpoints must be
+    of the form ...: t"), and LEAST_LOADED, which the README gives for start(), was not importable from the package."""
+    from tacf_clients import LEAST_LOADED
+
+    with TrackingClient(ZenohOptions(connect=service.options.connect[0]), timeout=5.0) as client:
+        assert [s.node for s in client.services()] == [service.node]
+    assert ZenohOptions(listen="tcp/127.0.0.1:0").listen == ("tcp/127.0.0.1:0",)
+    assert LEAST_LOADED == "auto"
+
+
 def test_an_error_of_a_newer_service_keeps_its_code():
     """A code this client has no class for raises a plain ServiceError: its `code` said "internal" (the class's),
     so a caller, or the dashboard's API that passes it on, took a newer service's refusal for a bug."""
@@ -505,7 +516,7 @@ def test_list_across_two_services(service, client, camera):
         with TrackingClient(options, timeout=5.0) as both:
             second.wait_ready(both.session)
             assert sorted(both.nodes()) == sorted([service.node, second.node])
-            with pytest.raises(AmbiguousNode):     # two services: start needs node=...
+            with pytest.raises(AmbiguousNode, match="--node"):     # two services: start needs node=... (--node)
                 both.start(camera.key, SCENE.box(0))
             info = both.start(camera.key, SCENE.box(0), sid="remote", node=second.node)
             assert info.node == second.node

@@ -187,6 +187,8 @@ def test_a_session_s_line_says_why_it_failed_or_waits():
                        box=(1.0, 1.0, 5000.0, 5000.0), created_ns=time.time_ns(), health=health)
     assert describe_session(info).endswith(f"dropped 2: {reason}")
     assert describe_session(info.model_copy(update={"health": _health("s1")})).endswith("dropped 2")
+    assert " fps" not in describe_session(info)      # `tacf stop` printed "0.0 fps, 0.0 ms p95" for the ended session
+    assert " fps, " in describe_session(info.model_copy(update={"state": "tracking"}))
 
 
 def test_watch_prints_live_rows(net):

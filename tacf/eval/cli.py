@@ -56,7 +56,7 @@ def _names(values: list[str] | None, default: str) -> list[str]:
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "eval", help="one-pass evaluation of trackers on a dataset (success AUC, precision@20, FPS)",
+        "eval", help="evaluate trackers on a dataset: one pass, shifted, TRE starts (success AUC, precision, FPS)",
         description="Run trackers side by side over every sequence of ROOT (layout detected: generic, OTB, "
                     "UAV123, UAVDT), and score result folders other toolkits wrote (--results) with them; write "
                     "result files, summary.json, summary.md and plots.")
