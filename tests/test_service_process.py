@@ -349,9 +349,9 @@ print("stopped every time")
 
 
 def test_a_stop_signal_at_any_point_of_the_services_wait_stops_it(tmp_path):
-    """The handler runs in the main thread wherever it is: as it entered its wait loop (a Ctrl-C just after "ready"),
-    or as the wait ended (a signal delivered to another thread). Its Event.set() then waited for the lock that the
-    interrupted Event.wait() held, and the service hung for ever (once in about 20 Ctrl-Cs after "ready")."""
+    """The handler runs in the main thread wherever it is: as it entered a turn of its wait loop (a Ctrl-C just after
+    "ready", or at any 0.5 s turn), its Event.set() waited for the lock that the interrupted Event.wait() held, and
+    the service hung for ever (once in about 20 Ctrl-Cs to the group just after "ready")."""
     script = tmp_path / "signal_in_wait.py"
     script.write_text(SIGNAL_AT_EACH_POINT_OF_THE_WAIT)
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
