@@ -378,12 +378,14 @@ class Worker:
                     continue
                 message = self._conn.recv()
             except (EOFError, OSError):
-                log.warning("service pipe closed: stopping")
                 self.request_stop()
                 if not self._connected:
                     # Still in zenoh.open, which tries to reach the gone service for seconds: end now. A worker the
-                    # fork server made after the service had exited lands here.
+                    # fork server made after the service had exited lands here, after a stop right after the
+                    # service's start: it served nothing, and a warning would be the only trace of that stop.
+                    log.debug("service pipe closed before this worker connected: exiting")
                     os._exit(0)
+                log.warning("service pipe closed: stopping")
                 return
             if message[0] == "assign":
                 self.job = message[1]
