@@ -7,14 +7,17 @@ the `tacf serve` main loop with SIGTERM/SIGINT/SIGHUP handling.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import queue
 import signal
 import socket
 import threading
 import time
 from dataclasses import dataclass, field
 
+from tacf.stop_signals import STOP_SIGNALS, release_stop_signals
 from tacf.zenoh_options import zenoh_error_text
 from tacf_schemas import LEAST_LOADED, sanitise_id, service_liveliness_key, validate_node_id
 
@@ -30,8 +33,6 @@ log = logging.getLogger(__name__)
 
 SHUTDOWN_BUDGET_S = 1.3     # workers get this long in total; the whole exit stays under 2 s
 NODE_CHECK_TIMEOUT_S = 1.0  # the liveliness query ends as soon as every linked node has answered
-# SIGHUP too: a closed terminal or ssh session would otherwise end the service without saving its table.
-STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 
 
 def default_node_id() -> str:
@@ -134,9 +135,13 @@ class TrackingService:
 
 
 def serve(options: ServiceOptions) -> int:
-    """Run until one of STOP_SIGNALS; return the exit code."""
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in STOP_SIGNALS}
+    """Run until one of STOP_SIGNALS (SIGHUP too: a closed terminal or ssh session would otherwise end the service
+    without saving its table); return the exit code."""
+    # Not a threading.Event: a handler runs in the main thread wherever it is, and Event.set() there deadlocked when
+    # the main thread was inside Event.wait() holding the lock set() takes. SimpleQueue.put() never waits.
+    signalled = queue.SimpleQueue()
+    previous = {sig: signal.signal(sig, lambda signum, _: signalled.put(signum)) for sig in STOP_SIGNALS}
+    release_stop_signals()      # one that came while `tacf serve` started (tacf.cli held it) stops it as a later one
     import zenoh
 
     try:
@@ -151,9 +156,11 @@ def serve(options: ServiceOptions) -> int:
         log.error("cannot start the service: %s", exc)
         return 1
     try:
-        while not stop.wait(0.5):
-            pass
-        log.info("signal received: shutting down")
+        signum = None
+        while signum is None:
+            with contextlib.suppress(queue.Empty):     # a timeout: a signal delivered to another thread wakes none
+                signum = signalled.get(timeout=0.5)
+        log.info("%s received: shutting down", signal.Signals(signum).name)
     finally:
         service.close()
         if service.queries_left_behind:

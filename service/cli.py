@@ -35,7 +35,7 @@ def register(subparsers) -> None:
     parser.add_argument("--spare-workers", type=integer(0), default=1, metavar="N",
                         help="worker processes kept warm so that a start tracks within milliseconds (default 1)")
     parser.add_argument("--tracker-factory", default=None, metavar="MODULE:FUNCTION", help=argparse.SUPPRESS)
-    parser.set_defaults(func=run)
+    parser.set_defaults(func=run, handles_stop_signals=True)   # serve() releases them (tacf.cli)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -32,7 +32,7 @@ from .frames import FrameHistory, StoredFrame, box_problem
 from .pool import WorkerHandle, WorkerPool, worker_is_silent
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, checked_overrides, default_profile
-from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, worker_context
+from .worker import HEALTH_PRIORITY, Assignment, WorkerSpec, worker_context, worker_exit_message
 
 log = logging.getLogger(__name__)
 
@@ -576,7 +576,7 @@ class SessionManager:
             if session.gave_up or self._is_gone(session):
                 return
             session.state = "failed"
-            session.message = f"worker exited with code {code}"
+            session.message = worker_exit_message(code)
             now = time.monotonic()
             session.crashes.append(now)
             while session.crashes and now - session.crashes[0] > CRASH_WINDOW_S:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .outbox import Outbox
-from .worker import WorkerSpec, run_worker
+from .worker import WorkerSpec, run_worker, start_with_stop_signals_held
 
 if TYPE_CHECKING:
     from .manager import Session
@@ -71,7 +71,7 @@ class WorkerHandle:
 
     def discard(self) -> None:
         """End a worker that serves nothing: close its pipe, which stops it, then SIGTERM, which ends it at once
-        if it has read that end (a worker not asked to stop ignores SIGTERM, worker.Worker.on_sigterm)."""
+        if it has read that end (else the pipe's end stops it all the same, worker.Worker.on_sigterm)."""
         self.close()
         self.process.terminate()
 
@@ -107,7 +107,7 @@ class WorkerPool:
         parent_conn, child_conn = self._mp.Pipe(duplex=True)
         process = self._mp.Process(target=run_worker, args=(self._spec, child_conn), name="tacf-worker",
                                    daemon=True)
-        process.start()
+        start_with_stop_signals_held(process)
         child_conn.close()
         return WorkerHandle(process, parent_conn, Outbox(parent_conn, f"outbox-{process.pid}"))
 
@@ -183,8 +183,9 @@ class WorkerPool:
             return list(self._spares)
 
     def retire(self) -> list[WorkerHandle]:
-        """Empty the pool for a shutdown and ask every spare to stop (a SIGTERM before that is ignored, as one
-        sent to the whole process group is). The caller reaps their processes and closes them."""
+        """Empty the pool for a shutdown and ask every spare to stop (a SIGTERM before that, as one sent to the
+        whole process group, waits for it, worker.Worker.on_sigterm). The caller reaps their processes and closes
+        them."""
         with self._lock:
             spares, self._spares = self._spares, []
         for spare in spares:

@@ -9,14 +9,15 @@ thread pool before its first call, and Zenoh is not imported at all (its runtime
 """
 import gc
 
-from .worker import hold_blas_to_one_thread, ignore_group_signals   # imports neither numpy nor Zenoh
+from .worker import end_after_grace, hold_blas_to_one_thread, take_group_signals  # imports neither numpy nor Zenoh
 
 # Killed by a signal to the whole process group, this server took every worker's exit report with it: the service
 # reported each session failed ("worker exited with code 255"), not stopped. The service stops its workers, then
-# this server (which ends when the service's pipe to it closes). multiprocessing makes the server ignore SIGINT
-# only after this module is loaded: a Ctrl-C during the imports below would end it with a KeyboardInterrupt
-# traceback on the terminal. Workers forked from here inherit the signals ignored.
-ignore_group_signals()
+# this server (which ends when the service's pipe to it closes); a SIGTERM by hand ends it SIGTERM_GRACE_S later.
+# The server starts with these signals held (worker.start_with_stop_signals_held), so that a Ctrl-C before this
+# line cannot end it with a KeyboardInterrupt traceback on the terminal. Workers forked from here inherit the
+# signals ignored, and this SIGTERM handler until they install their own.
+take_group_signals(end_after_grace)
 hold_blas_to_one_thread()
 
 import cv2  # noqa: E402

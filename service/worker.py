@@ -43,11 +43,14 @@ import logging
 import math
 import multiprocessing
 import multiprocessing.forkserver
+import multiprocessing.resource_tracker
 import os
 import signal
 import threading
 import time
 from dataclasses import dataclass, field
+
+from tacf.stop_signals import STOP_SIGNALS, hold_stop_signals, release_stop_signals, restore_signal_mask
 
 from .config import ZenohOptions
 from .trackers import DEFAULT_FACTORY
@@ -65,6 +68,9 @@ BOX_PRIORITY, HEALTH_PRIORITY = "INTERACTIVE_HIGH", "DATA_HIGH"
 CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
 RESIZE_ASPECT_TOLERANCE = 0.02   # a new frame size within this of the old aspect ratio shows the same view
 COMMAND_POLL_S = 0.1
+# A SIGTERM the service did not send (it had not asked to stop) ends a worker or the fork server this much later, unless
+# the service asks them to stop first, as it does within its shutdown after a signal to the whole process group.
+SIGTERM_GRACE_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -155,13 +161,51 @@ def hold_blas_to_one_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
-def ignore_group_signals() -> None:
-    """Ignore the signals a whole process group gets (a terminal's Ctrl-C or hangup, systemd's SIGTERM to every
-    process of the unit, `timeout`'s): they are the service's to act on, and it stops its workers itself. A worker
-    gives SIGTERM a handler once connected (Worker.on_sigterm)."""
-    for name in ("SIGINT", "SIGHUP", "SIGTERM"):
-        if hasattr(signal, name):   # Windows, where workers are spawned, has no SIGHUP
-            signal.signal(getattr(signal, name), signal.SIG_IGN)
+def start_with_stop_signals_held(process) -> None:
+    """Start a worker process with STOP_SIGNALS held in this thread. The start may launch the fork server, which then
+    holds them from its first instruction until tacf_service.warm takes them over: a Ctrl-C to the whole process
+    group as it started ended it with a KeyboardInterrupt traceback, and the service's first worker with it.
+    multiprocessing holds them so for its resource tracker (bpo-33613), but unblocks SIGINT and SIGTERM in this
+    thread once that one is up: it is started first."""
+    if hasattr(signal, "pthread_sigmask"):      # where there is a fork server (not Windows)
+        multiprocessing.resource_tracker.ensure_running()
+    mask = hold_stop_signals()
+    try:
+        process.start()
+    finally:
+        restore_signal_mask(mask)
+
+
+def take_group_signals(on_sigterm) -> None:
+    """Ignore SIGINT and SIGHUP, and give SIGTERM to `on_sigterm`, then release STOP_SIGNALS if they were held (the
+    fork server starts with them held). These are the signals a whole process group gets (a terminal's Ctrl-C or
+    hangup, systemd's SIGTERM to every process of the unit, `timeout`'s): the service, which gets them too, stops
+    its workers and the fork server itself, and a session ends "stopped"; a worker that left first made the service
+    report it failed. SIGTERM is also what `kill PID` sends to one process: `on_sigterm` tells the two apart."""
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, on_sigterm if sig == signal.SIGTERM else signal.SIG_IGN)
+    release_stop_signals()
+
+
+def end_after_grace(*_) -> None:
+    """SIGTERM handler of the fork server, and of a worker not asked to stop: end this process SIGTERM_GRACE_S from
+    now unless the service asks it to stop first (cancel_grace). A kernel timer, whose SIGALRM's default action
+    ends the process even if its main thread is stuck; the fork server may start no thread; a forked child does not
+    inherit the timer."""
+    if hasattr(signal, "setitimer"):            # not on Windows, whose SIGTERM comes only from the process itself
+        signal.setitimer(signal.ITIMER_REAL, SIGTERM_GRACE_S)
+
+
+def cancel_grace() -> None:
+    if hasattr(signal, "setitimer"):
+        signal.setitimer(signal.ITIMER_REAL, 0)
+
+
+def worker_exit_message(code: int) -> str:
+    """A worker's exit code, as its session's health says it."""
+    if hasattr(signal, "SIGALRM") and code == -signal.SIGALRM:     # end_after_grace's timer
+        return f"worker ended {SIGTERM_GRACE_S:.0f} s after a SIGTERM not from the service"
+    return f"worker exited with code {code}"
 
 
 def run_worker(spec: WorkerSpec, conn) -> None:
@@ -170,7 +214,7 @@ def run_worker(spec: WorkerSpec, conn) -> None:
     logging.basicConfig(level=spec.log_level,
                         format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
     worker = Worker(spec, conn)
-    ignore_group_signals()      # inherited from the fork server already; a spawned worker needs it here
+    take_group_signals(worker.on_sigterm)
     try:
         worker.run()
     except Exception:
@@ -199,22 +243,25 @@ class Worker:
         self._pump: threading.Thread | None = None
         self.job: Assignment | None = None
         self._assigned = _Flag()
-        self._connected = False         # the Zenoh session is open (SIGTERM then has its handler)
+        self._connected = False         # the Zenoh session is open
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
         self._extra_received = 0        # catch-up frames handed over by the service
         self._skipped = 0               # frames not used: duplicates, no box to track yet, or a reinit came
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
     def on_sigterm(self, *_) -> None:
-        """Once the service has asked to stop (a stop command, or its pipe closed), SIGTERM means now: leave at
-        once, even from inside a tracker update. Leaving the `with zenoh.open(...)` block still closes the session,
-        which withdraws the session's liveliness token. Before that, the SIGTERM was sent to the whole process group
-        (systemd stopping the unit, `timeout`), and the service, which got it too, stops this worker itself: left
-        alone, the session ends "stopped"; leaving then made the service report it failed."""
+        """Once the service has asked to stop (a stop command, or its pipe closed), SIGTERM is its own and means now:
+        leave at once, even from inside a tracker update. Leaving the `with zenoh.open(...)` block still closes the
+        session, which withdraws the session's liveliness token. Before that, the SIGTERM came to the whole process
+        group (systemd stopping the unit, `timeout`), and the service, which got it too, asks this worker to stop
+        within its shutdown: the session ends "stopped". Or it came by hand (`kill PID`), and nothing follows: the
+        worker ends SIGTERM_GRACE_S later, and the service restarts its session as after a crash."""
         if self._stop.is_set():
             raise SystemExit(0)
+        end_after_grace()
 
     def request_stop(self) -> None:
+        cancel_grace()
         self._stop.set()
         self._slot.wake()
 
@@ -234,10 +281,7 @@ class Worker:
         conf = worker_config(self.spec.zenoh, list(self.spec.endpoints))
         try:
             with zenoh.open(conf) as session:
-                # SIGTERM was ignored until now: a Python handler runs only between bytecodes, and zenoh.open blocks
-                # up to connect/timeout_ms (5 s) when the service is gone (then the pipe's end stops the worker).
                 self._connected = True
-                signal.signal(signal.SIGTERM, self.on_sigterm)
                 assigned = False
                 while not assigned and not self._stop.is_set():
                     self._send(("idle",))
@@ -334,12 +378,14 @@ class Worker:
                     continue
                 message = self._conn.recv()
             except (EOFError, OSError):
-                log.warning("service pipe closed: stopping")
                 self.request_stop()
                 if not self._connected:
                     # Still in zenoh.open, which tries to reach the gone service for seconds: end now. A worker the
-                    # fork server made after the service had exited lands here.
+                    # fork server made after the service had exited lands here, after a stop right after the
+                    # service's start: it served nothing, and a warning would be the only trace of that stop.
+                    log.debug("service pipe closed before this worker connected: exiting")
                     os._exit(0)
+                log.warning("service pipe closed: stopping")
                 return
             if message[0] == "assign":
                 self.job = message[1]

@@ -3,6 +3,8 @@
 Each module in COMMAND_MODULES defines `register(subparsers)`, adding its subcommands with
 `set_defaults(func=...)`, and may define `register_bench(bench_subparsers)` for a `tacf bench WHAT`
 benchmark; `func(args)` returns the exit code (130 after a Ctrl-C the command does not handle itself).
+A command that handles tacf.stop_signals.STOP_SIGNALS itself says so with
+`set_defaults(handles_stop_signals=True)` and calls release_stop_signals() once its handlers are in place.
 Those modules import only argparse-level things at import time, so `tacf publish` never loads the tracker
 and `tacf eval` never loads Zenoh.
 """
@@ -13,6 +15,8 @@ import importlib
 import logging
 import os
 import sys
+
+from tacf.stop_signals import hold_stop_signals, release_stop_signals, restore_signal_mask
 
 COMMAND_MODULES = (
     "tacf.eval.cli",         # eval, track, bench tracker
@@ -36,17 +40,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+    args = None
+    # Held while the command starts: its imports take up to a second on a busy box, and a Ctrl-C among them ended it
+    # with a KeyboardInterrupt traceback instead of as a moment later.
+    mask = hold_stop_signals()
     try:
-        return int(args.func(args) or 0)
+        try:
+            parser = build_parser()
+            args = parser.parse_args(argv)
+            logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                                format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+            if not getattr(args, "func", None):
+                parser.print_help()
+                return 2
+            if not getattr(args, "handles_stop_signals", False):
+                release_stop_signals()
+            return int(args.func(args) or 0)
+        finally:
+            restore_signal_mask(mask)   # for a caller in this process (tests); a signal still held comes out here
     except KeyboardInterrupt:       # Ctrl-C where a command does not handle it: a line, not a traceback
-        print(f"tacf {args.command}: interrupted", file=sys.stderr)
+        print(f"tacf {args.command}: interrupted" if args else "tacf: interrupted", file=sys.stderr)
         return 130                  # 128 + SIGINT, as shells report it
     except BrokenPipeError:         # `tacf track ... | head`: the reader has all it wants, as for any Unix filter
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # Python's flush at exit would fail again

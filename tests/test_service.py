@@ -39,6 +39,7 @@ import tacf_service.health as health
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
+from tacf_service.worker import SIGTERM_GRACE_S
 
 pytestmark = pytest.mark.zenoh
 
@@ -727,16 +728,23 @@ def test_bad_frames_are_counted_and_harm_no_session(service, client, feed):
 
 # ---------------------------------------------------------------------------------------------- faults
 
-def test_worker_sigkill_is_reported_and_recovers_from_its_last_box(service, client, feed):
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
+def test_a_killed_worker_is_reported_and_recovers_from_its_last_box(service, client, feed, sig):
+    """SIGTERM as `kill PID` sends it: the worker waits SIGTERM_GRACE_S for the service's stop request, which
+    follows a SIGTERM to the whole process group; none comes, and it ends (it used to ignore the signal for good)."""
     results = Collector(client, NODE, "victim2")
     try:
         start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="victim2")
         assert wait_until(lambda: len(results.results()) >= 8, 30)
         assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
         pid = service.manager.worker_pids()["victim2"]
-        os.kill(pid, signal.SIGKILL)
-        failed = wait_until(lambda: any(h.state == "failed" for h in results.health), 5)
+        os.kill(pid, sig)
+        grace = SIGTERM_GRACE_S if sig == signal.SIGTERM else 0.0
+        failed = wait_until(lambda: any(h.state == "failed" for h in results.health), grace + 5)
         assert failed, [h.state for h in results.health]
+        if sig == signal.SIGTERM:
+            [message] = [h.message for h in results.health if h.state == "failed"]
+            assert message == f"worker ended {SIGTERM_GRACE_S:.0f} s after a SIGTERM not from the service"
         count = len(results.results())
         assert wait_until(lambda: service.manager.worker_pids().get("victim2") not in (None, pid), 10)
         assert wait_until(lambda: len(results.results()) >= count + 8, 30)
@@ -748,17 +756,20 @@ def test_worker_sigkill_is_reported_and_recovers_from_its_last_box(service, clie
         call(client, NODE, "stop", StopRequest(sid="victim2"))
 
 
-def test_fork_server_sigkill_restarts_its_sessions_once(service, client, feed):
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
+def test_a_killed_fork_server_restarts_its_sessions_once(service, client, feed, sig):
     """The fork server dying takes its report of the workers' exits with it, so each of its sessions counts as
     ended: the worker, still running, stops when the service closes its pipe, and the session restarts once from
-    its last box on a fork server started again, with no second worker publishing boxes for it."""
+    its last box on a fork server started again, with no second worker publishing boxes for it. A SIGTERM ends
+    the server SIGTERM_GRACE_S later (it used to be ignored for good)."""
     results = Collector(client, NODE, "orphan")
     try:
         start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="orphan")
         assert wait_until(lambda: len(results.results()) >= 8, 30)
         old = service.manager.worker_pids()["orphan"]
-        os.kill(_parent_pid(old), signal.SIGKILL)
-        assert wait_until(lambda: not _running(old), 10), "the orphaned worker went on running"
+        os.kill(_parent_pid(old), sig)
+        grace = SIGTERM_GRACE_S if sig == signal.SIGTERM else 0.0
+        assert wait_until(lambda: not _running(old), grace + 10), "the orphaned worker went on running"
         assert wait_until(lambda: service.manager.worker_pids().get("orphan") not in (None, old), 10)
         count = len(results.results())
         assert wait_until(lambda: len(results.results()) >= count + 8, 30)

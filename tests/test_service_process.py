@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import statistics
@@ -277,6 +278,86 @@ def test_a_stop_right_after_start_leaves_no_worker_and_no_traceback(tmp_path, en
         assert "Traceback" not in serve.log(), serve.log()
     finally:
         serve.cleanup()
+
+
+def before_main(log: str) -> bool:
+    """Whether a `tacf serve` interrupted while it starts ended before tacf.cli.main() ran, out of its reach: killed
+    by the signal before Python had a handler (nothing printed), or a traceback in Python's own start (its site
+    module) or in the imports of tacf.cli itself, with no frame of main()."""
+    return log == "" or ("Traceback" in log and not re.search(r'tacf[/\\]cli\.py", line \d+, in main', log))
+
+
+@pytest.mark.parametrize("to_group", [False, True], ids=["sigint", "ctrl-c"])
+def test_an_interrupt_at_any_moment_of_start_up_ends_as_a_later_one(tmp_path, to_group):
+    """SIGINT during the start's first second (the imports: 0.3-1.6 s on a busy 2-core box) ended `tacf serve` with a
+    KeyboardInterrupt traceback and exit 130, 1 or -2 (killed by the signal); a Ctrl-C to the whole process group as
+    the fork server started ended the server with a traceback of its own, and the service's first worker with it
+    (the supervisor logged EOFError), and a first worker the fork server made after the service had exited warned
+    "service pipe closed". Now both end as a later Ctrl-C does: exit 0, no traceback nor warning, no process left.
+    Only before main() runs (the first 50-70 ms after exec: Python's start, the imports of tacf.cli) is the signal
+    out of reach."""
+    moments = [("spawn", delay) for delay in (0, 0.01, 0.03, 0.06, 0.1, 0.2, 0.5)]
+    if to_group:
+        moments += [("ready", 0.0), ("ready", 0.0)]     # the fork server starts as the service says it is ready
+    outcomes = []
+    for since, delay in moments:
+        serve = Serve(tmp_path, f"tcp/127.0.0.1:{free_port()}", own_group=True)
+        try:
+            if since == "ready":
+                assert wait_until(lambda: "ready" in serve.log(), 30, period=0.005), serve.log()
+            time.sleep(delay)
+            (os.killpg if to_group else os.kill)(serve.proc.pid, signal.SIGINT)
+            code = serve.proc.wait(timeout=10)
+            assert wait_until(lambda: not group_members(serve.proc.pid), 5.0), cmdlines(group_members(serve.proc.pid))
+        finally:
+            serve.cleanup()
+        outcomes.append((since, delay, code, serve.log()))
+    in_reach = [(since, delay, code, log) for since, delay, code, log in outcomes
+                if not (since == "spawn" and delay < 0.1 and before_main(log))]
+    assert all(code == 0 and "Traceback" not in log and "WARNING" not in log for _, _, code, log in in_reach), outcomes
+
+
+SIGNAL_AT_EACH_POINT_OF_THE_WAIT = """
+import os, signal, sys, threading
+from tacf_service import app
+
+class Ready:
+    # A service that opens at once, so that only serve()'s own loop runs; the main thread's profile events are
+    # counted from then on.
+    queries_left_behind = []
+    def __init__(self, options): pass
+    def open(self):
+        sys.setprofile(signal_at_event)
+        return self
+    def close(self): pass
+
+def signal_at_event(frame, event, arg):
+    global events_left
+    events_left -= 1
+    if events_left == 0:
+        sys.setprofile(None)
+        signal.raise_signal(signal.SIGTERM)
+
+app.TrackingService = Ready
+for n in range(1, 20):
+    events_left = n
+    watchdog = threading.Timer(5.0, lambda: (print(f"hung, signalled at event {n}", flush=True), os._exit(1)))
+    watchdog.start()
+    assert app.serve(None) == 0
+    watchdog.cancel()
+print("stopped every time")
+"""
+
+
+def test_a_stop_signal_at_any_point_of_the_services_wait_stops_it(tmp_path):
+    """The handler runs in the main thread wherever it is: as it entered a turn of its wait loop (a Ctrl-C just after
+    "ready", or at any 0.5 s turn), its Event.set() waited for the lock that the interrupted Event.wait() held, and
+    the service hung for ever (once in about 20 Ctrl-Cs to the group just after "ready")."""
+    script = tmp_path / "signal_in_wait.py"
+    script.write_text(SIGNAL_AT_EACH_POINT_OF_THE_WAIT)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip() == "stopped every time", (out.stdout, out.stderr[-2000:])
+
 
 def test_a_frozen_fork_server_does_not_keep_the_service_from_exiting(tmp_path, endpoint, client):
     """A start waiting on a fork server that hangs (stopped here) held a control thread that was not a daemon, so
