@@ -26,6 +26,12 @@ ONE_SHOT_MODE = "client: the node it connects to answers for the whole network a
 VIEWER_MODE = "peer; client when every --connect endpoint is on another machine and no --listen is given"
 
 
+def _install_extra(extra: str) -> str:
+    """How to install one of pyproject's optional extras: from the checkout, as tacf itself is (it is not on PyPI,
+    where `pip install 'tacf[extra]'` would look)."""
+    return f"pip install -e '.[{extra}]' in the tacf checkout"
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     from tacf_clients.zconfig import add_zenoh_arguments
 
@@ -145,7 +151,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "speaks the camera tracking protocol (QGroundControl) starts a session "
                                           "with MAV_CMD_CAMERA_TRACK_RECTANGLE, stops it with "
                                           "MAV_CMD_CAMERA_STOP_TRACKING and gets CAMERA_TRACKING_IMAGE_STATUS. "
-                                          "Needs pymavlink: pip install 'tacf[mavlink]'.")
+                                          f"Needs pymavlink: {_install_extra('mavlink')}.")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key of the camera's frames")
     p.add_argument("--link", required=True,
                    help="pymavlink connection: udpout:GCS_HOST:14550, udpin:0.0.0.0:PORT, tcp:HOST:PORT, "
@@ -167,7 +173,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "protocol on ws://HOST:PORT: /<image key>/image, /<image key>/tracks "
                                           "(the boxes as image annotations), /tacf/<node>/<sid> (JSON health), and "
                                           "the services /tacf/start, /tacf/reinit, /tacf/stop and /tacf/list. "
-                                          "Needs foxglove-sdk: pip install 'tacf[foxglove]'.")
+                                          f"Needs foxglove-sdk: {_install_extra('foxglove')}.")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to serve on (default 127.0.0.1; on any other the services are off unless "
                         "--control: the protocol has no authentication)")
@@ -535,7 +541,7 @@ def cmd_mavlink(args: argparse.Namespace) -> int:
     try:
         from tacf_clients.mavlink import MavlinkCamera, signing_key_from_passphrase
     except ImportError as exc:
-        print(f"tacf mavlink: {exc}; install it with: pip install 'tacf[mavlink]'", file=sys.stderr)
+        print(f"tacf mavlink: {exc}; install it with: {_install_extra('mavlink')}", file=sys.stderr)
         return 2
     with stop_on_signals() as stop, _reported("mavlink"):
         try:
@@ -560,7 +566,7 @@ def cmd_foxglove(args: argparse.Namespace) -> int:
     try:
         from tacf_clients.foxglove_bridge import FoxgloveBridge
     except ImportError as exc:
-        print(f"tacf foxglove: {exc}; install it with: pip install 'tacf[foxglove]'", file=sys.stderr)
+        print(f"tacf foxglove: {exc}; install it with: {_install_extra('foxglove')}", file=sys.stderr)
         return 2
     from tacf_clients.dashboard import Dashboard
     from tacf_clients.dashboard_http import tls_context

@@ -24,11 +24,11 @@ import cv2
 import numpy as np
 
 from tacf.eval.datasets.base import natural_key
+from tacf.images import IMAGE_SUFFIXES, is_image, read_image
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 DEFAULT_FPS = 30.0
 SCENE_SPEC = "scene"
 
@@ -134,9 +134,9 @@ class ImageFolderSource(FrameSource):
 
     def __init__(self, folder: str | Path, loop: bool = False, fps: float | None = None):
         folder = Path(folder)
-        if not any(_is_image(p) for p in folder.iterdir()) and (folder / "img").is_dir():
+        if not any(is_image(p) for p in folder.iterdir()) and (folder / "img").is_dir():
             folder = folder / "img"
-        self.paths = sorted((p for p in folder.iterdir() if _is_image(p)), key=natural_key)   # 2.png before 10.png
+        self.paths = sorted((p for p in folder.iterdir() if is_image(p)), key=natural_key)   # 2.png before 10.png
         if not self.paths:
             raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
         self.folder, self.name, self.loop, self.fps = folder, str(folder), loop, fps
@@ -151,7 +151,7 @@ class ImageFolderSource(FrameSource):
             for index, path in enumerate(self.paths):
                 if should_stop():          # a pass over unreadable images yields nothing to stop at
                     return
-                image = _read_image(path)
+                image = read_image(path)
                 if image is None:
                     log.warning("cannot read %s, skipped", path)
                     continue
@@ -274,37 +274,6 @@ class CaptureSource(FrameSource):
             except Exception:
                 pass                                # its error does not matter any more: the source is closing
         self._cap.release()
-
-
-def _read_image(path: Path) -> np.ndarray | None:
-    """An image file as BGR uint8 (None if unreadable). Deeper images (16-bit thermal frames, float TIFFs) are
-    stretched from their own minimum to their maximum, as a thermal camera's automatic gain does; cutting them to
-    their high byte would leave 12-bit data almost black."""
-    if path.suffix.lower() in (".tif", ".tiff"):
-        # as it is: a one-channel float TIFF (a radiometric thermal export) fails IMREAD_COLOR
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if image is None or image.ndim == 3 and image.shape[2] not in (3, 4):
-            return None
-        if image.dtype.kind == "f":
-            # NaN (nothing measured) and -inf at the floor, +inf at the top: as the largest float, an inf pixel
-            # stretched the rest of the image to black
-            finite = image[np.isfinite(image)]
-            low, high = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
-            image = np.nan_to_num(image, nan=low, posinf=high, neginf=low)
-        # numpy's channels, not cvtColor's: that refused doubles and signed or 32-bit integers with a traceback
-        if image.ndim == 2:
-            image = np.repeat(image[..., None], 3, axis=2)
-        elif image.shape[2] == 4:
-            image = np.ascontiguousarray(image[..., :3])
-    else:
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
-    if image is None or image.dtype == np.uint8:
-        return image
-    return cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)
-
-
-def _is_image(path: Path) -> bool:
-    return path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
 
 
 def open_source(spec: str | int | Path, loop: bool = False, reconnect: bool = True,

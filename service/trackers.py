@@ -35,11 +35,12 @@ def default_profile() -> str:
 
 
 def preload(factory: str) -> None:
-    """Import the factory's module and, for TACF, the tracker's heavy modules, before any assignment."""
+    """Import the factory's module and, for TACF, compile the tracker's loops, before any assignment (done already
+    in a worker forked from the fork server, tacf_service.warm; not in a worker spawned afresh)."""
     module = factory.partition(":")[0]
     importlib.import_module(module)
     if factory == DEFAULT_FACTORY:
-        importlib.import_module("tacf.tracker")
+        importlib.import_module("tacf.tracker").compile_loops()
 
 
 def load_factory(path: str) -> Callable:

@@ -1,6 +1,7 @@
 """Imported once by the service's fork server (worker.worker_context): the workers' heavy imports and the
-tracker's first-call cost, numba loading fhog's compiled loops from its cache, are paid once instead of by every
-worker, and their memory is shared, copy-on-write, by every worker forked from the server.
+tracker's first-call cost, numba compiling its loops or loading them from its cache (tacf.tracker.compile_loops),
+are paid once instead of by every worker at its first frame, and their memory is shared, copy-on-write, by every
+worker forked from the server.
 
 Nothing here may start a thread: a forked child has only the thread that forked, and a library whose pool of
 threads did not come along waits on it for ever. So BLAS is held to one thread before numpy loads, OpenCV to no
@@ -27,12 +28,9 @@ cv2.setNumThreads(1)
 # The fork server imports this with only ImportError caught: anything else raised here would leave no server to
 # fork workers from. A worker meets the same failure again and reports it with its session.
 try:
-    import numpy as np
+    from tacf.tracker import compile_loops
 
-    import tacf.tracker  # noqa: F401
-    from tacf.features import fhog
-
-    fhog(np.zeros((16, 16, 3), np.uint8), 4)
+    compile_loops()
 except Exception:  # noqa: BLE001
     pass
 

@@ -16,6 +16,7 @@ Per frame (ALGORITHM.md section 7, with the decisions of section B):
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -414,3 +415,16 @@ class Tracker:
                 self.colour.update(patch)
         if self.scale_filter is not None:
             self.scale_filter.update_model(frame, self.pos, self.scale_factor)
+
+
+@functools.cache   # once a process; a worker forked from a process that ran it inherits the loops compiled
+def compile_loops() -> None:
+    """Run a Tracker untimed on a small generated frame, init and one update, so that numba compiles every loop it
+    calls (fHOG's, the colour lookup's), or loads them from its disk cache, before a live frame waits on them.
+    Compiled at a session's first frame instead, the colour lookup alone held the first box 0.4-0.6 s and dropped
+    the frames meanwhile. Gray and colour frames, under every profile, reach the loops with the argument types
+    compiled here (tests/test_tracker.py checks)."""
+    frame = np.random.default_rng(0).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    tracker = Tracker()
+    tracker.init(frame, (24, 24, 16, 16))
+    tracker.update(np.roll(frame, 2, axis=1))

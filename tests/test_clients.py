@@ -431,6 +431,36 @@ def test_mavlink_link_help_names_the_multicast_and_unix_socket_links(capsys):
     assert "mcast:" in link_help and "unix:" in link_help, link_help
 
 
+# Run as `tacf COMMAND ...` in a process where the module named first cannot be imported, as where its extra is
+# not installed.
+_WITHOUT_MODULE = """
+import sys
+sys.modules[sys.argv[1]] = None       # an import of it raises ImportError
+from tacf.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def test_an_extra_s_install_hint_installs_it_from_the_checkout(capsys):
+    """The help of `tacf mavlink` and `tacf foxglove` and their errors without their extra said `pip install
+    'tacf[mavlink]'`: tacf is not on PyPI, so that finds nothing. It is installed from its checkout, with the
+    extras as the README installs them."""
+    import subprocess
+    import sys
+
+    from tacf.cli import main
+
+    for command, module, argv in (("mavlink", "pymavlink", ["--key", "cam/a", "--link", "udpout:127.0.0.1:14550"]),
+                                  ("foxglove", "foxglove", ["--port", "0"])):
+        hint = f"pip install -e '.[{command}]' in the tacf checkout"
+        assert hint in _help(main, command, capsys)
+        done = subprocess.run([sys.executable, "-c", _WITHOUT_MODULE, module, command, *argv], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 2 and done.stderr.startswith(f"tacf {command}: "), done.stderr
+        assert done.stderr.rstrip().endswith(f"install it with: {hint}"), done.stderr
+        assert "tacf[" not in done.stderr
+
+
 def test_command_line_mode_help_says_the_mode_each_command_opens(capsys):
     """Every client command's help said `--mode ... (default peer)`, but the one-shot ones open as Zenoh clients
     unless told otherwise: with no node reachable they fail at once, as only a client does."""

@@ -24,7 +24,7 @@ from tacf.cli import main
 from tacf.config import TrackerConfig
 from tacf.eval import metrics, trackers
 from tacf.eval.datasets import load_sequences
-from tacf.eval.runner import read_run, run_job, times_path, track_frames, write_run
+from tacf.eval.runner import read_frame, read_run, run_job, times_path, track_frames, write_run
 
 from closed_pipe import head
 
@@ -504,6 +504,21 @@ def test_track_image_folder_and_video(tmp_path):
     assert rc == 0
     rows = check_boxes_file(tmp_path / "boxes_mp4.txt", 20, box)
     assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=4)
+
+
+def test_track_reads_a_folder_of_thermal_tiffs_as_tacf_publish_does(tmp_path):
+    """`tacf track` listed .jpg, .jpeg, .png and .bmp only: a folder of TIFFs that `tacf publish` and `tacf demo`
+    take was "no images". 12-bit thermal frames in one-channel 16-bit TIFFs are stretched to 8 bits as there."""
+    frames, box = synthetic_frames(20)
+    folder = tmp_path / "thermal"
+    folder.mkdir()
+    for i, frame in enumerate(frames, 1):
+        cv2.imwrite(str(folder / f"{i:06d}.tiff"), cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY).astype(np.uint16) * 16)
+    assert main(["track", str(folder), "--box", ",".join(str(v) for v in box), "--tracker", "tacf",
+                 "--out", str(tmp_path / "boxes.txt")]) == 0
+    rows = check_boxes_file(tmp_path / "boxes.txt", 20, box)
+    assert rows[-1, 0] == pytest.approx(box[0] + 38, abs=3) and rows[-1, 1] == pytest.approx(box[1] + 19, abs=3)
+    assert read_frame(folder / "000001.tiff").max() == 255          # read with cv2.IMREAD_COLOR: under 16
 
 
 def test_track_read_by_head_ends_quietly(tmp_path):

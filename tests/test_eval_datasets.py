@@ -11,6 +11,7 @@ import pytest
 from tacf.eval.datasets import detect_layout, load_sequences, match, read_boxes, write_boxes
 from tacf.eval.datasets import uav123
 from tacf.eval.datasets.uav123 import read_ranges
+from tacf.images import IMAGE_SUFFIXES
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SEQUENCES = DATA / "sequences"
@@ -302,10 +303,13 @@ def test_an_empty_ground_truth_file_skips_its_sequence(tmp_path, caplog):
 
 
 def test_a_folder_with_ground_truth_but_no_frames_is_named_in_a_warning(tmp_path, caplog):
-    """It was left out without a word, unlike a UAV123 sequence without frames."""
+    """It was left out without a word, unlike a UAV123 sequence without frames. The suffixes read are those of
+    `tacf publish` and `tacf track` (tacf.images): TIFF frames were refused here alone."""
     write_frames(tmp_path / "jpg" / "img", 2)
-    write_frames(tmp_path / "tiff" / "img", 2, "{:06d}.tif")      # a suffix not read
-    for name in ("jpg", "tiff"):
+    write_frames(tmp_path / "tiff" / "img", 2, "{:06d}.tif")
+    write_frames(tmp_path / "gif" / "img", 2, "{:06d}.gif")       # a suffix not read
+    for name in ("jpg", "tiff", "gif"):
         (tmp_path / name / "groundtruth.txt").write_text("1,1,5,5\n" * 2)
-    assert [s.name for s in load_sequences(tmp_path)] == ["jpg"]
-    assert f"tiff: ground truth but no frames (.jpg, .jpeg, .png, .bmp files) in {tmp_path / 'tiff'}" in caplog.text
+    assert [s.name for s in load_sequences(tmp_path)] == ["jpg", "tiff"]
+    suffixes = ", ".join(IMAGE_SUFFIXES)
+    assert f"gif: ground truth but no frames ({suffixes} files) in {tmp_path / 'gif'}" in caplog.text

@@ -659,3 +659,47 @@ def test_fast_context_cuts_the_four_context_patches_from_one_sample():
     inner = (slice(None), slice(None), slice(2, -2), slice(2, -2))
     np.testing.assert_allclose(cut[inner], separate[inner], rtol=1e-5, atol=1e-6)
     assert not np.allclose(cut[0], cut[1])  # four different places
+
+
+_WARMED_FORK_SERVER_CHECK = """
+import json, sys
+sys.path.insert(0, sys.argv[1])
+from numba.core.registry import CPUDispatcher
+import tacf_service.warm  # what the service's fork server runs before it forks a worker
+from synthetic import moving_target_sequence
+from tacf import Tracker, TrackerConfig
+from tacf.config import PROFILES
+
+def compiled_signatures():
+    return {f"{name}.{attribute}": len(value.signatures) for name, module in list(sys.modules.items())
+            if name.startswith("tacf") for attribute, value in vars(module).items()
+            if isinstance(value, CPUDispatcher)}
+
+warmed = compiled_signatures()
+for gray in (False, True):
+    images, truth = moving_target_sequence(frames=8, size=(180, 200), gray=gray)
+    for profile in PROFILES:
+        tracker = Tracker(TrackerConfig.profile(profile))
+        tracker.init(images[0], truth[0])
+        for image in images[1:]:
+            tracker.update(image)
+tracked = compiled_signatures()
+print(json.dumps([sorted(name for name, count in warmed.items() if count),
+                  sorted(name for name, count in tracked.items() if count != warmed[name])]))
+"""
+
+
+def test_the_fork_server_compiles_every_loop_a_session_calls():
+    """Workers are forked from a server that ran tacf_service.warm: every numba loop a session calls must be
+    compiled there (or loaded from numba's cache), or the session's first frame compiles it while frames queue.
+    The colour lookup was left out: its first box came 0.4-0.6 s late and 16 frames were dropped. In a fresh
+    process, tracking colour and gray frames under every profile after the warm-up compiles nothing new."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    out = subprocess.run([sys.executable, "-c", _WARMED_FORK_SERVER_CHECK, str(Path(__file__).parent)],
+                         capture_output=True, text=True, check=True).stdout
+    warmed, compiled_later = json.loads(out)
+    assert compiled_later == [], f"compiled at a session's frames, not in the fork server: {compiled_later}"
+    assert "tacf.colour._per_pixel" in warmed and "tacf.features.fhog._fhog_images" in warmed, warmed

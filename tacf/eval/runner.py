@@ -30,6 +30,7 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from ..images import read_image
 from .datasets import Sequence, read_boxes, write_boxes
 from .datasets.base import parse_boxes
 from .trackers import BoxTracker, make_tracker, settings_of
@@ -50,10 +51,8 @@ class TrackRun:
 
 
 def read_frame(path: Path) -> np.ndarray:
-    """A BGR uint8 image; FileNotFoundError instead of OpenCV's silent None."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    """A BGR uint8 image (tacf.images.read_image); FileNotFoundError instead of OpenCV's silent None."""
+    img = read_image(Path(path))
     if img is None:
         raise FileNotFoundError(f"cannot read image {path}")
     return img

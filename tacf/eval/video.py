@@ -13,6 +13,7 @@ from typing import TextIO
 import numpy as np
 
 from ..boxes import check_box
+from ..images import IMAGE_SUFFIXES
 from . import metrics
 from .datasets import Sequence
 from .datasets.folders import frames_of
@@ -36,7 +37,7 @@ def open_source(source: Path) -> tuple[Iterator[tuple[str, np.ndarray]], float]:
     if source.is_dir():
         paths = frames_of(source)
         if not paths:
-            raise FileNotFoundError(f"{source}: no images (.jpg, .jpeg, .png, .bmp) in the folder")
+            raise FileNotFoundError(f"{source}: no images ({', '.join(IMAGE_SUFFIXES)}) in the folder")
         return ((str(p), read_frame(p)) for p in paths), 10.0
     if not source.is_file():
         raise FileNotFoundError(f"{source}: no such video file or image folder")

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ...images import is_image
+
 log = logging.getLogger(__name__)
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
 _SEPARATORS = re.compile(r"[,\s;]+")
 _DIGITS = re.compile(r"(\d+)")
 
@@ -118,8 +119,7 @@ def list_frames(folder: Path, prefix: str = "") -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    files = [p for p in folder.iterdir()
-             if p.suffix.lower() in IMAGE_SUFFIXES and p.name.startswith(prefix) and p.is_file()]
+    files = [p for p in folder.iterdir() if p.name.startswith(prefix) and is_image(p)]
     return sorted(files, key=natural_key)
 
 

@@ -17,7 +17,8 @@ import re
 from pathlib import Path
 
 from ..attributes import read_attribute_list
-from .base import IMAGE_SUFFIXES, Sequence, list_frames, make_sequence, read_boxes
+from ...images import IMAGE_SUFFIXES
+from .base import Sequence, list_frames, make_sequence, read_boxes
 
 log = logging.getLogger(__name__)
 
