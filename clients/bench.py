@@ -338,6 +338,7 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         first_seq = [len(s) for s in publisher.sent]
         over_time = {"seconds": [], "rss_mb": [], "pss_mb": [], "open_fds": []}
         with tqdm(total=round(seconds), desc=f"{n} feed{'s' * (n > 1)}", unit="s", leave=False,
+                  bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} s",    # its rate would read "1.00s/s"
                   disable=not progress) as bar:
             while (elapsed := time.monotonic() - wall_before) < seconds:
                 if elapsed >= len(over_time["seconds"]) * seconds / 20:
