@@ -23,8 +23,9 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
-from tacf.eval.datasets.base import natural_key
-from tacf.images import IMAGE_SUFFIXES, is_image, read_image
+from tacf.eval.datasets.base import list_frames
+from tacf.eval.datasets.folders import frames_of
+from tacf.images import IMAGE_SUFFIXES, read_image
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -130,15 +131,15 @@ class FrameSource:
 
 
 class ImageFolderSource(FrameSource):
-    """Sorted images of a folder. A sequence folder (`<seq>/img/*.jpg`) may be given as `<seq>` too."""
+    """Sorted images of a folder (2.png before 10.png). A sequence folder (`<seq>/img/*.jpg`, VOT's
+    `<seq>/color/`) may be given as `<seq>` too, as to `tacf track`."""
 
     def __init__(self, folder: str | Path, loop: bool = False, fps: float | None = None):
         folder = Path(folder)
-        if not any(is_image(p) for p in folder.iterdir()) and (folder / "img").is_dir():
-            folder = folder / "img"
-        self.paths = sorted((p for p in folder.iterdir() if is_image(p)), key=natural_key)   # 2.png before 10.png
+        self.paths = list_frames(folder) or frames_of(folder)
         if not self.paths:
             raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+        folder = self.paths[0].parent
         self.folder, self.name, self.loop, self.fps = folder, str(folder), loop, fps
 
     def __len__(self) -> int:
