@@ -189,6 +189,8 @@ class FoxgloveBridge:
                  allow_origins=()):
         if image_hz <= 0:
             raise ValueError(f"image_hz must be positive, got {image_hz}")
+        if record is not None:
+            _check_recording_path(record)      # before the servers start, which would log as if all were well
         self.board = board
         self.image_period_s = 1.0 / image_hz
         self.control = is_loopback(host) if control is None else control
@@ -394,6 +396,16 @@ class FoxgloveBridge:
             raise ValueError(f"bad request: unknown fields {sorted(set(fields) - {'node'})}; only node is taken")
         infos = self.board.client.list(node=fields.get("node"))
         return json.dumps([info.model_dump(mode="json") for info in infos]).encode()
+
+
+def _check_recording_path(path: str | Path) -> None:
+    """The errors opening a recording would raise, found before anything starts. _open_recording stays the
+    real check (the file could appear in between)."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"cannot record to {path}: File exists (a recording is never overwritten)")
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"cannot record to {path}: no folder {path.parent}")
 
 
 def _open_recording(path: str | Path, context: foxglove.Context):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 import socket
 import struct
 import threading
@@ -284,7 +285,7 @@ def test_a_session_started_from_foxglove_is_drawn_on_its_frames(rig, client):
         "its rectangle is taken off the image"
 
 
-def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path):
+def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path, caplog):
     from mcap.reader import make_reader
 
     service, _, camera, board = rig
@@ -300,8 +301,14 @@ def test_a_recording_holds_the_frames_boxes_and_health_of_a_flight(rig, tmp_path
         time.sleep(3.0)
         board.stop("rec1", node=service.node)
         time.sleep(0.5)
-    with pytest.raises(FileExistsError, match="^cannot record to .*flight.mcap: File exists"):
-        FoxgloveBridge(board, port=0, record=path)             # never overwrites a recording
+    caplog.clear()
+    with caplog.at_level(logging.INFO):
+        with pytest.raises(FileExistsError, match="^cannot record to .*flight.mcap: File exists"):
+            FoxgloveBridge(board, port=0, record=path)             # never overwrites a recording
+        with pytest.raises(FileNotFoundError, match="^cannot record to .*: no folder .*nowhere$"):
+            FoxgloveBridge(board, port=0, record=tmp_path / "nowhere" / "flight.mcap")
+    assert not [r for r in caplog.records if "viewers connect" in r.getMessage()], \
+        "a recording that cannot be written is refused before the servers start and log their addresses"
     # a bridge that cannot serve (its port taken) leaves no empty recording, which would refuse the retry
     with pytest.raises(OSError, match="in use"):
         FoxgloveBridge(board, port=rig[1].port, record=tmp_path / "retry.mcap")
