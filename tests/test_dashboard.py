@@ -1088,6 +1088,20 @@ def browser(tmp_path_factory):
         driver.quit()
 
 
+def _feed_state(driver, feed_name: str, sid_id: str) -> str:
+    """What a session's card and frame feed are doing, for a failure's message: whether the page is connected and
+    has the card, the frame seq the feed shows and asks for, its failed fetches in a row, and the box's age."""
+    return driver.execute_script("""
+        const feed = window.tacf.feeds.get(arguments[0]), session = window.tacf.sessions.get(arguments[1]);
+        return JSON.stringify({connected: window.tacf.connected, card: window.tacf.cards.has(arguments[1]),
+                               drawn: arguments[1] in window.tacf.drawn, feed: !!feed,
+                               shows: feed ? String(feed.seq) : null, asks: feed ? String(feed.seqOf()) : null,
+                               fetched: feed ? feed.frames : null, failures: feed ? feed.failures : null,
+                               box: session && session.box ? String(session.box.seq) : null,
+                               boxAgeMs: session ? Math.round(Date.now() - session.boxAt) : null});
+    """, feed_name, sid_id)
+
+
 def _canvas_state(driver, sid_id: str) -> dict | None:
     """What the page drew last for session `sid_id`: the box, its colour and the canvas pixel on its top edge, and
     the seqs of the box and the frame (the page's BigInts, sent as strings)."""
@@ -1457,7 +1471,7 @@ def test_a_box_seconds_old_is_not_drawn_on_the_live_frames_of_a_hung_service(bro
                 # event has neither feed nor drawing for a moment. Under 10 s: the lease then ends the session.
                 last: list = [None, None]
                 assert _wait(moved_on, timeout=8), f"the last box was drawn on frame {last[1]}, the card shows " \
-                    f"frame {last[0]}"
+                    f"frame {last[0]}; the page: {_feed_state(browser, f'{key}#{sid_id}', sid_id)}"
             finally:
                 os.kill(service.process.pid, signal.SIGCONT)
 
