@@ -128,12 +128,20 @@ class FrameHistory:
 
     def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
         """The frame with `seq` (the latest to arrive, should a camera have restarted its count) and every one kept
-        after it, in arrival order; with seq None or not kept, just the newest frame; [] when none has arrived."""
+        after it, in arrival order. With `seq` no longer kept, the frames that arrived last with higher seqs: a box
+        whose frame has left the ring (a restart that waited for a new worker) is then followed from the nearest
+        frame after it, not from the newest, where the target may have moved out of reach. With seq None or nothing
+        after it, just the newest frame; [] when none has arrived."""
         frames = self._kept(key)
         if seq is not None:
             for i in range(len(frames) - 1, -1, -1):
                 if frames[i].seq == seq:
                     return frames[i:]
+            after = len(frames)
+            while after > 0 and frames[after - 1].seq > seq:
+                after -= 1
+            if after < len(frames):
+                return frames[after:]
         return frames[-1:]
 
     def frames_after(self, key: str, frame: StoredFrame) -> list[StoredFrame]:

@@ -726,6 +726,26 @@ def test_bad_frames_are_counted_and_harm_no_session(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="bystander"))
 
 
+def test_a_box_whose_frame_left_the_history_is_followed_from_the_nearest_frame_after_it(client):
+    """A restart that waits seconds for a new worker (a fork server started again, under load) finds its last box's
+    frame gone from the ring: it initialised on the newest frame, 26 frames on, where the target had moved out of
+    reach (lost, mean IoU 0.12 once in a full run). The nearest frame after the box's is where to start."""
+    from tacf_service.frames import FrameHistory
+
+    key = "test/history/gap"
+    history = FrameHistory(client, depth=8)
+    history.acquire(key)
+    try:
+        for seq in range(30):       # one at a time: the ring keeps only the newest of those not yet read
+            client.put(key, encode(encode_frame(np.zeros((8, 8, 3), np.uint8), seq, "bgr8")))
+            assert wait_until(lambda: [f.seq for f in history.frames_from(key, None)] == [seq], 5)
+        assert [f.seq for f in history.frames_from(key, 25)] == [25, 26, 27, 28, 29]     # kept: from it on
+        assert [f.seq for f in history.frames_from(key, 10)] == [22, 23, 24, 25, 26, 27, 28, 29]   # gone
+        assert [f.seq for f in history.frames_from(key, 40)] == [29]                     # none after it: newest
+    finally:
+        history.release(key)
+
+
 # ---------------------------------------------------------------------------------------------- faults
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
