@@ -56,6 +56,12 @@ MIN_KERNEL_SIGMA = 0.01                     # 1e-6 turned the HOG model NaN
 # Color Names' cells sum to 1, so x.z / N <= 1 and the polynomial kernel is at most (1 + a)^b; float32 squares its
 # transform, up to MAX_CELLS times that: 1e12 keeps it finite with a margin (a = 100, b = 50 turned the model NaN).
 MAX_CN_KERNEL = 1e12
+# ... and at the other end, Color Names' correlations per channel are small (x.z / N of 1e-4 to 0.03 on person12_1):
+# the kernel must still change by lambda1 across a weak one (0.01), or the filter is all regularisation
+# and Color Names answers nothing, silently. Its response's peak on person12_1's second frame: 1.84 at the defaults
+# (a = 1, b = 2), 0.11 at (0, 2), 0.005 at (0.5, 20), 1e-10 at (0, 5) and (0.1, 10), 0 at (0.001, 20).
+WEAK_CN_CORRELATION = 0.01
+MIN_CN_CHANGE = 1e-4                        # the profiles' lambda1
 # Off its DC term the HOG kernel's spectrum falls as 1 / hog_kernel_sigma^2 once the sigma is wide, and the filter's
 # answer as 1 / (lambda1 sigma^4), until float32 loses it beside the response's constant part. Only that product
 # counts (kcc with HOG alone: about the same boxes for any pair): at 1e6 a generated target was still followed (IoU
@@ -233,6 +239,16 @@ class TrackerConfig:
         if cn_kernel_digits > math.log10(MAX_CN_KERNEL):
             problems.append(f"(1 + cn_poly_a) ** cn_poly_b, the Color Names kernel's largest value, must be <= "
                             f"{MAX_CN_KERNEL:g}, got 10**{cn_kernel_digits:.3g}")
+        # log10 of b (a + w)^(b - 1) w, the kernel's slope times w: the power alone underflows (b = 1e5)
+        cn_change_digits = (math.log10(self.cn_poly_b) + (self.cn_poly_b - 1) * math.log10(
+            max(self.cn_poly_a, 0.0) + WEAK_CN_CORRELATION) + math.log10(WEAK_CN_CORRELATION))
+        # (a lambda1 over 1e-4 weakens every filter alike, which is allowed: see FLOORS)
+        cn_change_floor = min(self.lambda1, MIN_CN_CHANGE)
+        if cn_change_digits < math.log10(cn_change_floor):
+            problems.append(f"cn_poly_b * (cn_poly_a + {WEAK_CN_CORRELATION:g}) ** (cn_poly_b - 1) * "
+                            f"{WEAK_CN_CORRELATION:g}, the Color Names kernel's change over a weak correlation, must "
+                            f"be >= {cn_change_floor:g} (lambda1, at most {MIN_CN_CHANGE:g}), or Color Names answers "
+                            f"nothing; got 10**{cn_change_digits:.3g}: raise cn_poly_a or lower cn_poly_b")
         if self.hist_bins > MAX_HIST_BINS or 256 % self.hist_bins:
             problems.append(f"hist_bins must be a power of two up to {MAX_HIST_BINS} (its cube is the colour "
                             f"histogram's size), got {self.hist_bins}")
