@@ -263,8 +263,9 @@ def test_config_refuses_combinations_the_tracker_cannot_run(overrides, message):
     (dict(cn_poly_a=1e6, cn_poly_b=1.0), r"cn_poly_a must be in \[0, 1000\], got 1000000.0"),  # CN answered nothing
     (dict(cn_poly_b=0.0), r"cn_poly_b must be > 0, got 0.0"),                        # likewise
     # the kernel underflows on Color Names' small correlations: the filter all regularisation, a response of 0
-    (dict(cn_poly_a=0.001, cn_poly_b=20.0), r"Color Names kernel's change .* must be >= 5e-05 \(lambda1, at most 0.0001\), or "
-                                            r"Color Names answers nothing; got 10\*\*-37.9"),
+    (dict(cn_poly_a=0.001, cn_poly_b=20.0),
+     r"Color Names kernel's change .* must be >= 5e-05 \(lambda1, at most 0.0001\), or Color Names answers nothing; "
+     r"got 10\*\*-37.9"),
     (dict(cn_poly_a=0.0, cn_poly_b=5.0), r"Color Names kernel's change .* got 10\*\*-9.3"),
     (dict(cn_poly_a=0.001, cn_poly_b=20.0, lambda1=1e-12), r"Color Names kernel's change .* must be >= 1e-12 "),
     (dict(context_challenge_floor=0.0), r"context_challenge_floor must be in \[0.001, 1000\], got 0.0"),  # 0/0
