@@ -42,7 +42,9 @@ import contextlib
 import logging
 import math
 import multiprocessing
+import multiprocessing.context
 import multiprocessing.forkserver
+import multiprocessing.popen_forkserver
 import multiprocessing.resource_tracker
 import os
 import signal
@@ -131,6 +133,32 @@ class LatestFrame:
             self._payload = None
 
 
+if "forkserver" in multiprocessing.get_all_start_methods():       # its classes are not there on Windows
+    class _ForkServerPopen(multiprocessing.popen_forkserver.Popen):
+        """The fork server's Popen, whose poll one thread at a time reads. Its exit status comes once, as bytes on the
+        sentinel: of two threads polling at once (the supervisor, and Process.start's clean-up of every child in
+        another), the second read nothing and took the worker for exited with code 255, over the first's -9 (1 poll
+        pair in 8 for a killed process here). Holding the lock never waits: poll reads only a sentinel that is ready."""
+
+        def __init__(self, process_obj):
+            self._poll_lock = threading.Lock()
+            super().__init__(process_obj)
+
+        def poll(self, flag=os.WNOHANG):
+            with self._poll_lock:
+                return super().poll(flag)
+
+
+    class _ForkServerProcess(multiprocessing.context.ForkServerProcess):
+        @staticmethod
+        def _Popen(process_obj):        # how each context names its Popen (private, the same from 3.4 on)
+            return _ForkServerPopen(process_obj)
+
+
+    class _ForkServerContext(multiprocessing.context.ForkServerContext):
+        Process = _ForkServerProcess
+
+
 def worker_context():
     """Where workers are started. A fork server where the platform has one (Linux, macOS): a process that imported
     numpy, OpenCV and the tracker once (tacf_service.warm), from which each worker is forked, so a worker starts
@@ -138,7 +166,7 @@ def worker_context():
     Never a plain fork of the service, whose Zenoh runtime a child would inherit broken (ZENOH.md 2.5)."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
-    context = multiprocessing.get_context("forkserver")
+    context = _ForkServerContext()
     context.set_forkserver_preload(["tacf_service.warm"])
     return context
 

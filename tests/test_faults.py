@@ -37,7 +37,7 @@ from tacf_service.control import CONTROL_THREADS, QUERY_QUEUE
 from tacf_service.loopback import FramePublisher, SessionResults, peer_config, wait_until
 from tacf_service.probe import ControlError, call
 from tacf_service.scene import MovingTargetScene
-from tacf_service.worker import STALL_S
+from tacf_service.worker import STALL_S, worker_context
 
 pytestmark = pytest.mark.zenoh
 
@@ -333,11 +333,35 @@ def test_a_worker_that_does_not_read_its_pipe_delays_no_control_reply(service, c
 
 
 def killed_for_its_silence(process, caplog, timeout: float = 10.0) -> bool:
-    """Whether the service killed `process` for its silence: the process ended, and the service said it killed that
-    pid. Not its exit code: two threads reading it at once (the supervisor's and this one) can leave 255 instead of
-    -9 (CPython's forkserver Popen.poll reads the code from the fork server once; the other read finds its end)."""
+    """Whether the service killed `process` for its silence: the process ended by SIGKILL, and the service said it
+    killed that pid."""
     ended = multiprocessing.connection.wait([process.sentinel], timeout)
-    return bool(ended) and re.search(rf"pid {process.pid} .*: killing it", caplog.text) is not None
+    return (bool(ended) and process.exitcode == -signal.SIGKILL
+            and re.search(rf"pid {process.pid} .*: killing it", caplog.text) is not None)
+
+
+def test_a_worker_s_exit_code_reads_the_same_in_two_threads_at_once():
+    """A worker's exit status comes from the fork server once: of two threads reading it at the same moment (the
+    supervisor, and another starting a worker, which polls every child), the second found nothing and took a
+    killed worker for exited with code 255, and its session's health said so (1 pair of reads in 8 here)."""
+    context = worker_context()
+    for _ in range(100):
+        process = context.Process(target=time.sleep, args=(60,))
+        process.start()
+        process.kill()
+        multiprocessing.connection.wait([process.sentinel])
+        at_once, codes = threading.Barrier(2), []
+
+        def read_exit_code():
+            at_once.wait()
+            codes.append(process.exitcode)
+
+        readers = [threading.Thread(target=read_exit_code) for _ in range(2)]
+        for reader in readers:
+            reader.start()
+        for reader in readers:
+            reader.join()
+        assert codes == [-signal.SIGKILL] * 2 and process.exitcode == -signal.SIGKILL, codes
 
 
 @contextmanager
