@@ -651,6 +651,28 @@ def test_bench_tracker_records_a_pair_that_fails_and_measures_the_others(tmp_pat
     assert "2 (tracker, sequence) pairs failed" in caplog.text
 
 
+@needs_data
+def test_bench_tracker_json_is_strict_json_when_a_tracker_has_no_speed(tmp_path):
+    """A tracker that failed on every sequence has no fps nor cores, and the ratio none either: they were written
+    as NaN, which json.loads takes but strict readers (jq, JavaScript's JSON.parse) refuse; summary.json writes
+    null there."""
+    seq = tmp_path / "UAV123_10fps" / "wakeboard7"
+    seq.mkdir(parents=True)
+    (seq / "img").symlink_to(SEQUENCES / "UAV123_10fps" / "wakeboard7" / "img")
+    rows = (SEQUENCES / "UAV123_10fps" / "wakeboard7" / "groundtruth.txt").read_text().splitlines(keepends=True)
+    (seq / "groundtruth.txt").write_text("NaN,NaN,NaN,NaN\n" + "".join(rows[1:]))   # UAV123's absent target
+    out = tmp_path / "bench.json"
+    assert main(["bench", "tracker", str(tmp_path), "--trackers", "identity", "--max-frames", "3", "--json",
+                 str(out), "--no-progress"]) == 1
+
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+
+    report = json.loads(out.read_text(), parse_constant=refuse)
+    assert report["fps"] is None and report["cores"] is None and report["ratio_to_opencv-csrt"] is None
+    assert list(report["failed"]) == ["UAV123_10fps/wakeboard7"]
+
+
 def test_bench_tracker_decodes_a_frame_when_the_tracker_needs_it(tmp_path, monkeypatch):
     """Each sequence was decoded whole before it was timed: 2.7 MB a 720p frame, 5,000 frames in a UAV20L one.
     Here the frames alive (decoded, not yet freed) are counted at every tracker call."""

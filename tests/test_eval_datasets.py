@@ -313,3 +313,14 @@ def test_a_folder_with_ground_truth_but_no_frames_is_named_in_a_warning(tmp_path
     assert [s.name for s in load_sequences(tmp_path)] == ["jpg", "tiff"]
     suffixes = ", ".join(IMAGE_SUFFIXES)
     assert f"gif: ground truth but no frames ({suffixes} files) in {tmp_path / 'gif'}" in caplog.text
+
+
+@needs_data
+def test_a_sequence_folder_given_as_dot_or_dot_dot_keeps_its_name(monkeypatch):
+    """`tacf eval .` in a sequence folder named the sequence "": results in a hidden `<tracker>/.txt`, and
+    `--sequences wakeboard7` matched nothing; `..` from its img/ named it ".."."""
+    folder = SEQUENCES / "UAV123_10fps" / "wakeboard7"
+    for cwd, root in ((folder, "."), (folder / "img", ".."), (folder, "../wakeboard7")):
+        monkeypatch.chdir(cwd)
+        (seq,) = load_sequences(Path(root), "wakeboard7")
+        assert seq.name == "wakeboard7" and len(seq) == 67, root

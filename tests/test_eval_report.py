@@ -40,3 +40,35 @@ def test_otb_s_tre_pools_each_sequence_s_frames_over_its_starts():
     assert "OTB's TRE, pooled: AUC / precision@20 |" in table
     assert "| a | 0.700 | 0.550 | 0.400 - 0.700 | - | 0.600 / 0.650 |" in table
     assert "otb_pooled" not in robustness(per_start, ["a"], "tre")["trackers"]["a"]
+
+
+@pytest.mark.parametrize("count", [1, 2, 5])
+def test_the_robustness_plot_shows_its_whole_title_and_caption(count, tmp_path, monkeypatch):
+    """The figure's width followed the number of trackers only: with one or two, the title and the caption that
+    says what the dots and the bar are ran off its edges."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from tacf.eval.report import plot_robustness
+
+    saved = []
+    savefig = Figure.savefig
+
+    def keep(fig, *args, **kwargs):   # the figure, to measure it after the plot closed it
+        saved.append(fig)
+        return savefig(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    trackers = {f"tracker{i}": {"auc_per_start": [0.45, 0.52, 0.38], "mean": 0.45} for i in range(count)}
+    for protocol in ("shifts", "tre"):
+        plot_robustness({"protocol": protocol, "starts": ["a", "b", "c"], "sequences": 10, "trackers": trackers},
+                        tmp_path)
+        fig = saved[-1]
+        renderer = FigureCanvasAgg(fig).get_renderer()
+        ax = fig.axes[0]
+        for text in (ax.title, ax.xaxis.label):
+            extent = text.get_window_extent(renderer)
+            assert 0 <= extent.x0 and extent.x1 <= fig.bbox.width, (protocol, text.get_text())

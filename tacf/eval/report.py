@@ -576,7 +576,8 @@ def plot_robustness(result: dict, out_dir: Path) -> Path:
     import matplotlib.pyplot as plt
 
     trackers = result["trackers"]
-    fig, ax = plt.subplots(figsize=(1.2 * len(trackers) + 2.5, 4), dpi=100)
+    # 6 inches at least: narrower, the title and the caption under the axis were cut at one or two trackers
+    fig, ax = plt.subplots(figsize=(max(1.2 * len(trackers) + 2.5, 6.0), 4), dpi=100)
     for x, t in enumerate(trackers.values()):
         aucs = np.asarray(t["auc_per_start"])
         spread = np.linspace(-0.15, 0.15, len(aucs))

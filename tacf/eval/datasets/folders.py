@@ -81,7 +81,8 @@ def load(root: Path) -> list[Sequence]:
     seqs = []
     for folder in annotated_folders(root):
         rel = folder.relative_to(root).as_posix()
-        base = folder.name if rel == "." else rel
+        # ROOT itself: its own name, which "." and ".." lack (`tacf eval .` in a sequence folder named it "")
+        base = Path(os.path.abspath(folder)).name if rel == "." else rel
         frames = frames_of(folder)
         if not frames:
             log.warning("%s: ground truth but no frames (%s files) in %s, its img/ or its color/; skipped", base,
