@@ -5,7 +5,6 @@ Only argparse-level code runs at import time; numpy, OpenCV and the tracker load
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import re
@@ -306,7 +305,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import UAV_PREFIXES, bench, is_uav
     from .provenance import provenance
-    from .report import _finite
+    from .report import strict_json
 
     root = args.root
     if root is None:
@@ -333,8 +332,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         log.error("no sequences to benchmark in %s", root)
         return 2
     result = {**bench(trackers, seqs, progress=not args.no_progress), "run": provenance(args)}
-    # no speed (a tracker that failed on every sequence) is null, as in summary.json: strict readers refuse NaN
-    text = json.dumps(_finite(result), indent=2, allow_nan=False) + "\n"
+    text = strict_json(result)      # no speed (a tracker that failed on every sequence) is null, as in summary.json
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text)

@@ -596,6 +596,11 @@ def plot_robustness(result: dict, out_dir: Path) -> Path:
     return path
 
 
+def strict_json(obj) -> str:
+    """`obj` as indented JSON, NaN and infinite floats as null: strict readers (jq, JSON.parse) refuse NaN."""
+    return json.dumps(_finite(obj), indent=2, allow_nan=False) + "\n"
+
+
 def _finite(obj):
     """NaN/inf floats become null so that strict JSON readers accept the file."""
     if isinstance(obj, dict):
@@ -615,7 +620,7 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {}
     js = out_dir / "summary.json"
-    js.write_text(json.dumps(_finite(summary), indent=2, allow_nan=False) + "\n")
+    js.write_text(strict_json(summary))
     md = out_dir / "summary.md"
     md.write_text(markdown_table(summary) + analysis_tables(summary))
     success, precision = plot_curves(reports, out_dir)
