@@ -231,6 +231,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def parse_request(self) -> bool:
         parsed = super().parse_request()                    # reads the headers
         self.server.expect_head(self.connection, False)     # the head came: streams (/events, /mjpeg) run on
+        if parsed and self.command != "POST" and (self.headers.get("Transfer-Encoding") is not None
+                                                  or (self.headers.get("Content-Length") or "0").strip() != "0"):
+            # only a POST's body is ever read: another's would pass for the next request on this connection
+            # (behind a proxy that reuses its connections, a request smuggled past the proxy's own checks)
+            self.close_connection = True
         return parsed
 
     # --- routing --------------------------------------------------------------------------------------------
@@ -262,7 +267,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _not_allowed(self) -> None:
         """A 405 in JSON like every other refusal (the stdlib answers PUT and the like with a 501 HTML page)."""
-        self.close_connection = self.command != "HEAD"       # a body left unread is not the next request
+        if self.command != "HEAD":                           # a body left unread is not the next request
+            self.close_connection = True
         self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET or POST", {"Allow": "GET, POST"})
 
     do_HEAD = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed

@@ -726,6 +726,29 @@ def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
         assert app.dashboard.image_keys() == []
 
 
+def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
+    """Only a POST's body is read: the body of a GET or HEAD was left on the connection and answered as a request
+    of its own (a POST hidden in a GET's body watched its key), which behind a proxy that reuses its connections
+    is a request smuggled past the proxy. The connection now ends after the reply."""
+    smuggled = (b'POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n'
+                b'Content-Length: 28\r\nConnection: close\r\n\r\n{"key": "test/dashboard/in"}')
+    chunked = b"%x\r\n%s\r\n0\r\n\r\n" % (len(smuggled), smuggled)
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        for method, framing, body, status in (
+                ("GET", b"Content-Length: %d" % len(smuggled), smuggled, 200),
+                ("HEAD", b"Content-Length: %d" % len(smuggled), smuggled, 405),
+                ("GET", b"Transfer-Encoding: chunked", chunked, 200)):
+            reply = _raw_reply(address, method.encode() + b" /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n" + framing
+                               + b"\r\n\r\n" + body)
+            assert reply.startswith(b"HTTP/1.1 %d " % status) and reply.count(b"HTTP/1.1 ") == 1, (method, reply)
+        assert app.dashboard.image_keys() == []
+        # a GET without a body still keeps its connection for the next request
+        reply = _raw_reply(address, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n\r\n"
+                                    b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        assert reply.count(b"HTTP/1.1 200 ") == 2, reply
+
+
 def test_a_field_given_twice_is_refused_not_read_as_its_last_value():
     """json keeps the last value of a key given twice: {"key": A, "key": B} watched B without a word, as a repeated
     override or sid kept its last value, where a proxy or a log in front reading the first would have seen another
