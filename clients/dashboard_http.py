@@ -157,7 +157,8 @@ class DashboardServer(ThreadingHTTPServer):
                 self.connections -= 1
 
     def expect_head(self, connection: socket.socket, waiting: bool) -> None:
-        """Mark `connection` as waiting for a request head (from now on, head_timeout_s at most), or not."""
+        """Mark `connection` as waiting for a request head or a POST's body (from now on, head_timeout_s at most),
+        or not."""
         with self._clients_lock:
             if waiting:
                 self._heads[connection] = time.monotonic() + self.head_timeout_s
@@ -513,14 +514,20 @@ class DashboardHandler(BaseHTTPRequestHandler):
             length = int(self.headers.get("Content-Length") or 0)
         except ValueError:
             length = -1
-        if length > MAX_BODY:
-            self._discard(min(length, MAX_DRAINED))
+        # the body too must come whole within head_timeout_s: the socket timeout restarts on every byte, and a body
+        # sent a byte every few seconds held the connection's thread for good
+        self.server.expect_head(self.connection, True)
+        try:
+            if length > MAX_BODY:
+                self._discard(min(length, MAX_DRAINED))
+            data = self.rfile.read(length) if 0 < length <= MAX_BODY else b""
+        finally:
+            self.server.expect_head(self.connection, False)
         if not 0 < length <= MAX_BODY:
             self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.BAD_REQUEST,
                         "invalid_request", f"a JSON body of 1 to {MAX_BODY} bytes is needed")
             return None
-        data = self.rfile.read(length)
-        if len(data) < length:                     # the client gave up: what came is not the request it meant
+        if len(data) < length:                     # the client gave up (or was cut): not the request it meant
             return None
         try:
             body = json.loads(data, object_pairs_hook=unique_keys)
