@@ -1684,6 +1684,28 @@ def test_a_session_started_again_with_its_id_starts_a_new_history(stack, browser
                 client.stop("again")
 
 
+def test_a_session_gone_leaves_nothing_of_its_own_on_the_page(stack, browser):
+    """The page kept each session's chart record (window.tacf.charts) after the session went: one more for every
+    session ever shown, for as long as the page stayed open."""
+    app, client, camera, service = stack
+    base, sid_id = app.url.rstrip("/"), f"{service.node}/passing"
+    _open_page(browser, app)
+    try:
+        assert _post(base + "/api/start", {"image_key": KEY, "box": [20, 20, 40, 40], "sid": "passing"})[0] == 200
+        assert _wait(lambda: browser.execute_script("return arguments[0] in window.tacf.charts", sid_id), timeout=30)
+        assert _post(base + "/api/stop", {"sid": "passing"})[0] == 200
+        assert _wait(lambda: not browser.execute_script("return window.tacf.cards.has(arguments[0])", sid_id))
+        left = browser.execute_script("""
+            const id = arguments[0], t = window.tacf;
+            return {sessions: t.sessions.has(id), points: t.points.has(id), boxes: t.boxes.has(id),
+                    drawn: id in t.drawn, charts: id in t.charts,
+                    feeds: [...t.feeds.keys()].filter((name) => name.endsWith('#' + id)).length > 0};""", sid_id)
+        assert not any(left.values()), left
+    finally:
+        if "passing" in {info.sid for info in client.list()}:
+            client.stop("passing")
+
+
 def test_a_narrow_window_keeps_the_session_buttons_in_sight(stack, browser):
     """At 700 px the session table ran out of its panel and hid the stop and re-init buttons; at 500 px the
     charts' "-10s" label ran into "now"."""
