@@ -157,7 +157,8 @@ class DashboardServer(ThreadingHTTPServer):
                 self.connections -= 1
 
     def expect_head(self, connection: socket.socket, waiting: bool) -> None:
-        """Mark `connection` as waiting for a request head (from now on, head_timeout_s at most), or not."""
+        """Mark `connection` as waiting for a request head or a POST's body (from now on, head_timeout_s at most),
+        or not."""
         with self._clients_lock:
             if waiting:
                 self._heads[connection] = time.monotonic() + self.head_timeout_s
@@ -231,6 +232,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def parse_request(self) -> bool:
         parsed = super().parse_request()                    # reads the headers
         self.server.expect_head(self.connection, False)     # the head came: streams (/events, /mjpeg) run on
+        if parsed and self.command != "POST" and (self.headers.get("Transfer-Encoding") is not None
+                                                  or (self.headers.get("Content-Length") or "0").strip() != "0"):
+            # only a POST's body is ever read: another's would pass for the next request on this connection
+            # (behind a proxy that reuses its connections, a request smuggled past the proxy's own checks)
+            self.close_connection = True
         return parsed
 
     # --- routing --------------------------------------------------------------------------------------------
@@ -262,7 +268,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _not_allowed(self) -> None:
         """A 405 in JSON like every other refusal (the stdlib answers PUT and the like with a 501 HTML page)."""
-        self.close_connection = self.command != "HEAD"       # a body left unread is not the next request
+        if self.command != "HEAD":                           # a body left unread is not the next request
+            self.close_connection = True
         self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET or POST", {"Allow": "GET, POST"})
 
     do_HEAD = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed
@@ -507,14 +514,20 @@ class DashboardHandler(BaseHTTPRequestHandler):
             length = int(self.headers.get("Content-Length") or 0)
         except ValueError:
             length = -1
-        if length > MAX_BODY:
-            self._discard(min(length, MAX_DRAINED))
+        # the body too must come whole within head_timeout_s: the socket timeout restarts on every byte, and a body
+        # sent a byte every few seconds held the connection's thread for good
+        self.server.expect_head(self.connection, True)
+        try:
+            if length > MAX_BODY:
+                self._discard(min(length, MAX_DRAINED))
+            data = self.rfile.read(length) if 0 < length <= MAX_BODY else b""
+        finally:
+            self.server.expect_head(self.connection, False)
         if not 0 < length <= MAX_BODY:
             self._error(HTTPStatus.REQUEST_ENTITY_TOO_LARGE if length > MAX_BODY else HTTPStatus.BAD_REQUEST,
                         "invalid_request", f"a JSON body of 1 to {MAX_BODY} bytes is needed")
             return None
-        data = self.rfile.read(length)
-        if len(data) < length:                     # the client gave up: what came is not the request it meant
+        if len(data) < length:                     # the client gave up (or was cut): not the request it meant
             return None
         try:
             body = json.loads(data, object_pairs_hook=unique_keys)

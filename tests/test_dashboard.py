@@ -30,7 +30,7 @@ import pytest
 import zenoh
 
 from tacf.eval.metrics import box_iou
-from tacf_clients import dashboard, dashboard_metrics
+from tacf_clients import dashboard, dashboard_http, dashboard_metrics
 from tacf_clients.client import TrackingClient
 from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
@@ -632,6 +632,33 @@ def test_a_request_head_sent_a_byte_at_a_time_is_cut_off_and_connections_are_cap
         assert status == 200 and "tacf_dashboard_connections_refused_total 1" in body.decode()
 
 
+def test_a_post_body_sent_a_byte_at_a_time_is_cut_off():
+    """The head's deadline ended with the head: a POST whose body came a byte every 0.3 s (or one over the limit,
+    drained before its 413) kept its thread for good, the socket timeout restarting on every byte."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        app.server.head_timeout_s = 1.5
+        for length in (100, 2 * dashboard_http.MAX_BODY):
+            with socket.create_connection(address, timeout=10) as slow:
+                slow.sendall(b"POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                             b"Content-Length: %d\r\n\r\n" % length)
+
+                def dribble():
+                    with contextlib.suppress(OSError):
+                        for _ in range(length):
+                            slow.sendall(b" ")
+                            time.sleep(0.3)
+
+                sender = threading.Thread(target=dribble, daemon=True)
+                started = time.monotonic()
+                sender.start()
+                with contextlib.suppress(ConnectionResetError):
+                    assert slow.recv(1024) == b"", length       # no reply: what came is not the request it meant
+                assert time.monotonic() - started < 3.0, f"cut after {time.monotonic() - started:.1f} s"
+        assert _wait(lambda: app.server.connections == 0)
+        assert _post(app.url + "api/watch", {"key": KEY})[0] == 200, "a body sent whole is served as before"
+
+
 def test_a_connection_whose_thread_cannot_start_is_not_counted_open(monkeypatch, caplog, capfd):
     """Out of threads (the flood the cap is for), Thread.start raises and the connection's thread never ran to give
     its count back: after max_connections of them every later connection was refused, for good. Each is refused
@@ -724,6 +751,29 @@ def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
                     b"Content-Length: 100\r\n\r\n{\"key\": \"test/dashboard/half\"}"
         assert _raw_reply(address, truncated, half_close=True) == b""
         assert app.dashboard.image_keys() == []
+
+
+def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
+    """Only a POST's body is read: the body of a GET or HEAD was left on the connection and answered as a request
+    of its own (a POST hidden in a GET's body watched its key), which behind a proxy that reuses its connections
+    is a request smuggled past the proxy. The connection now ends after the reply."""
+    smuggled = (b'POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n'
+                b'Content-Length: 28\r\nConnection: close\r\n\r\n{"key": "test/dashboard/in"}')
+    chunked = b"%x\r\n%s\r\n0\r\n\r\n" % (len(smuggled), smuggled)
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        for method, framing, body, status in (
+                ("GET", b"Content-Length: %d" % len(smuggled), smuggled, 200),
+                ("HEAD", b"Content-Length: %d" % len(smuggled), smuggled, 405),
+                ("GET", b"Transfer-Encoding: chunked", chunked, 200)):
+            reply = _raw_reply(address, method.encode() + b" /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n" + framing
+                               + b"\r\n\r\n" + body)
+            assert reply.startswith(b"HTTP/1.1 %d " % status) and reply.count(b"HTTP/1.1 ") == 1, (method, reply)
+        assert app.dashboard.image_keys() == []
+        # a GET without a body still keeps its connection for the next request
+        reply = _raw_reply(address, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n\r\n"
+                                    b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        assert reply.count(b"HTTP/1.1 200 ") == 2, reply
 
 
 def test_a_field_given_twice_is_refused_not_read_as_its_last_value():
@@ -1632,6 +1682,28 @@ def test_a_session_started_again_with_its_id_starts_a_new_history(stack, browser
         finally:
             if "again" in {info.sid for info in client.list()}:
                 client.stop("again")
+
+
+def test_a_session_gone_leaves_nothing_of_its_own_on_the_page(stack, browser):
+    """The page kept each session's chart record (window.tacf.charts) after the session went: one more for every
+    session ever shown, for as long as the page stayed open."""
+    app, client, camera, service = stack
+    base, sid_id = app.url.rstrip("/"), f"{service.node}/passing"
+    _open_page(browser, app)
+    try:
+        assert _post(base + "/api/start", {"image_key": KEY, "box": [20, 20, 40, 40], "sid": "passing"})[0] == 200
+        assert _wait(lambda: browser.execute_script("return arguments[0] in window.tacf.charts", sid_id), timeout=30)
+        assert _post(base + "/api/stop", {"sid": "passing"})[0] == 200
+        assert _wait(lambda: not browser.execute_script("return window.tacf.cards.has(arguments[0])", sid_id))
+        left = browser.execute_script("""
+            const id = arguments[0], t = window.tacf;
+            return {sessions: t.sessions.has(id), points: t.points.has(id), boxes: t.boxes.has(id),
+                    drawn: id in t.drawn, charts: id in t.charts,
+                    feeds: [...t.feeds.keys()].filter((name) => name.endsWith('#' + id)).length > 0};""", sid_id)
+        assert not any(left.values()), left
+    finally:
+        if "passing" in {info.sid for info in client.list()}:
+            client.stop("passing")
 
 
 def test_a_narrow_window_keeps_the_session_buttons_in_sight(stack, browser):

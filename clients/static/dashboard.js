@@ -502,7 +502,8 @@ function removeSession(id) {
     state.feeds.get(`${session.image_key}#${id}`).stop();
     state.feeds.delete(`${session.image_key}#${id}`);
   }
-  state.sessions.delete(id); state.points.delete(id); state.boxes.delete(id); delete state.drawn[id];
+  state.sessions.delete(id); state.points.delete(id); state.boxes.delete(id);
+  delete state.drawn[id]; delete state.charts[id];     // else one more for each session the open page ever showed
   const card = state.cards.get(id);
   if (card) { card.root.remove(); state.cards.delete(id); }
   if (state.reinit === id) setReinit(null);
