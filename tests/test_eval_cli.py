@@ -23,6 +23,7 @@ import tacf
 from tacf.cli import main
 from tacf.config import TrackerConfig
 from tacf.eval import metrics, trackers
+from tacf.eval.cli import _names
 from tacf.eval.datasets import load_sequences
 from tacf.eval.runner import read_frame, read_run, run_job, times_path, track_frames, write_run
 
@@ -69,6 +70,11 @@ def test_registry_names():
     only_ca = trackers.tacf_config("kcc+ca")
     assert only_ca.context_attention and not only_ca.dimensional_attention and not only_ca.spatiotemporal_attention
     assert trackers.tacf_config("tacf-paper").profile_name == "paper"
+
+
+def test_tracker_names_are_split_at_commas_and_spaces_quoted_or_not():
+    assert _names(["tacf kcc", "kcc,identity", " staple ,"], "tacf") == ["tacf", "kcc", "identity", "staple"]
+    assert _names(None, "tacf,kcc") == ["tacf", "kcc"]
 
 
 def test_names_with_settings():

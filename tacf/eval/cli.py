@@ -48,8 +48,8 @@ def _names(values: list[str] | None, default: str) -> list[str]:
     """Tracker names from `--trackers a,b c`: comma- or space-separated, duplicates dropped, each checked."""
     from .trackers import check_name
 
-    raw = ",".join(values) if values else default
-    names = list(dict.fromkeys(n.strip() for n in raw.split(",") if n.strip()))
+    raw = " ".join(values) if values else default
+    names = list(dict.fromkeys(n for n in re.split(r"[,\s]+", raw) if n))     # "a b" quoted as one word too
     return [check_name(n) for n in names]
 
 
