@@ -587,6 +587,11 @@ class SessionManager:
             else:
                 backoff = RESTART_BACKOFF_S[min(len(session.crashes), len(RESTART_BACKOFF_S)) - 1]
                 session.restart_at = now + backoff
+                # The restart comes after the backoff, or later when it waits for a fork server started again: the
+                # last box's frame may have left the history by then (24 frames, 2.4 s at 10 fps), and the box would
+                # go on a later frame, where the target has moved. Kept from now on, as a frame a request carries.
+                if session.box_frame is None and session.last_seq is not None:
+                    session.box_frame = self._history.frame(session.image_key, session.last_seq)
             # Under the lock, as the check above: a stop that came in between published "stopped" first, and this
             # "failed" became the last word on a stopped session.
             self._publish_health(session, "failed", session.message)
