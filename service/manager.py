@@ -142,18 +142,19 @@ class SessionManager:
         if self._store is None:
             return 0
         restored = 0
-        table = self._store.load()
+        table = []
+        for saved in self._store.load():
+            try:            # as a start checks them: a hand-edited file, or one from a version with other profiles
+                validate_image_key(saved.image_key)
+                table.append((saved, checked_overrides(saved.profile, dict(saved.overrides))))
+            except (InvalidKeyError, ValueError, TypeError) as exc:
+                log.warning("not restoring session %s: %s", saved.sid, exc)
+        # counted after those left out: a session not restored takes no slot from one that would be
         if len(table) > self.max_sessions:
             log.warning("not restoring %d session(s) of %s beyond --max-sessions %d: %s",
                         len(table) - self.max_sessions, self._store.path, self.max_sessions,
-                        ", ".join(s.sid for s in table[self.max_sessions:]))
-        for saved in table[: self.max_sessions]:
-            try:            # as a start checks them: a hand-edited file, or one from a version with other profiles
-                validate_image_key(saved.image_key)
-                overrides = checked_overrides(saved.profile, dict(saved.overrides))
-            except (InvalidKeyError, ValueError, TypeError) as exc:
-                log.warning("not restoring session %s: %s", saved.sid, exc)
-                continue
+                        ", ".join(saved.sid for saved, _ in table[self.max_sessions:]))
+        for saved, overrides in table[: self.max_sessions]:
             session = Session(sid=saved.sid, image_key=saved.image_key, profile=saved.profile,
                               overrides=overrides, box=tuple(saved.box), created_ns=saved.created_ns,
                               init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts,
