@@ -142,18 +142,19 @@ class SessionManager:
         if self._store is None:
             return 0
         restored = 0
-        table = self._store.load()
+        table = []
+        for saved in self._store.load():
+            try:            # as a start checks them: a hand-edited file, or one from a version with other profiles
+                validate_image_key(saved.image_key)
+                table.append((saved, checked_overrides(saved.profile, dict(saved.overrides))))
+            except (InvalidKeyError, ValueError, TypeError) as exc:
+                log.warning("not restoring session %s: %s", saved.sid, exc)
+        # counted after those left out: a session not restored takes no slot from one that would be
         if len(table) > self.max_sessions:
             log.warning("not restoring %d session(s) of %s beyond --max-sessions %d: %s",
                         len(table) - self.max_sessions, self._store.path, self.max_sessions,
-                        ", ".join(s.sid for s in table[self.max_sessions:]))
-        for saved in table[: self.max_sessions]:
-            try:            # as a start checks them: a hand-edited file, or one from a version with other profiles
-                validate_image_key(saved.image_key)
-                overrides = checked_overrides(saved.profile, dict(saved.overrides))
-            except (InvalidKeyError, ValueError, TypeError) as exc:
-                log.warning("not restoring session %s: %s", saved.sid, exc)
-                continue
+                        ", ".join(saved.sid for saved, _ in table[self.max_sessions:]))
+        for saved, overrides in table[: self.max_sessions]:
             session = Session(sid=saved.sid, image_key=saved.image_key, profile=saved.profile,
                               overrides=overrides, box=tuple(saved.box), created_ns=saved.created_ns,
                               init_seq=saved.last_seq, last_seq=saved.last_seq, restarts=saved.restarts,
@@ -587,6 +588,11 @@ class SessionManager:
             else:
                 backoff = RESTART_BACKOFF_S[min(len(session.crashes), len(RESTART_BACKOFF_S)) - 1]
                 session.restart_at = now + backoff
+                # The restart comes after the backoff, or later when it waits for a fork server started again: the
+                # last box's frame may have left the history by then (24 frames, 2.4 s at 10 fps), and the box would
+                # go on a later frame, where the target has moved. Kept from now on, as a frame a request carries.
+                if session.box_frame is None and session.last_seq is not None:
+                    session.box_frame = self._history.frame(session.image_key, session.last_seq)
             # Under the lock, as the check above: a stop that came in between published "stopped" first, and this
             # "failed" became the last word on a stopped session.
             self._publish_health(session, "failed", session.message)

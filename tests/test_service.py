@@ -776,6 +776,33 @@ def test_a_killed_worker_is_reported_and_recovers_from_its_last_box(service, cli
         call(client, NODE, "stop", StopRequest(sid="victim2"))
 
 
+def test_a_restart_long_after_the_crash_starts_on_the_last_box_s_own_frame(service, client, feed, monkeypatch):
+    """A restart comes after its backoff (2 and 5 s for the fourth and fifth crash within a minute), or later when
+    it waits for a fork server started again under load: by then the last box's frame had left the 24 frames kept
+    (2.4 s at 10 fps), and the box was put on a later frame, where the target had moved (mean IoU 0.15 after a
+    fork server's SIGTERM on the loaded 2-core box). The frame is kept from the crash on."""
+    import tacf_service.manager as manager
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (3.0,) * len(manager.RESTART_BACKOFF_S))
+    results = Collector(client, NODE, "late")
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="late")
+        assert wait_until(lambda: len(results.results()) >= 8, 30)
+        pid = service.manager.worker_pids()["late"]
+        os.kill(pid, signal.SIGKILL)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="late")).state == "failed", 5)
+        last_seq = call(client, NODE, "status", StatusRequest(sid="late")).last_seq
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="late")).restarts == 1, 10)
+        count = len(results.results())
+        assert wait_until(lambda: len(results.results()) >= count + 8, 30)
+        info = call(client, NODE, "status", StatusRequest(sid="late"))
+        assert info.init_seq == last_seq, (info.init_seq, last_seq)
+        assert mean_iou(results.results()[count:], feed.truth) > 0.5
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="late"))
+
+
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
 def test_a_killed_fork_server_restarts_its_sessions_once(service, client, feed, sig):
     """The fork server dying takes its report of the workers' exits with it, so each of its sessions counts as

@@ -582,6 +582,26 @@ def test_a_saved_session_its_tracker_refuses_is_not_restored(tmp_path, caplog):
         service.close()
 
 
+def test_a_saved_session_not_restored_takes_no_slot_of_max_sessions(tmp_path, caplog):
+    """The slots were counted before the sessions a restore leaves out: with --max-sessions 2, one of an old
+    profile first left a single session restored, and the third, which fitted, was named as beyond the limit and
+    dropped from the table for good."""
+    state = tmp_path / "sessions.json"
+    entry = PersistedSession(sid="a", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0),
+                             created_ns=1)
+    StateStore(state).save([entry.model_copy(update={"sid": "old", "profile": "nope"}), entry,
+                            entry.model_copy(update={"sid": "b"})])
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                             state_file=str(state), max_sessions=2, spare_workers=0))
+    with caplog.at_level("WARNING", logger="tacf_service.manager"):
+        service.open()
+    try:
+        assert [s.sid for s in service.manager.list().sessions] == ["a", "b"]
+        assert "not restoring session old: " in caplog.text and "beyond --max-sessions" not in caplog.text
+    finally:
+        service.close()
+
+
 def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
     """It would restore the first one's sessions and track them too, and each would overwrite the other's table."""
     state = str(tmp_path / "sessions.json")
