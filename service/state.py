@@ -66,8 +66,8 @@ class StateStore:
         self._lock_file = None
 
     def lock(self) -> None:
-        """Take the state file for this service (StateError if another service holds it). Creating the lock file
-        also finds, at start, a state file that could never be saved."""
+        """Take the state file for this service (StateError if another service holds it, or it cannot be read).
+        Creating the lock file also finds, at start, a state file that could never be saved."""
         if self.path.is_dir():
             raise StateError(f"state file {self.path} is a directory")
         try:
@@ -81,7 +81,19 @@ class StateStore:
             lock_file.close()
             raise StateError(f"state file {self.path} is in use by another service") from None
         self._lock_file = lock_file
+        self._check_readable()
         self._remove_partial_writes()
+
+    def _check_readable(self) -> None:
+        """Refuse a state file that is there but cannot be read (its owner or mode, a loop of links, a disk error):
+        a service that started empty on it would replace it, and the sessions it holds, at its first save."""
+        try:
+            self.path.read_bytes()
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            self.unlock()
+            raise StateError(f"cannot read state file {self.path}: {exc.strerror or exc}") from None
 
     def _remove_partial_writes(self) -> None:
         """Remove what a service killed in the middle of a write left (its temporary files, frames of up to

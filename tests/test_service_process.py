@@ -630,6 +630,20 @@ def test_serve_with_a_state_file_it_cannot_write_fails_at_start(tmp_path):
     assert serve.log().count("\n") == 1 and "cannot use state file" in serve.log(), serve.log()
 
 
+def test_a_state_file_that_cannot_be_read_is_refused_and_left_as_it_is(tmp_path):
+    """Started empty on it, the service replaced the file, and the sessions it held, at its first save. Root reads
+    any file whatever its mode: a link to itself stands for one this service's user may not read."""
+    state = tmp_path / "sessions.json"
+    state.symlink_to(state.name)
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                             state_file=str(state), spare_workers=0))
+    with pytest.raises(StateError, match="cannot read state file .*sessions.json: Too many levels of symbolic links"):
+        service.open()
+    assert state.is_symlink() and os.readlink(state) == state.name
+    state.unlink()
+    service.open().close()                      # the refusal released the file
+
+
 def test_a_stop_while_the_state_file_cannot_be_written_reaches_it_once_it_can(tmp_path):
     """A failed save (disk full, say) is tried again until it works, so a service killed later does not bring a
     stopped session back, even when nothing changes after the stop."""
