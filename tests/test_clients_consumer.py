@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import io
+import logging
 import threading
 import time
 
@@ -306,3 +307,25 @@ def test_client_side_never_imports_the_tracker_and_the_cli_stays_light():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
+
+
+def test_watch_logs_the_key_of_a_malformed_result_escaped(net, caplog):
+    """A Zenoh key may hold control characters: the key of a malformed result went raw into the warning, so that
+    any peer could write terminal escapes (clear the screen, set the window title) and forged log lines to the
+    terminal of `tacf watch`."""
+    caplog.set_level(logging.WARNING, logger="tacf_clients.client")
+    key = "tacf/edge1/sessions/\x1b]0;owned\x07\x1b[2J\n2026-12-06 12:00:00,000 INFO all good/box"
+    stop = threading.Event()
+    thread = threading.Thread(target=watch, kwargs=dict(options=net.options, interval=0.2, duration=8, stop=stop,
+                                                        out=io.StringIO()))
+    thread.start()
+    try:
+        net.wait_matched(key)
+        net.service.put(key, b"\xc1")
+        assert _wait(lambda: any("malformed box" in r.getMessage() for r in caplog.records))
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+    warning = next(r.getMessage() for r in caplog.records if "malformed box" in r.getMessage())
+    assert "\x1b" not in warning and "\x07" not in warning and "\n" not in warning, warning
+    assert "\\x1b]0;owned" in warning
