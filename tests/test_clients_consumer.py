@@ -329,3 +329,20 @@ def test_watch_logs_the_key_of_a_malformed_result_escaped(net, caplog):
     warning = next(r.getMessage() for r in caplog.records if "malformed box" in r.getMessage())
     assert "\x1b" not in warning and "\x07" not in warning and "\n" not in warning, warning
     assert "\\x1b]0;owned" in warning
+
+
+def test_a_decoder_failure_logs_the_key_escaped(net, caplog):
+    """As above, for a decoder that fails: its key went raw into the log."""
+    from tacf_clients.stream import ResultStream
+
+    def failing_decode(sample):
+        raise RuntimeError("decoder bug")
+
+    caplog.set_level(logging.ERROR, logger="tacf_clients.stream")
+    key = "test/\x1b[2J\n2026-12-06 12:00:00,000 INFO all good"
+    with ResultStream(net.vehicle, "test/*", failing_decode) as stream:
+        net.wait_matched(key)
+        net.service.put(key, b"x")
+        assert _wait(lambda: stream.rejected == 1)
+    message = next(r.getMessage() for r in caplog.records if "cannot decode" in r.getMessage())
+    assert "\x1b" not in message and "\n" not in message, message
