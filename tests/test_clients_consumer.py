@@ -16,10 +16,10 @@ import zenoh
 
 from tacf_clients.consumer import BoxConsumer, TrackedBox, tracked_box
 from tacf_clients.local_service import free_port
-from tacf_clients.watch import SessionRow, describe_session, render_table, watch
+from tacf_clients.watch import SessionRow, describe_session, render_table, session_table, watch
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas import box_key, encode, health_key
-from tacf_schemas.models import BoxResult, Health, SessionInfo
+from tacf_schemas.models import BoxResult, Error, Health, SessionInfo
 from tacf_service.loopback import wait_until
 
 pytestmark = pytest.mark.zenoh
@@ -190,6 +190,45 @@ def test_a_session_s_line_says_why_it_failed_or_waits():
     assert describe_session(info.model_copy(update={"health": _health("s1")})).endswith("dropped 2")
     assert " fps" not in describe_session(info)      # `tacf stop` printed "0.0 fps, 0.0 ms p95" for the ended session
     assert " fps, " in describe_session(info.model_copy(update={"state": "tracking"}))
+
+
+EVIL = "\x1b]0;owned\x07\x1b[2J\n2026-12-06 12:00:00,000 INFO all good"
+EVIL_SHOWN = r"\x1b]0;owned\x07\x1b[2J\n2026-12-06 12:00:00,000 INFO all good"     # as printed
+
+
+def test_the_free_text_of_a_session_is_printed_escaped():
+    """A session's image key, profile and health message are free text in a reply, which anyone on the Zenoh
+    network can send (a queryable on tacf/x/control/list answers `tacf list`): `tacf list`, `status`, `start` and
+    `stop` printed them raw, terminal escapes and forged lines included."""
+    health = _health("s1", state="failed").model_copy(update={"message": "why " + EVIL})
+    info = SessionInfo(node="edge1", sid="s1", image_key="cam/" + EVIL, profile="p" + EVIL, state="failed",
+                       box=(1.0, 1.0, 5.0, 5.0), created_ns=time.time_ns(), health=health)
+    for text in (describe_session(info), session_table([info])):
+        assert "\x1b" not in text and "\x07" not in text, text
+        assert f"cam/{EVIL_SHOWN}" in text and f"p{EVIL_SHOWN}" in text
+    assert "\n" not in describe_session(info) and describe_session(info).endswith(f"why {EVIL_SHOWN}")
+    accented = info.model_copy(update={"image_key": "cam/é", "health": None})
+    assert describe_session(accented).startswith("s1 on edge1: failed, key cam/é, ")    # printable: as it is
+
+
+def test_an_error_message_from_the_network_is_printed_escaped(net, capsys):
+    """An error reply's message went raw to stderr: `tacf status` asked every node, and a queryable of anyone on
+    the network answered with terminal escapes."""
+    from tacf.cli import main
+
+    def on_query(query):
+        with query:
+            query.reply_err(encode(Error(code="unknown_session", message="no " + EVIL, node="evil")))
+
+    queryable = net.service.declare_queryable("tacf/evil/control/*", on_query)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            main(["status", "s1", "--connect", net.options.connect[0], "--timeout", "2"])
+    finally:
+        queryable.undeclare()
+    err = capsys.readouterr().err
+    assert exc.value.code == 1 and f"no {EVIL_SHOWN}" in err, err
+    assert "\x1b" not in err and len(err.splitlines()) == 1, err
 
 
 def test_watch_prints_live_rows(net):
