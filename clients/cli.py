@@ -368,6 +368,7 @@ def _reported(command: str, json_list: bool = False):
     json_list: the command's output is a JSON list of services, so no node reachable, where no service can answer,
     prints [] as no service answering does: a script reading it gets JSON either way."""
     from tacf_clients.errors import TacfError, ZenohSettingsError, ZenohUnavailable
+    from tacf_clients.watch import printable
 
     try:
         yield
@@ -377,7 +378,8 @@ def _reported(command: str, json_list: bool = False):
     except TacfError as exc:
         if json_list and isinstance(exc, ZenohUnavailable):
             print("[]")
-        print(f"tacf {command}: {type(exc).__name__}: {exc}", file=sys.stderr)
+        # a service's error message, from whoever answered on tacf/*/control/*
+        print(f"tacf {command}: {type(exc).__name__}: {printable(exc)}", file=sys.stderr)
         raise SystemExit(1) from None
 
 

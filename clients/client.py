@@ -383,7 +383,7 @@ def _node_of_token(key_expr) -> str | None:
     try:
         return keys.parse_liveliness_key(str(key_expr))[0]
     except ValueError:
-        log.warning("ignored a malformed liveliness token %s", key_expr)
+        log.warning("ignored a malformed liveliness token %r", str(key_expr))     # %r: see _decode_result
         return None
 
 
@@ -416,7 +416,9 @@ def _decode_result(sample: zenoh.Sample) -> BoxResult | Health | None:
     try:
         return decode(sample.payload.to_bytes(), model)
     except DecodeError as exc:
-        log.warning("dropped a malformed %s on %s: %s", leaf, sample.key_expr, exc)
+        # %r: a key may hold any character but # ? * $, so anyone on the network could write terminal escapes
+        # (screen clear, window title) and forged log lines to the terminal of `tacf watch`
+        log.warning("dropped a malformed %s on %r: %s", leaf, str(sample.key_expr), exc)
         return None
 
 

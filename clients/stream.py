@@ -53,7 +53,7 @@ class ResultStream(Generic[T]):
         try:
             item = self._decode(sample)
         except Exception:  # a decoder bug must not kill the subscription
-            log.exception("cannot decode sample on %s", sample.key_expr)
+            log.exception("cannot decode sample on %r", str(sample.key_expr))   # %r: a key may hold escapes
             item = None
         with self._cond:
             if self._closed:        # decoded while close() emptied the mailbox: nothing is handed out after it

@@ -53,13 +53,21 @@ def _fmt(value, spec: str, missing: str = "-") -> str:
     return missing if value is None else format(value, spec)
 
 
+def printable(text: object) -> str:
+    """str(text) with its control characters (terminal escapes, newlines) written as Python escapes (\\x1b, \\n).
+    For the free text a reply carries (a session's image key, profile and message, an error's message): a wildcard
+    query is answered by anyone on the Zenoh network, whose text went raw to the operator's terminal."""
+    text = str(text)
+    return text if text.isprintable() else "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 ENDED = ("stopped", "failed")
 
 
 def describe_session(info: SessionInfo) -> str:
     """One line about a session, for `tacf start|stop|status`."""
-    text = (f"{info.sid} on {info.node}: {info.state}, key {info.image_key}, profile {info.profile}, "
-            f"box {_fmt_box(info.box)}")
+    text = (f"{info.sid} on {info.node}: {info.state}, key {printable(info.image_key)}, "
+            f"profile {printable(info.profile)}, box {_fmt_box(info.box)}")
     if info.init_seq is not None:
         text += f", init seq {info.init_seq}"
     if info.health is not None:
@@ -68,7 +76,7 @@ def describe_session(info: SessionInfo) -> str:
             text += f", {h.fps:.1f} fps, {h.processing_ms_p95:.1f} ms p95"
         text += f", processed {h.frames_processed}, lost {h.frames_lost}, dropped {h.frames_dropped}"
         if h.message:                   # why it failed, is lost or waits (no frames, a cropped feed...)
-            text += f": {h.message}"
+            text += f": {printable(h.message)}"
     return text
 
 
@@ -77,7 +85,8 @@ def session_table(sessions: list[SessionInfo]) -> str:
     rows = [("NODE", "SID", "STATE", "KEY", "PROFILE", "BOX", "FPS", "PROCESSED", "LOST", "DROPPED")]
     for s in sessions:
         h = s.health
-        rows.append((s.node, s.sid, s.state, s.image_key, s.profile, _fmt_box(s.box), _fmt(h and h.fps, ".1f"),
+        rows.append((s.node, s.sid, s.state, printable(s.image_key), printable(s.profile), _fmt_box(s.box),
+                     _fmt(h and h.fps, ".1f"),
                      _fmt(h and h.frames_processed, "d"), _fmt(h and h.frames_lost, "d"),
                      _fmt(h and h.frames_dropped, "d")))
     return columns(rows)
@@ -125,7 +134,7 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
         try:
             services = client.services()
         except TacfError as exc:
-            print(f"(list failed: {exc}; showing live data only)", file=out)
+            print(f"(list failed: {printable(exc)}; showing live data only)", file=out)
         else:
             if not services:    # a peer opens without anyone to talk to: say so, then wait for one
                 print(f"(no service answered{f' as {node!r}' if node else ''}: waiting for one; is `tacf serve` "

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import io
+import logging
 import threading
 import time
 
@@ -15,10 +16,10 @@ import zenoh
 
 from tacf_clients.consumer import BoxConsumer, TrackedBox, tracked_box
 from tacf_clients.local_service import free_port
-from tacf_clients.watch import SessionRow, describe_session, render_table, watch
+from tacf_clients.watch import SessionRow, describe_session, render_table, session_table, watch
 from tacf_clients.zconfig import ZenohOptions, make_config
 from tacf_schemas import box_key, encode, health_key
-from tacf_schemas.models import BoxResult, Health, SessionInfo
+from tacf_schemas.models import BoxResult, Error, Health, SessionInfo
 from tacf_service.loopback import wait_until
 
 pytestmark = pytest.mark.zenoh
@@ -191,6 +192,45 @@ def test_a_session_s_line_says_why_it_failed_or_waits():
     assert " fps, " in describe_session(info.model_copy(update={"state": "tracking"}))
 
 
+EVIL = "\x1b]0;owned\x07\x1b[2J\n2026-12-06 12:00:00,000 INFO all good"
+EVIL_SHOWN = r"\x1b]0;owned\x07\x1b[2J\n2026-12-06 12:00:00,000 INFO all good"     # as printed
+
+
+def test_the_free_text_of_a_session_is_printed_escaped():
+    """A session's image key, profile and health message are free text in a reply, which anyone on the Zenoh
+    network can send (a queryable on tacf/x/control/list answers `tacf list`): `tacf list`, `status`, `start` and
+    `stop` printed them raw, terminal escapes and forged lines included."""
+    health = _health("s1", state="failed").model_copy(update={"message": "why " + EVIL})
+    info = SessionInfo(node="edge1", sid="s1", image_key="cam/" + EVIL, profile="p" + EVIL, state="failed",
+                       box=(1.0, 1.0, 5.0, 5.0), created_ns=time.time_ns(), health=health)
+    for text in (describe_session(info), session_table([info])):
+        assert "\x1b" not in text and "\x07" not in text, text
+        assert f"cam/{EVIL_SHOWN}" in text and f"p{EVIL_SHOWN}" in text
+    assert "\n" not in describe_session(info) and describe_session(info).endswith(f"why {EVIL_SHOWN}")
+    accented = info.model_copy(update={"image_key": "cam/é", "health": None})
+    assert describe_session(accented).startswith("s1 on edge1: failed, key cam/é, ")    # printable: as it is
+
+
+def test_an_error_message_from_the_network_is_printed_escaped(net, capsys):
+    """An error reply's message went raw to stderr: `tacf status` asked every node, and a queryable of anyone on
+    the network answered with terminal escapes."""
+    from tacf.cli import main
+
+    def on_query(query):
+        with query:
+            query.reply_err(encode(Error(code="unknown_session", message="no " + EVIL, node="evil")))
+
+    queryable = net.service.declare_queryable("tacf/evil/control/*", on_query)
+    try:
+        with pytest.raises(SystemExit) as exc:
+            main(["status", "s1", "--connect", net.options.connect[0], "--timeout", "2"])
+    finally:
+        queryable.undeclare()
+    err = capsys.readouterr().err
+    assert exc.value.code == 1 and f"no {EVIL_SHOWN}" in err, err
+    assert "\x1b" not in err and len(err.splitlines()) == 1, err
+
+
 def test_watch_prints_live_rows(net):
     out = io.StringIO()
     stop = threading.Event()
@@ -306,3 +346,42 @@ def test_client_side_never_imports_the_tracker_and_the_cli_stays_light():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
+
+
+def test_watch_logs_the_key_of_a_malformed_result_escaped(net, caplog):
+    """A Zenoh key may hold control characters: the key of a malformed result went raw into the warning, so that
+    any peer could write terminal escapes (clear the screen, set the window title) and forged log lines to the
+    terminal of `tacf watch`."""
+    caplog.set_level(logging.WARNING, logger="tacf_clients.client")
+    key = "tacf/edge1/sessions/\x1b]0;owned\x07\x1b[2J\n2026-12-06 12:00:00,000 INFO all good/box"
+    stop = threading.Event()
+    thread = threading.Thread(target=watch, kwargs=dict(options=net.options, interval=0.2, duration=8, stop=stop,
+                                                        out=io.StringIO()))
+    thread.start()
+    try:
+        net.wait_matched(key)
+        net.service.put(key, b"\xc1")
+        assert _wait(lambda: any("malformed box" in r.getMessage() for r in caplog.records))
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+    warning = next(r.getMessage() for r in caplog.records if "malformed box" in r.getMessage())
+    assert "\x1b" not in warning and "\x07" not in warning and "\n" not in warning, warning
+    assert "\\x1b]0;owned" in warning
+
+
+def test_a_decoder_failure_logs_the_key_escaped(net, caplog):
+    """As above, for a decoder that fails: its key went raw into the log."""
+    from tacf_clients.stream import ResultStream
+
+    def failing_decode(sample):
+        raise RuntimeError("decoder bug")
+
+    caplog.set_level(logging.ERROR, logger="tacf_clients.stream")
+    key = "test/\x1b[2J\n2026-12-06 12:00:00,000 INFO all good"
+    with ResultStream(net.vehicle, "test/*", failing_decode) as stream:
+        net.wait_matched(key)
+        net.service.put(key, b"x")
+        assert _wait(lambda: stream.rejected == 1)
+    message = next(r.getMessage() for r in caplog.records if "cannot decode" in r.getMessage())
+    assert "\x1b" not in message and "\n" not in message, message
