@@ -210,7 +210,7 @@ class TrackingClient:
         node = node or self.node or (self._nodes_of_sid.get(sid) if sid != keys.WILDCARD else None)
         with as_invalid_id():
             key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
-        return ResultStream(self.session, key_expr, _decode_result, latest_only=latest_only,
+        return ResultStream(self.session, key_expr, _ResultDecoder(), latest_only=latest_only,
                             slot_of=lambda item: (item.node, item.sid, type(item).__name__),
                             callback=callback, name=f"tacf-subscribe-{sid}")
 
@@ -383,7 +383,7 @@ def _node_of_token(key_expr) -> str | None:
     try:
         return keys.parse_liveliness_key(str(key_expr))[0]
     except ValueError:
-        log.warning("ignored a malformed liveliness token %r", str(key_expr))     # %r: see _decode_result
+        log.warning("ignored a malformed liveliness token %r", str(key_expr))     # %r: see _ResultDecoder._warn
         return None
 
 
@@ -408,18 +408,42 @@ def _node_from_key(key: str) -> str | None:
     return parts[1] if len(parts) >= 2 and parts[0] == keys.PREFIX else None
 
 
-def _decode_result(sample: zenoh.Sample) -> BoxResult | Health | None:
-    leaf = str(sample.key_expr).rsplit("/", 1)[-1]
-    model = {"box": BoxResult, "health": Health}.get(leaf)
-    if model is None:
-        return None
-    try:
-        return decode(sample.payload.to_bytes(), model)
-    except DecodeError as exc:
+MALFORMED_WARNING_PERIOD_S = 10.0
+
+
+class _ResultDecoder:
+    """A results stream's decoder: BoxResult or Health by the key's leaf, None for anything else or a malformed
+    payload. It warns of malformed ones at most once per MALFORMED_WARNING_PERIOD_S, with the count held back: a
+    service on another schema version sends a box and a health per frame and session, and a warning each (30 lines
+    a second) scrolled `tacf watch`'s table away."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()       # Zenoh may call it from several threads
+        self._warned_at = -MALFORMED_WARNING_PERIOD_S
+        self._held_back = 0
+
+    def __call__(self, sample: zenoh.Sample) -> BoxResult | Health | None:
+        leaf = str(sample.key_expr).rsplit("/", 1)[-1]
+        model = {"box": BoxResult, "health": Health}.get(leaf)
+        if model is None:
+            return None
+        try:
+            return decode(sample.payload.to_bytes(), model)
+        except DecodeError as exc:
+            self._warn(leaf, str(sample.key_expr), exc)
+            return None
+
+    def _warn(self, leaf: str, key: str, exc: DecodeError) -> None:
+        now = time.monotonic()
+        with self._lock:
+            if now - self._warned_at < MALFORMED_WARNING_PERIOD_S:
+                self._held_back += 1
+                return
+            held_back, self._held_back, self._warned_at = self._held_back, 0, now
+        more = f" ({held_back} more malformed results dropped since the last such warning)" if held_back else ""
         # %r: a key may hold any character but # ? * $, so anyone on the network could write terminal escapes
         # (screen clear, window title) and forged log lines to the terminal of `tacf watch`
-        log.warning("dropped a malformed %s on %r: %s", leaf, str(sample.key_expr), exc)
-        return None
+        log.warning("dropped a malformed %s on %r: %s%s", leaf, key, exc, more)
 
 
 # --- request validation: the same exception classes as an error reply from the service ---------------------------

@@ -14,6 +14,8 @@ import time
 import pytest
 import zenoh
 
+import tacf_clients.client as client_module
+from tacf_clients.client import TrackingClient
 from tacf_clients.consumer import BoxConsumer, TrackedBox, tracked_box
 from tacf_clients.local_service import free_port
 from tacf_clients.watch import SessionRow, describe_session, render_table, session_table, watch
@@ -368,6 +370,24 @@ def test_watch_logs_the_key_of_a_malformed_result_escaped(net, caplog):
     warning = next(r.getMessage() for r in caplog.records if "malformed box" in r.getMessage())
     assert "\x1b" not in warning and "\x07" not in warning and "\n" not in warning, warning
     assert "\\x1b]0;owned" in warning
+
+
+def test_malformed_results_are_warned_of_once_a_period_with_the_count_held_back(net, caplog, monkeypatch):
+    """A service on another schema version sends every box and health malformed, one of each per frame and session:
+    a warning each, 30 lines a second, scrolled `tacf watch`'s table away."""
+    monkeypatch.setattr(client_module, "MALFORMED_WARNING_PERIOD_S", 1.0)
+    caplog.set_level(logging.WARNING, logger="tacf_clients.client")
+    key = box_key("edge1", "s1")
+    with TrackingClient(session=net.vehicle) as client, client.results("s1", node="edge1") as stream:
+        net.wait_matched(key)
+        for _ in range(50):
+            net.service.put(key, b"\xc1")
+        assert _wait(lambda: stream.rejected == 50)
+        time.sleep(1.0)
+        net.service.put(key, b"\xc1")
+        assert _wait(lambda: stream.rejected == 51)
+    warnings = [r.getMessage() for r in caplog.records if "malformed box" in r.getMessage()]
+    assert len(warnings) == 2 and "(49 more malformed results dropped since" in warnings[1], warnings
 
 
 def test_a_decoder_failure_logs_the_key_escaped(net, caplog):
