@@ -164,6 +164,10 @@ def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     ((-40, 10, 20, 20), "outside"),
     ((0, 0, 5000, 5000), "larger than the 100x100 image"),       # took 16 s to initialise, 1e5 ran out of memory
     ((10**400, 10, 20, 20), "finite numbers .* past the float range"),   # numpy's OverflowError
+    ((True, True, True, True), "not booleans"),                  # was tracked as a 1x1 box at (1, 1)
+    ((10, 10, True, 20), "not booleans"),
+    (np.ones(4, bool), "not booleans"),
+    ([np.int64(10), 10, np.bool_(True), 20], "not booleans"),
 ])
 def test_bad_boxes_raise_clear_errors(box, message):
     with pytest.raises(ValueError, match=message):
