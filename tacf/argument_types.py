@@ -10,9 +10,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 from collections.abc import Callable
 
 Box = tuple[float, float, float, float]
+# What argparse takes for a negative number rather than an option, as from Python 3.14 on: before, only "-5" or
+# "-.5" itself, and a box across the left or top border, "--box -5,20,40,30", was an option ("expected one argument").
+NEGATIVE_NUMBER = re.compile(r"-\.?\d")
 
 
 def _number(text: str, expected: str) -> float:
@@ -93,3 +97,8 @@ def box(text: str) -> Box:
     if len(values) != 4 or not all(map(math.isfinite, values)) or values[2] <= 0 or values[3] <= 0:
         raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
     return values  # type: ignore[return-value]
+
+
+def take_negative_numbers(parser: argparse.ArgumentParser) -> None:
+    """Let `parser`'s option values start with a negative number, "-5,20,40,30" as "-5" (argparse's own test)."""
+    parser._negative_number_matcher = NEGATIVE_NUMBER

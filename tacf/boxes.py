@@ -20,6 +20,9 @@ def check_box(box, frame_shape) -> np.ndarray:
         raise ValueError(f"box must be four numbers (x, y, w, h), got {box!r}") from None
     if values.size != 4 or not np.all(np.isfinite(values)):
         raise ValueError(f"box must be four finite numbers (x, y, w, h), got {box!r}")
+    # True and False are numbers to numpy: (True, True, True, True) was a 1x1 box at (1, 1)
+    if any(isinstance(v, (bool, np.bool_)) for v in np.asarray(box, dtype=object).reshape(-1)):
+        raise ValueError(f"box must be four numbers (x, y, w, h), not booleans: got {box!r}")
     x, y, w, h = values
     if w <= 0 or h <= 0:
         raise ValueError(f"box width and height must be positive, got w={w}, h={h}")

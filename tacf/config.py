@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import numbers
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,6 +69,17 @@ MIN_CN_CHANGE = 1e-4                        # the profiles' lambda1
 MAX_HOG_DAMPING = 1e6
 
 
+def _past_float_range(value) -> bool:
+    """Whether `value` is a number no float holds: an int or a Fraction past 1.8e308 (lambda1=10**400 failed in
+    init; math.isfinite and float() raise OverflowError on it)."""
+    if isinstance(value, numbers.Real) and not isinstance(value, float):
+        try:
+            float(value)
+        except OverflowError:
+            return True
+    return False
+
+
 def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> None:
     """Validate a frozen config dataclass: each field of its declared type and finite, the `positive` ones > 0,
     the `rates` in [0, 1], the scale filter's step > 1 and count odd, and every field named in FLOORS or LIMITS
@@ -77,6 +87,9 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
     name = type(config).__name__
     for f in dataclasses.fields(config):
         v = getattr(config, f.name)
+        if _past_float_range(v):    # not printed: an int of over 4,300 digits raises in str(), naming no field
+            wanted = {"float": "finite", "int": "an int within its bounds"}.get(f.type, f.type)
+            raise ValueError(f"{name}.{f.name} must be {wanted}, got a number past the float range")
         # numpy scalars (a sweep read from an array) count as their Python kinds, and are stored as them so that
         # to_dict() stays JSON; bool is an int in Python: num_scales=True must not pass as 1, nor 1.0 as True
         is_bool = isinstance(v, (bool, np.bool_))
@@ -84,8 +97,7 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
                     "float": isinstance(v, numbers.Real) and not is_bool, "str": isinstance(v, str)}[f.type]
         if not expected:
             raise ValueError(f"{name}.{f.name} must be {f.type}, got {v!r}")
-        # an int is a float's value too, but one past the float range (lambda1=10**400) failed in init
-        if f.type == "float" and not (abs(v) <= sys.float_info.max if isinstance(v, int) else math.isfinite(v)):
+        if f.type == "float" and not math.isfinite(v):
             raise ValueError(f"{name}.{f.name} must be finite, got {v}")
         if f.type != "str":
             object.__setattr__(config, f.name, {"bool": bool, "int": int, "float": float}[f.type](v))

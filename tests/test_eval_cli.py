@@ -568,6 +568,44 @@ def test_track_that_cannot_start_leaves_an_existing_box_file_alone(tmp_path):
     check_boxes_file(out, 5, box)
 
 
+@pytest.mark.parametrize("text", ["-5,40,24,24", "-.5,-3.5,24,24", "-1e1,40,24,24"])
+def test_track_takes_a_box_across_the_left_or_top_border_as_written(tmp_path, text):
+    """`--box -5,40,24,24`, a target half out of view: argparse before Python 3.14 took the value for an option,
+    and the command refused it ("argument --box: expected one argument"); only `--box=-5,...` went through."""
+    frames, _ = synthetic_frames(3)
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(tmp_path / f"{i:06d}.png"), f)
+    out = tmp_path / "boxes.txt"
+    assert main(["track", str(tmp_path), "--box", text, "--tracker", "identity", "--out", str(out)]) == 0
+    check_boxes_file(out, 3, [float(v) for v in text.split(",")])
+
+
+def test_track_refuses_a_negative_box_that_is_no_box(capsys):
+    with pytest.raises(SystemExit) as refused:      # still a usage error naming --box, not an option
+        main(["track", "frames", "--box", "-5,40,24"])
+    assert refused.value.code == 2 and "argument --box: '-5,40,24': expected x,y,w,h" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("tracker, box", [("opencv-csrt", "159,119,1,1"), ("opencv-csrt", "-0.5,-0.5,1,1"),
+                                          ("opencv-mosse", "159,119,1,1"), ("opencv-mil", "-5,0,10,10"),
+                                          ("opencv-mil", "150,30,20,20")])
+def test_track_with_a_box_opencv_cannot_start_on_is_an_error_naming_the_tracker(tmp_path, caplog, tracker, box):
+    """Boxes the library tracker takes (across a border, a pixel in a corner) that OpenCV's trackers fail on in
+    init: `tacf track` ended with a cv2.error traceback (MIL: "std::bad_alloc"). Now exit 2 and one line naming
+    the tracker and the box; an init refused keeps the target the adapter followed."""
+    frames, start = synthetic_frames(3)
+    for i, f in enumerate(frames, 1):
+        cv2.imwrite(str(tmp_path / f"{i:06d}.png"), f)
+    assert main(["track", str(tmp_path), f"--box={box}", "--tracker", tracker]) == 2
+    assert f"{tracker} cannot start on the box ({', '.join(str(float(v)) for v in box.split(','))}) in the " \
+           f"160x120 image (OpenCV: " in caplog.text
+    adapter = trackers.make_tracker(tracker)
+    adapter.init(frames[0], start)
+    with pytest.raises(ValueError, match="cannot start"):
+        adapter.init(frames[0], tuple(float(v) for v in box.split(",")))
+    assert adapter.update(frames[1])[2:] == start[2:]
+
+
 def test_track_refuses_a_frame_of_another_size_and_names_it(tmp_path, caplog):
     """A folder whose third image is smaller: OpenCV's trackers went on (exit 0) while the video writer dropped
     that frame with a warning, and TACF's error named no file and told the user to call init()."""

@@ -1,5 +1,6 @@
 """The Tracker API: following a generated moving target, every profile and switch, and bad input."""
 import json
+from fractions import Fraction
 
 import cv2
 import numpy as np
@@ -163,6 +164,10 @@ def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     ((-40, 10, 20, 20), "outside"),
     ((0, 0, 5000, 5000), "larger than the 100x100 image"),       # took 16 s to initialise, 1e5 ran out of memory
     ((10**400, 10, 20, 20), "finite numbers .* past the float range"),   # numpy's OverflowError
+    ((True, True, True, True), "not booleans"),                  # was tracked as a 1x1 box at (1, 1)
+    ((10, 10, True, 20), "not booleans"),
+    (np.ones(4, bool), "not booleans"),
+    ([np.int64(10), 10, np.bool_(True), 20], "not booleans"),
 ])
 def test_bad_boxes_raise_clear_errors(box, message):
     with pytest.raises(ValueError, match=message):
@@ -231,6 +236,19 @@ def test_config_refuses_wrong_types_and_memory_bombs():
         with pytest.raises(ValueError, match=message):
             TrackerConfig.profile("authors", **bad)
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("lambda1", 10**5000, "lambda1 must be finite"),        # str() raises past 4,300 digits: no field was named
+    ("num_scales", 10**5000, "num_scales must be an int within its bounds"),
+    ("cell_size", -10**5000, "cell_size must be an int within its bounds"),
+    ("fast_fft", 10**5000, "fast_fft must be bool"),
+    ("lambda1", Fraction(10**400), "lambda1 must be finite"),   # a Real: was OverflowError, not ValueError
+], ids=["int-float", "int-int", "negative-int", "int-bool", "fraction-float"])    # pytest's own ids print them
+def test_config_names_the_field_of_a_number_past_the_float_range(field, value, message):
+    with pytest.raises(ValueError, match=f"TrackerConfig.{message}, got a number past the float range"):
+        TrackerConfig.profile(**{field: value})
+    assert TrackerConfig.profile(lambda1=Fraction(1, 10**4)).lambda1 == 1e-4
 
 
 @pytest.mark.parametrize("overrides, message", [

@@ -12,7 +12,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from tacf.argument_types import box, integer
+from tacf.argument_types import box, integer, take_negative_numbers
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,7 @@ def register(subparsers) -> None:
     p.add_argument("source", metavar="SOURCE", type=Path, help="video file or image folder")
     p.add_argument("--box", required=True, type=box, metavar="X,Y,W,H",
                    help="initial box, 0-based pixels, top-left x,y")
+    take_negative_numbers(p)       # a box across the left or top border: --box -5,20,40,30
     p.add_argument("--out", type=Path, metavar="FILE", help="box file (default: standard output)")
     p.add_argument("--video", type=Path, metavar="FILE", help="annotated video to write (mp4v)")
     p.add_argument("--profile", metavar="P", help="TACF profile: paper, authors, kcc (default: the default profile)")

@@ -114,6 +114,8 @@ class OpenCVAdapter:
         self._box: Box | None = None
 
     def init(self, frame, box: Box) -> None:
+        import cv2
+
         x, y, w, h = (float(v) for v in box)
         rect = (x, y, w, h) if self._legacy else (round(x), round(y), max(1, round(w)), max(1, round(h)))
         if self._kind == "mil":
@@ -124,9 +126,14 @@ class OpenCVAdapter:
             # no longer depend on what the process ran before (the pairs, --workers, the warm-up; person12_1's AUC
             # was 0.15, 0.38 or 0.56 by that alone)
             _libc().srand(0)
-        self._tracker = self._create()
-        self._tracker.init(frame, rect)
-        self._box, self.ok = (x, y, w, h), True
+        tracker = self._create()
+        try:
+            tracker.init(frame, rect)
+        except cv2.error as exc:    # a box across a border, or of a pixel or two: an assertion deep inside OpenCV
+            reason = str(exc).strip().split("error: ", 1)[-1]   # its file and line are OpenCV's build, not ours
+            raise ValueError(f"{self.name} cannot start on the box {(x, y, w, h)} in the {frame.shape[1]}x"
+                             f"{frame.shape[0]} image (OpenCV: {reason})") from None
+        self._tracker, self._box, self.ok = tracker, (x, y, w, h), True   # refused: the target followed is kept
 
     def update(self, frame) -> Box:
         if self._tracker is None:
