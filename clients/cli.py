@@ -13,7 +13,8 @@ import sys
 import threading
 from contextlib import contextmanager
 
-from tacf.argument_types import box, integer, port, positive_number, positive_up_to, quality, seconds
+from tacf.argument_types import (box, integer, port, positive_number, positive_up_to, quality, seconds,
+                                 take_negative_numbers)
 from tacf.config import PROFILES      # plain data: `tacf demo --profile` is checked before a service starts
 
 mavlink_id = integer(1, 255, "a MAVLink id")
@@ -65,6 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "`tacf dashboard` sends the frame the box was drawn on with the start.")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key the frames are published on")
     p.add_argument("--box", "-b", required=True, type=box, help="initial box x,y,w,h in pixels")
+    take_negative_numbers(p)       # a box across the left or top border: --box -5,20,40,30
     p.add_argument("--seq", type=frame_seq, help="seq of the frame the box was drawn on")
     p.add_argument("--profile", help="tracker profile (service default if absent)")
     p.add_argument("--sid", help="session id (generated if absent)")
@@ -86,6 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "service still holds it), keeping its id, key and counters.")
     p.add_argument("sid", metavar="SID")
     p.add_argument("--box", "-b", required=True, type=box, help="new box x,y,w,h in pixels")
+    take_negative_numbers(p)
     p.add_argument("--seq", type=frame_seq, help="seq of the frame the box was drawn on")
     _common(p, add_zenoh_arguments)
     p.set_defaults(func=cmd_reinit)
@@ -136,6 +139,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--box", "-b", type=box,
                    help="initial box x,y,w,h (default: the scene's target, a sequence's groundtruth.txt, "
                         "or a centred box)")
+    take_negative_numbers(p)
     p.add_argument("--seconds", type=positive_number, default=10.0, help="how long to track (default 10)")
     p.add_argument("--fps", type=positive_number, default=None,
                    help="frames per second to publish: a video file or folder is replayed at this rate, a camera or "
