@@ -587,7 +587,7 @@ class Worker:
         stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped
         message = self._message
         idle_s = time.monotonic() - self._slot.last_put
-        if idle_s > STALL_S and self._state != "failed":
+        if idle_s > STALL_S and self._state not in ("failed", "stopped"):     # a stopped session waits for nothing
             message = f"waiting for frames: none for {idle_s:.0f} s"
         health = stats.snapshot(self.spec.node, self.job.sid, self._state, self.job.restarts, message)
         payload = encode(health)

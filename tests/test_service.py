@@ -482,6 +482,24 @@ def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
         assert [getattr(service_final, c) for c in counters] == [getattr(worker_final, c) for c in counters]
 
 
+def test_the_worker_s_stopped_health_does_not_say_it_waits_for_frames(service, client):
+    """A session stopped while its feed was silent: the worker's last Health, state stopped, said "waiting for frames:
+    none for 3 s", and it may come after the service's "stopped by request" (two sessions, no order between them)."""
+    key = "test/cam/silent"
+    scene = MovingTargetScene(320, 240, target=48, speed=1.0)
+    with contextlib.closing(Collector(client, NODE, "silent")) as results:
+        start(client, service, image_key=key, box=scene.box(0), sid="silent")     # no frame ever comes
+        assert wait_until(lambda: (h := results.last_health()) and (h.message or "").startswith("waiting for frames"),
+                          30), results.last_health()
+        call(client, NODE, "stop", StopRequest(sid="silent"), timeout=10)
+
+        def worker_final():
+            return next((h for h in results.health if h.state == "stopped" and h.message != "stopped by request"),
+                        None)
+        assert wait_until(worker_final, 10), results.health
+        assert not (worker_final().message or "").startswith("waiting for frames"), worker_final()
+
+
 def test_a_tracker_box_that_is_not_finite_rejects_its_frame_and_the_session_goes_on(endpoint, client, feed):
     """A plug-in tracker's NaN box failed BoxResult's validation outside any guard, and its NaN PME the next
     Health's: the worker died, was restarted and died again, until the session failed."""
