@@ -25,7 +25,6 @@ class HealthStats:
         self.last_stamp_ns: int | None = None
         self._processing_ms: deque[float] = deque(maxlen=TIMING_WINDOW)
         self._processed_at: deque[float] = deque()
-        self._first_processed_at: float | None = None
 
     def received(self, count: int = 1) -> None:
         self.frames_received += count
@@ -47,26 +46,27 @@ class HealthStats:
             self.last_pme = pme
         if processing_ms is not None:
             self._processing_ms.append(processing_ms)
+        self._processed_at.append(time.monotonic())
+        self._forget_old_frames()
+
+    def _forget_old_frames(self) -> None:
+        """Keep the frames processed within FPS_WINDOW_S, and the newest one before them (fps's start)."""
         now = time.monotonic()
-        if self._first_processed_at is None:
-            self._first_processed_at = now
-        self._processed_at.append(now)
-        while self._processed_at and now - self._processed_at[0] > FPS_WINDOW_S:
+        while len(self._processed_at) >= 2 and now - self._processed_at[1] >= FPS_WINDOW_S:
             self._processed_at.popleft()
 
     def fps(self) -> float:
-        """Frames processed a second over the last FPS_WINDOW_S. Until a whole window has passed since the first
-        frame, over the time since that one, which is not counted (a window not yet filled made the first Health of
-        a session at 10 fps read 6.5)."""
-        now = time.monotonic()
-        while self._processed_at and now - self._processed_at[0] > FPS_WINDOW_S:
-            self._processed_at.popleft()
-        if self._first_processed_at is None:
+        """Frames processed a second: the frames of the last FPS_WINDOW_S over the time from the newest frame before
+        them (or the first frame, while a window has not yet passed) to now. A Health goes out right after a frame,
+        so on a steady feed this is its rate; it falls as soon as the feed stops, to 0 once a window has passed
+        without a frame. Counting the frames within the window counted both of its ends, one frame too many: a
+        steady 10 fps feed read 10.5 in a third to a half of its Health (and a window not yet filled made the first
+        Health read 6.5)."""
+        self._forget_old_frames()
+        if len(self._processed_at) < 2:
             return 0.0
-        since_first = now - self._first_processed_at
-        if since_first >= FPS_WINDOW_S:
-            return len(self._processed_at) / FPS_WINDOW_S
-        return (len(self._processed_at) - 1) / since_first if since_first > 0 else 0.0
+        span = time.monotonic() - self._processed_at[0]
+        return (len(self._processed_at) - 1) / span if span > 0 else 0.0
 
     def snapshot(self, node: str, sid: str, state: str, restarts: int = 0, message: str | None = None) -> Health:
         times = sorted(self._processing_ms)

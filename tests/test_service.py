@@ -1174,19 +1174,24 @@ def test_a_reinit_on_the_stored_frame_stores_its_new_box_with_it(service, client
         call(client, NODE, "stop", StopRequest(sid="redrawn"))
 
 
-def test_health_reads_the_frame_rate_before_its_window_fills_and_p95_by_nearest_rank(monkeypatch):
-    """The first Health of a session at 10 fps read 6.5 (frames over the whole 2 s window, not yet filled), and
-    p95 of 20 times was their maximum."""
+def test_health_reads_a_steady_frame_rate_as_it_is_from_the_first_frame_and_p95_by_nearest_rank(monkeypatch):
+    """A Health goes out right after a frame. The first of a session at 10 fps read 6.5 (frames over the whole 2 s
+    window, not yet filled); then the frames within the window counted both of its ends, and a steady 10 fps read
+    10.5. A feed that stops reads lower at once, and 0 once a window has passed without a frame. p95 of 20 times
+    was their maximum."""
     clock = [100.0]
     monkeypatch.setattr(health.time, "monotonic", lambda: clock[0])
     stats = health.HealthStats()
-    for i in range(20):
+    readings = []
+    for i in range(40):
         clock[0] = 100.0 + i / 10
-        stats.processed(i, time.time_ns(), processing_ms=i + 1.0, pme=None, ok=True)
-        if i == 9:
-            assert stats.fps() == pytest.approx(10.0)       # 1 s in
-    clock[0] = 102.0
-    assert stats.fps() == pytest.approx(10.0)                # a full window
+        stats.processed(i, time.time_ns(), processing_ms=i % 20 + 1.0, pme=None, ok=True)
+        readings.append(stats.fps())
+    assert readings[1:] == pytest.approx([10.0] * 39), readings
+    clock[0] = 104.95                                       # 1.05 s after the last frame
+    assert stats.fps() == pytest.approx(10 / 2.05)          # frames 102.9 to 103.9
+    clock[0] = 106.0
+    assert stats.fps() == 0.0
     assert stats.snapshot("n", "s", "tracking").processing_ms_p95 == 19.0
 
 
