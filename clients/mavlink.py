@@ -27,8 +27,9 @@ A box older than STALE_BOX_S is not shown (ACTIVE | COASTING, no target data): a
 say the target stands still. A service that has not answered SERVICE_LOST_CHECKS session checks in a row (killed,
 hung, out of reach) turns the status to ERROR; the checks go on, and the status is ACTIVE again once the service
 answers that the session runs (a service restarted with --state brings it back).
-A session that could not start, or that failed on the service, stays `failed`: its status says ERROR, at the same
-rate, until a stop clears it or a new rectangle starts it again.
+A session that could not start stays `failed`: its status says ERROR, at the same rate, until a stop clears it or
+a new rectangle starts it again. So does one that failed on the service, whose checks go on: once the service runs
+it again (it restarts a crashed worker) the status is ACTIVE again.
 Point tracking is not offered: a tracker needs the target's extent. The video itself stays the camera's own
 (QGroundControl shows its RTSP/UDP stream); only the box travels here.
 """
@@ -202,7 +203,9 @@ class MavlinkCamera:
                     self.mav.mav.heartbeat_send(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 0,
                                                 mav.MAV_STATE_ACTIVE)
                     next_heartbeat = now + HEARTBEAT_S
-                if self.tracking and now >= next_check and not self._checking:
+                # a failed session the service keeps is checked too: it restarts a crashed worker
+                checked = self.tracking or (self.state == "failed" and self._held)
+                if checked and now >= next_check and not self._checking:
                     self._checking = True
                     self._calls.put(_Call(self._check_session))
                     next_check = now + SESSION_CHECK_S
@@ -400,7 +403,8 @@ class MavlinkCamera:
 
     def _check_session(self) -> int:
         """A session stopped elsewhere (the dashboard, `tacf stop`) ends the tracking here too, one that failed on
-        the service is failed here, and a service that stopped answering is lost (ERROR) until it answers again.
+        the service is failed here until the service runs it again (a crashed worker is restarted, a reinit from
+        elsewhere revives it), and a service that stopped answering is lost (ERROR) until it answers again.
         ACCEPTED when the status to send is unchanged, FAILED when it changed."""
         try:
             state = self.client.status(self.sid).state
@@ -416,14 +420,15 @@ class MavlinkCamera:
             return mav.MAV_RESULT_FAILED if lost_now else mav.MAV_RESULT_ACCEPTED
         with self._lock:
             was_lost, self._unanswered_checks = self._unanswered_checks >= SERVICE_LOST_CHECKS, 0
-        if state not in ("stopped", "failed") or not self.tracking:
+        seen = {"stopped": "idle", "failed": "failed"}.get(state, "tracking")
+        # unchanged, or a command changed it meanwhile (a stop; a refused start, which holds nothing to check)
+        if seen == self.state or self.state == "idle" or (self.state == "failed" and not self._held):
             if was_lost:
                 log.info("the service answers again: %s is %s", self.sid, state)
-            # still runs (back to ACTIVE if the service was lost), or a command changed it meanwhile
-            return mav.MAV_RESULT_FAILED if was_lost else mav.MAV_RESULT_ACCEPTED
-        log.info("session %s is %s: tracking ended", self.sid, state)
-        self._held = state == "failed"               # the service keeps a failed session until it is stopped
-        self._set_state("idle" if state == "stopped" else "failed")
+            return mav.MAV_RESULT_FAILED if was_lost else mav.MAV_RESULT_ACCEPTED     # back to ACTIVE if lost
+        log.info("session %s is %s: %s", self.sid, state, "tracking again" if seen == "tracking" else "tracking ended")
+        self._held = seen != "idle"                  # the service keeps a failed session until it is stopped
+        self._set_state(seen)
         return mav.MAV_RESULT_FAILED
 
     def _set_state(self, state: str, started_on: tuple[int, int] | None = None) -> None:

@@ -532,6 +532,59 @@ def test_a_killed_service_turns_the_status_to_error_and_a_restored_one_back_to_a
             assert wait_until(lambda: all(info.sid != sid for info in client.list()), 10), "and stopped there"
 
 
+def test_a_session_whose_worker_the_service_restarts_is_active_again(monkeypatch):
+    """A worker that dies is reported failed and restarted by the service. A session check that saw it failed
+    latched the component on ERROR: it checked no more, and the ground station never saw the box again while the
+    restarted worker tracked on. The service here waits 6 s before the restart, so a check (every 2 s) sees it."""
+    import signal
+
+    import zenoh
+
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+    from tacf_service import manager
+    from tacf_service.app import ServiceOptions, TrackingService
+    from tacf_service.config import ZenohOptions
+    from tacf_service.loopback import peer_config
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (6.0,))
+    key, sid, port = "test/mavlink/crashing", "mavlink-crashing", free_port()
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    service = TrackingService(ServiceOptions(node=f"mav{free_port()}", zenoh=ZenohOptions(listen=(endpoint,)),
+                                             spare_workers=0)).open()
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                     source_component=GCS_COMPONENT, dialect="common")
+    try:
+        with zenoh.open(peer_config(connect=[endpoint])) as session:
+            camera = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
+            camera.start()
+            try:
+                with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, session=session, sid=sid,
+                                   node=service.node) as component, serving(component):
+                    assert _receive(gcs, "HEARTBEAT") is not None
+                    target = _held_target(camera, component)
+                    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+                        mav.MAV_RESULT_ACCEPTED
+                    camera.hold.clear()
+                    assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=20,
+                                    where=lambda m: m.target_data) is not None, "the box is shown"
+
+                    os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
+                    error = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=15, where=lambda m:
+                                     m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR)
+                    assert error is not None, "the failed worker is an error while the service restarts it"
+                    active = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=40, where=lambda m:
+                                      m.target_data and m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE)
+                    assert active is not None, "the restarted worker's box is shown as ACTIVE again"
+                    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+                    assert sid not in service.manager.worker_pids()
+            finally:
+                camera.close()
+    finally:
+        gcs.close()
+        service.close()
+
+
 def test_a_slow_start_is_answered_in_progress_while_the_loop_goes_on_and_a_retransmission_runs_once():
     """The service waits up to --init-wait for the frame a start names; a start on a camera gone quiet takes that
     long. It blocked the loop (no heartbeat, no answer to anything, the ground station retransmitting): now it
