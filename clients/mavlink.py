@@ -9,6 +9,9 @@ commands, sent as COMMAND_LONG or COMMAND_INT:
   converted with the size of the newest frame on the key and applied to that frame), or re-initialises the
   running one. ACCEPTED once the service has the session; TEMPORARILY_REJECTED while no frame has been seen on
   the key; DENIED for a rectangle that is not inside 0..1 or is empty; FAILED with the service's refusal.
+- MAV_CMD_CAMERA_TRACK_POINT (a click rather than a drag): the same with the square of half-side radius around
+  the point, cut to the frame (point_box: x, y normalised to the frame, the radius to its width, 0 one pixel);
+  DENIED for values outside 0..1. Its statuses are in point mode, with the box's half-side as their radius.
 - MAV_CMD_CAMERA_STOP_TRACKING: stops it (ACCEPTED also when nothing runs), and clears a failed session.
 Calls to the service run on one thread of their own, in the order the commands came, so that the loop goes on
 answering (heartbeats, statuses, other commands) meanwhile: such a command is answered IN_PROGRESS at once and
@@ -17,7 +20,7 @@ progress (a ground station that got no answer in time retransmits it) is answere
 twice; the same command with other parameters meanwhile is TEMPORARILY_REJECTED.
 - MAV_CMD_SET_MESSAGE_INTERVAL for CAMERA_TRACKING_IMAGE_STATUS: its rate (-1 off, 0 the default 10 Hz).
 - MAV_CMD_REQUEST_MESSAGE (and the older MAV_CMD_REQUEST_CAMERA_INFORMATION) for CAMERA_INFORMATION, whose
-  flags say CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, or for one CAMERA_TRACKING_IMAGE_STATUS.
+  flags say CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE and _POINT, or for one CAMERA_TRACKING_IMAGE_STATUS.
 - any other command addressed to it: UNSUPPORTED. Commands for other components are left alone, and so are
   broadcast ones (component 0) it does not handle, as a MAVSDK component's are: the autopilot or another component
   answers those, and an UNSUPPORTED from the camera could reach the ground station before their ACCEPTED.
@@ -28,10 +31,9 @@ say the target stands still. A service that has not answered SERVICE_LOST_CHECKS
 hung, out of reach) turns the status to ERROR; the checks go on, and the status is ACTIVE again once the service
 answers that the session runs (a service restarted with --state brings it back).
 A session that could not start stays `failed`: its status says ERROR, at the same rate, until a stop clears it or
-a new rectangle starts it again. So does one that failed on the service, whose checks go on: once the service runs
+a new rectangle or point starts it again. So does one that failed on the service, whose checks go on: once the service runs
 it again (it restarts a crashed worker) the status is ACTIVE again.
-Point tracking is not offered: a tracker needs the target's extent. The video itself stays the camera's own
-(QGroundControl shows its RTSP/UDP stream); only the box travels here.
+The video itself stays the camera's own (QGroundControl shows its RTSP/UDP stream); only the box travels here.
 """
 from __future__ import annotations
 
@@ -72,9 +74,12 @@ PROGRESS_S = 1.0            # how often a command in progress is answered IN_PRO
 PROGRESS_UNKNOWN = 255      # COMMAND_ACK.progress when the percentage is not known
 LINK_RETRY_S = 1.0          # pause between reconnections to a TCP ground station that went away
 VENDOR, MODEL = b"tacf", b"TACF tracker"
+TRACKING_CAPABILITIES = mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE | mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
+_TRACKING_COMMANDS = {mav.CAMERA_TRACKING_MODE_RECTANGLE: "TRACK_RECTANGLE",
+                      mav.CAMERA_TRACKING_MODE_POINT: "TRACK_POINT"}
 # A ground station may send any command in either message; the commands answered here read param1-4, which both
-# carry as floats, and the target camera id of the two tracking commands (param5 of TRACK_RECTANGLE, which
-# COMMAND_INT carries as x; param1 of STOP_TRACKING).
+# carry as floats, and the target camera id of the tracking commands (param5 of TRACK_RECTANGLE, which
+# COMMAND_INT carries as x; param4 of TRACK_POINT; param1 of STOP_TRACKING).
 COMMAND_MESSAGES = ["COMMAND_LONG", "COMMAND_INT"]
 # pymavlink's network links, each HOST:PORT after its prefix ("udp:" and no prefix at all: UDP as well)
 NETWORK_LINKS = ("tcp:", "tcpin:", "udpin:", "udpout:", "udpbcast:", "udp:")
@@ -172,6 +177,7 @@ class MavlinkCamera:
             self.close()
             raise
         self.state = "idle"                          # idle | tracking | failed
+        self._mode = mav.CAMERA_TRACKING_MODE_RECTANGLE     # of the last tracking command the service took
         self._held = False                           # the service has a session of ours (to stop on a stop)
         self._lock = threading.Lock()                # state, box and start frame: set by the service thread
         self._calls: queue.Queue[_Call | None] = queue.Queue()
@@ -300,6 +306,8 @@ class MavlinkCamera:
         try:
             if command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
                 result = self._track_rectangle(message)
+            elif command == mav.MAV_CMD_CAMERA_TRACK_POINT:
+                result = self._track_point(message)
             elif command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
                 result = self._stop_tracking()
             elif command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
@@ -340,24 +348,37 @@ class MavlinkCamera:
         if frame is None:
             return mav.MAV_RESULT_TEMPORARILY_REJECTED
         box = (x1 * frame.width, y1 * frame.height, (x2 - x1) * frame.width, (y2 - y1) * frame.height)
-        return _Call(lambda: self._track(box, frame))
+        return _Call(lambda: self._track(box, frame, mav.CAMERA_TRACKING_MODE_RECTANGLE))
 
-    def _track(self, box: tuple[float, float, float, float], frame: Frame) -> int:
+    def _track_point(self, message) -> int | _Call:
+        """A point and its radius (QGroundControl sends one for a click rather than a drag): the square of that
+        half-side around the point, cut to the frame, is the target's box."""
+        point = (message.param1, message.param2, message.param3)
+        if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in point):
+            log.warning("refused TRACK_POINT %s: not a point and a radius inside 0..1", point)
+            return mav.MAV_RESULT_DENIED
+        frame = self._frame_header()
+        if frame is None:
+            return mav.MAV_RESULT_TEMPORARILY_REJECTED
+        box = point_box(point, frame.width, frame.height)
+        return _Call(lambda: self._track(box, frame, mav.CAMERA_TRACKING_MODE_POINT))
+
+    def _track(self, box: tuple[float, float, float, float], frame: Frame, mode: int) -> int:
         try:
             if self.tracking:
                 self._reinit_or_start(box, frame.seq)
             else:
                 self._start_or_take_over(box, frame.seq)
         except TacfError as exc:
-            log.warning("TRACK_RECTANGLE: the service refused: %s", exc)
+            log.warning("%s: the service refused: %s", _TRACKING_COMMANDS[mode], exc)
             if not self.tracking:                    # a re-target refused leaves the session tracking as it was
                 # a refusal leaves nothing of ours running, and a stop clears the failure alone; a start not
                 # answered in time may have started it: a stop asks the service
                 self._held = isinstance(exc, RequestTimeout)
-                self._set_state("failed")
+                self._set_state("failed", mode=mode)
             return mav.MAV_RESULT_FAILED
         self._held = True
-        self._set_state("tracking", started_on=(frame.seq, frame.stamp_ns))
+        self._set_state("tracking", started_on=(frame.seq, frame.stamp_ns), mode=mode)
         log.info("tracking %s on %s from box %s (frame %d)", self.sid, self.image_key, box, frame.seq)
         return mav.MAV_RESULT_ACCEPTED
 
@@ -431,10 +452,11 @@ class MavlinkCamera:
         self._set_state(seen)
         return mav.MAV_RESULT_FAILED
 
-    def _set_state(self, state: str, started_on: tuple[int, int] | None = None) -> None:
-        """Called after the service answered: it is not lost."""
+    def _set_state(self, state: str, started_on: tuple[int, int] | None = None, mode: int | None = None) -> None:
+        """Called after the service answered: it is not lost. `mode`: that of a tracking command it took."""
         with self._lock:
             self.state, self._box, self._started_on = state, None, started_on
+            self._mode = self._mode if mode is None else mode
             self._unanswered_checks = 0
 
     def _set_interval(self, message) -> int:
@@ -454,27 +476,29 @@ class MavlinkCamera:
         nan = float("nan")
         boot_ms = int((time.monotonic() - self._started) * 1000) & 0xFFFFFFFF
         self.mav.mav.camera_information_send(boot_ms, _ascii_field(VENDOR), _ascii_field(MODEL), 0, nan, nan, nan,
-                                             width, height, 0, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, 0, b"")
+                                             width, height, 0, TRACKING_CAPABILITIES, 0, b"")
 
     def _send_status(self) -> None:
         nan = float("nan")
         status, mode, target_data = mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE, mav.CAMERA_TRACKING_MODE_NONE, 0
-        point, corners = (nan, nan), (nan, nan, nan, nan)
+        point, radius, corners = (nan, nan), nan, (nan, nan, nan, nan)
         with self._lock:
             state, box, box_age = self.state, self._box, time.monotonic() - self._box_arrived
-            lost = self._unanswered_checks >= SERVICE_LOST_CHECKS
+            lost, tracking_mode = self._unanswered_checks >= SERVICE_LOST_CHECKS, self._mode
         if state == "failed" or (state == "tracking" and lost):
-            status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR, mav.CAMERA_TRACKING_MODE_RECTANGLE
+            status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ERROR, tracking_mode
         elif state == "tracking":
-            status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_RECTANGLE
+            status, mode = mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, tracking_mode
             if box is not None and box_age > STALE_BOX_S:
                 status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING      # no box lately: none to show
             elif box is not None:
                 target_data = mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS
                 point, corners = box.center_norm, box.corners_normalised
+                if mode == mav.CAMERA_TRACKING_MODE_POINT:      # the box's half-side, in image widths
+                    radius = max(box.box[2], box.box[3]) / 2 / box.frame_size[0]
                 if not box.ok:
                     status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
-        self.mav.mav.camera_tracking_image_status_send(status, mode, target_data, *point, nan, *corners)
+        self.mav.mav.camera_tracking_image_status_send(status, mode, target_data, *point, radius, *corners)
 
     def _frame_header(self) -> Frame | None:
         """The newest frame seen on the image key (its seq and size), or None."""
@@ -536,11 +560,22 @@ def default_sid(image_key: str) -> str:
     return sid[:55] + "-" + hashlib.sha256(image_key.encode()).hexdigest()[:8]
 
 
+def point_box(point: tuple[float, float, float], width: int, height: int) -> tuple[float, float, float, float]:
+    """TRACK_POINT's (x, y, radius) as a box in pixels: the square of half-side radius around the point, cut to the
+    frame. MAVLink normalises x and y to the frame, the radius to its width, 0 being one pixel."""
+    x, y, radius = point
+    cx, cy, half = x * width, y * height, max(1.0, radius * width)
+    left, top = max(0.0, cx - half), max(0.0, cy - half)
+    return left, top, min(float(width), cx + half) - left, min(float(height), cy + half) - top
+
+
 def _target_camera(message) -> int:
     """The camera a tracking command is for (0: any; 1-6 attached to the autopilot, 7-255 a camera component's
     id); 0 for other commands and for values no camera id can be."""
     if message.command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE:
         value = message.x if message.get_type() == "COMMAND_INT" else message.param5
+    elif message.command == mav.MAV_CMD_CAMERA_TRACK_POINT:
+        value = message.param4
     elif message.command == mav.MAV_CMD_CAMERA_STOP_TRACKING:
         value = message.param1
     else:

@@ -25,7 +25,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from tacf_clients.mavlink import MavlinkCamera, signing_key_from_passphrase  # noqa: E402
+from tacf_clients.mavlink import MavlinkCamera, point_box, signing_key_from_passphrase  # noqa: E402
 
 pytestmark = pytest.mark.zenoh
 
@@ -119,7 +119,7 @@ def _status_box(status):
             (status.rec_bottom_y - status.rec_top_y) * SCENE.height)
 
 
-def test_announces_a_camera_that_tracks_rectangles(rig):
+def test_announces_a_camera_that_tracks_rectangles_and_points(rig):
     gcs, camera, client, _ = rig
     heartbeat = _receive(gcs, "HEARTBEAT", where=lambda m: m.get_srcComponent() == mav.MAV_COMP_ID_CAMERA)
     assert heartbeat is not None and heartbeat.type == mav.MAV_TYPE_CAMERA
@@ -129,7 +129,7 @@ def test_announces_a_camera_that_tracks_rectangles(rig):
         assert _command(gcs, *request) == mav.MAV_RESULT_ACCEPTED
         info = _receive(gcs, "CAMERA_INFORMATION")
         assert info is not None and info.flags & mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
-        assert not info.flags & mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
+        assert info.flags & mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
         assert (info.resolution_h, info.resolution_v) == (SCENE.width, SCENE.height)
         assert bytes(info.model_name).rstrip(b"\0") == b"TACF tracker"
 
@@ -139,7 +139,8 @@ def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):
     for corners in ((0.6, 0.2, 0.4, 0.5), (0.1, 0.1, 0.1, 0.3), (-0.1, 0.2, 0.3, 0.4), (0.1, 0.2, 1.5, 0.4),
                     (math.nan, 0.2, 0.3, 0.4)):
         assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *corners) == mav.MAV_RESULT_DENIED, corners
-    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.1) == mav.MAV_RESULT_UNSUPPORTED
+    for point in ((1.2, 0.5, 0.1), (0.5, -0.1, 0.1), (0.5, 0.5, 1.5), (0.5, 0.5, math.nan)):
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_POINT, *point) == mav.MAV_RESULT_DENIED, point
     assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HEARTBEAT) == mav.MAV_RESULT_UNSUPPORTED
     assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, math.nan) == mav.MAV_RESULT_UNSUPPORTED
     assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_HEARTBEAT, 1e6) == \
@@ -290,6 +291,33 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     idle = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
                     where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE)
     assert idle is not None, "an IDLE status once the session is gone"
+    camera.hold.clear()
+
+
+def test_a_point_is_the_square_of_its_radius_around_it_cut_to_the_frame():
+    assert point_box((0.5, 0.5, 0.05), 320, 240) == (144.0, 104.0, 32.0, 32.0)
+    assert point_box((0.5, 0.5, 0.0), 320, 240) == (159.0, 119.0, 2.0, 2.0)       # 0 is one pixel
+    assert point_box((1.0, 0.0, 0.1), 320, 240) == (288.0, 0.0, 32.0, 32.0)        # at a corner: its quarter in view
+    assert point_box((0.5, 0.5, 1.0), 320, 240) == (0.0, 0.0, 320.0, 240.0)
+
+
+def test_a_clicked_point_is_tracked_and_shown_in_point_mode(rig):
+    """QGroundControl sends TRACK_POINT for a click rather than a drag: it was UNSUPPORTED."""
+    gcs, camera, client, component = rig
+    target = _held_target(camera, component)
+    x, y, w, h = target
+    radius = max(w, h) / 2 / SCENE.width
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_POINT, (x + w / 2) / SCENE.width, (y + h / 2) / SCENE.height,
+                    radius) == mav.MAV_RESULT_ACCEPTED
+    assert client.status(SID).image_key == KEY
+    status = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
+                      where=lambda m: m.target_data == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
+    assert status is not None and status.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+    assert status.tracking_mode == mav.CAMERA_TRACKING_MODE_POINT
+    assert box_iou(_status_box(status), target) > 0.5, (_status_box(status), target)
+    assert status.radius == pytest.approx(radius, rel=0.3)
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+    assert SID not in {s.sid for s in client.list()}
     camera.hold.clear()
 
 
