@@ -11,6 +11,7 @@ import statistics
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -545,61 +546,51 @@ def test_a_session_twice_in_the_state_file_is_restored_once(tmp_path):
     assert StateStore(path).load() == [entry]       # one worker per session: the second would have no owner
 
 
-def test_sessions_beyond_max_sessions_are_not_restored_silently(tmp_path, caplog):
-    """A service restarted with a smaller --max-sessions restores what fits and names the sessions it drops (the
-    next save forgets them)."""
+SAVED = PersistedSession(sid="a", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0), created_ns=1)
+
+
+@contextmanager
+def restored_from(tmp_path, caplog, saved: list[PersistedSession], **options):
+    """A service opened on a state file of `saved`, its manager's warnings in caplog: the sids it restored."""
     state = tmp_path / "sessions.json"
-    entry = PersistedSession(sid="a", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0),
-                             created_ns=1)
-    StateStore(state).save([entry.model_copy(update={"sid": sid}) for sid in ("a", "b", "c")])
+    StateStore(state).save(saved)
     service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
-                                             state_file=str(state), max_sessions=2, spare_workers=0))
+                                             state_file=str(state), spare_workers=0, **options))
     with caplog.at_level("WARNING", logger="tacf_service.manager"):
         service.open()
     try:
-        assert [s.sid for s in service.manager.list().sessions] == ["a", "b"]
-        assert "not restoring 1 session(s)" in caplog.text and "--max-sessions 2: c" in caplog.text
+        yield [s.sid for s in service.manager.list().sessions]
     finally:
         service.close()
+
+
+def test_sessions_beyond_max_sessions_are_not_restored_silently(tmp_path, caplog):
+    """A service restarted with a smaller --max-sessions restores what fits and names the sessions it drops (the
+    next save forgets them)."""
+    saved = [SAVED.model_copy(update={"sid": sid}) for sid in ("a", "b", "c")]
+    with restored_from(tmp_path, caplog, saved, max_sessions=2) as sids:
+        assert sids == ["a", "b"]
+        assert "not restoring 1 session(s)" in caplog.text and "--max-sessions 2: c" in caplog.text
 
 
 def test_a_saved_session_its_tracker_refuses_is_not_restored(tmp_path, caplog):
     """A start checks the profile and overrides; a restore did not: a hand-edited state file, or one from a
     version with other profiles, gave a session that failed in its worker without a word on its health key."""
-    state = tmp_path / "sessions.json"
-    entry = PersistedSession(sid="good", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0),
-                             created_ns=1)
-    StateStore(state).save([entry, entry.model_copy(update={"sid": "profile", "profile": "nope"}),
-                            entry.model_copy(update={"sid": "config", "overrides": {"cell_size": -3}})])
-    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
-                                             state_file=str(state), spare_workers=0))
-    with caplog.at_level("WARNING", logger="tacf_service.manager"):
-        service.open()
-    try:
-        assert [s.sid for s in service.manager.list().sessions] == ["good"]
+    saved = [SAVED.model_copy(update={"sid": "good"}), SAVED.model_copy(update={"sid": "profile", "profile": "nope"}),
+             SAVED.model_copy(update={"sid": "config", "overrides": {"cell_size": -3}})]
+    with restored_from(tmp_path, caplog, saved) as sids:
+        assert sids == ["good"]
         assert "not restoring session profile: " in caplog.text and "not restoring session config: " in caplog.text
-    finally:
-        service.close()
 
 
 def test_a_saved_session_not_restored_takes_no_slot_of_max_sessions(tmp_path, caplog):
     """The slots were counted before the sessions a restore leaves out: with --max-sessions 2, one of an old
     profile first left a single session restored, and the third, which fitted, was named as beyond the limit and
     dropped from the table for good."""
-    state = tmp_path / "sessions.json"
-    entry = PersistedSession(sid="a", image_key="test/cam/none", profile="kcc", box=(1.0, 1.0, 10.0, 10.0),
-                             created_ns=1)
-    StateStore(state).save([entry.model_copy(update={"sid": "old", "profile": "nope"}), entry,
-                            entry.model_copy(update={"sid": "b"})])
-    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
-                                             state_file=str(state), max_sessions=2, spare_workers=0))
-    with caplog.at_level("WARNING", logger="tacf_service.manager"):
-        service.open()
-    try:
-        assert [s.sid for s in service.manager.list().sessions] == ["a", "b"]
+    saved = [SAVED.model_copy(update={"sid": "old", "profile": "nope"}), SAVED, SAVED.model_copy(update={"sid": "b"})]
+    with restored_from(tmp_path, caplog, saved, max_sessions=2) as sids:
+        assert sids == ["a", "b"]
         assert "not restoring session old: " in caplog.text and "beyond --max-sessions" not in caplog.text
-    finally:
-        service.close()
 
 
 def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
