@@ -31,8 +31,8 @@ say the target stands still. A service that has not answered SERVICE_LOST_CHECKS
 hung, out of reach) turns the status to ERROR; the checks go on, and the status is ACTIVE again once the service
 answers that the session runs (a service restarted with --state brings it back).
 A session that could not start stays `failed`: its status says ERROR, at the same rate, until a stop clears it or
-a new rectangle or point starts it again. So does one that failed on the service, whose checks go on: once the service runs
-it again (it restarts a crashed worker) the status is ACTIVE again.
+a new rectangle or point starts it again. So does one that failed on the service, whose checks go on: once the
+service runs it again (it restarts a crashed worker) the status is ACTIVE again.
 The video itself stays the camera's own (QGroundControl shows its RTSP/UDP stream); only the box travels here.
 """
 from __future__ import annotations
