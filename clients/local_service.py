@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -27,11 +28,39 @@ from tacf_clients.zconfig import ZenohOptions
 log = logging.getLogger(__name__)
 
 
+# Ports are picked below the kernel's ephemeral range: a port 0 bind would take one from inside it, where the kernel
+# also picks the local port of every outgoing connection, and one took such a port between the check and the
+# child service's bind (seen once in CI: "Address already in use").
+EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+EPHEMERAL_LOW_ELSEWHERE = 49152                 # the IANA dynamic range, which macOS and Windows use
+PICK_SPAN = 12_000                              # 20768-32767 under Linux's default range: clear of 7447 and its kin
+_handed_out: set[int] = set()                   # never the same port twice in one process, bound yet or not
+_system_random = random.SystemRandom()          # a test's random.seed() must not make two runs pick alike
+
+
+def ephemeral_range_start() -> int:
+    """The lowest port the kernel picks by itself for port 0 binds and outgoing connections."""
+    try:
+        return int(EPHEMERAL_RANGE_FILE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return EPHEMERAL_LOW_ELSEWHERE
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago (bind port 0, read it, close)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    """A TCP port on 127.0.0.1 that was free a moment ago, from below the ephemeral range where it can be."""
+    start = ephemeral_range_start()
+    low, high = max(1024, start - PICK_SPAN), max(1024, start)
+    picks = [port for port in _system_random.sample(range(low, high), k=min(64, high - low)) if port not in _handed_out]
+    for port in picks + [0]:                    # port 0 last: a range squeezed to nothing still gets a port
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            chosen = sock.getsockname()[1]
+        _handed_out.add(chosen)
+        return chosen
+    raise OSError("no free TCP port on 127.0.0.1")
 
 
 class LocalServiceError(RuntimeError):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -17,7 +18,8 @@ import pytest
 import zenoh
 
 from tacf_clients.demo import DemoOptions, GroundTruth, run_demo
-from tacf_clients.local_service import free_port
+from tacf_clients import local_service
+from tacf_clients.local_service import ephemeral_range_start, free_port
 from tacf_clients.scene import Scene
 from tacf_clients.sources import FrameSource, SourceFrame, open_source
 from tacf_clients.zconfig import ZenohOptions, make_config
@@ -190,6 +192,25 @@ def test_a_local_service_leaves_its_log_only_when_it_failed():
     broken.stop()
     assert broken.returncode == 2 and broken.log_path.exists() and str(broken.log_path) in str(failed.value)
     broken.log_path.unlink()
+
+
+def test_free_ports_come_from_below_the_ephemeral_range_and_never_twice():
+    """A port 0 bind comes from the kernel's ephemeral range, where every outgoing connection takes its local port
+    too: one took a test service's port between free_port() and the service's bind (CI, "Address already in use")."""
+    ports = [free_port() for _ in range(200)]
+    assert len(set(ports)) == len(ports)
+    assert all(1024 <= port < ephemeral_range_start() for port in ports), ports
+
+
+def test_a_range_with_no_room_below_it_still_gives_a_port(tmp_path, monkeypatch):
+    squeezed = tmp_path / "ip_local_port_range"
+    squeezed.write_text("1024\t60999\n")
+    monkeypatch.setattr(local_service, "EPHEMERAL_RANGE_FILE", squeezed)
+    port = free_port()
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", port))
+    monkeypatch.setattr(local_service, "EPHEMERAL_RANGE_FILE", tmp_path / "absent")
+    assert local_service.ephemeral_range_start() == local_service.EPHEMERAL_LOW_ELSEWHERE
 
 
 def _demo(*argv: str) -> list[str]:
