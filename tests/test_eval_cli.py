@@ -448,6 +448,18 @@ def test_a_glob_that_matches_nothing_is_refused_with_the_names_there_are(tmp_pat
     assert not (tmp_path / "out").exists()
 
 
+def test_a_ground_truth_that_cannot_be_read_is_an_error_naming_it(tmp_path, caplog):
+    """`tacf bench tracker` caught only FileNotFoundError: a ground truth that was a folder was a traceback."""
+    data = write_synthetic_dataset(tmp_path, 4)
+    ground_truth = data / "synthetic" / "drift" / "groundtruth.txt"
+    ground_truth.unlink()
+    ground_truth.mkdir()
+    for command in (["eval", str(data), "--out", str(tmp_path / "out")], ["bench", "tracker", str(data)]):
+        caplog.clear()
+        assert main([*command, "--trackers", "identity", "--sequences", "*"]) == 2
+        assert f"Is a directory: '{ground_truth}'" in caplog.text
+
+
 def test_eval_refuses_ranges_for_a_root_not_in_the_uav123_layout(tmp_path, caplog):
     """--ranges was ignored, without a word, unless the root was in the UAV123 layout."""
     ranges = tmp_path / "ranges.txt"

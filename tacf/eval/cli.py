@@ -317,7 +317,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     try:
         trackers = _names(args.trackers, "tacf")
         seqs = _load(root, args.sequences, max_frames=args.max_frames)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, OSError) as exc:
         log.error("%s", exc)
         return 2
     if not args.sequences:
