@@ -6,9 +6,10 @@ feed, instead of applying a stale box to a frame where the target has moved. The
 the frames at every start, reinit and shutdown and otherwise every 5 s (manager.FRAME_SAVE_PERIOD_S): a frame a
 second of each session was a megabyte a second to disk for six 720p feeds, worn into an edge box's SD card.
 
-A missing file is an empty table; a corrupt one is logged, kept aside as <file>.corrupt and treated as empty,
-so a bad file never stops the service from starting. A table of another version (a newer service's) is kept aside
-as <file>.v<version> rather than read with the wrong meaning and overwritten.
+A missing file is an empty table; a corrupt one is logged, kept aside as <file>.corrupt (<file>.corrupt.1 and on
+beside earlier ones) and treated as empty, so a bad file never stops the service from starting. A table of another
+version (a newer service's) is kept aside as <file>.v<version> rather than read with the wrong meaning and
+overwritten.
 
 A service holds <file>.lock (an OS lock, gone with the process) while it uses the file: a second service given the
 same file would restore the first one's sessions, and each would overwrite the other's table.
@@ -16,6 +17,7 @@ same file would restore the first one's sessions, and each would overwrite the o
 from __future__ import annotations
 
 import glob
+import itertools
 import json
 import logging
 import os
@@ -126,15 +128,14 @@ class StateStore:
             if not isinstance(entries, list):
                 raise ValueError("no 'sessions' list")
         except (ValueError, KeyError, TypeError, RecursionError) as exc:   # bad UTF-8 is a ValueError too
-            log.error("state file %s is corrupt (%s); keeping it as .corrupt and starting empty", self.path, exc)
-            self._set_aside(".corrupt")
+            log.error("state file %s is corrupt (%s); keeping it as %s and starting empty", self.path, exc,
+                      self._set_aside(".corrupt"))
             return []
         version = doc.get("version")
         if version != STATE_VERSION:
             suffix = f".v{version}" if isinstance(version, int) else ".corrupt"
             log.error("state file %s has version %r, this service reads version %d; keeping it as %s and starting "
-                      "empty", self.path, version, STATE_VERSION, suffix)
-            self._set_aside(suffix)
+                      "empty", self.path, version, STATE_VERSION, self._set_aside(suffix))
             return []
         sessions: dict[str, PersistedSession] = {}
         for entry in entries:
@@ -179,11 +180,19 @@ class StateStore:
                 except OSError:
                     pass
 
-    def _set_aside(self, suffix: str) -> None:
+    def _set_aside(self, suffix: str) -> str:
+        """Move the file to <file><suffix>, or <file><suffix>.N beside earlier ones (each of which may be all that
+        is left of some table); what became of it, for the log."""
+        kept = self.path.with_name(self.path.name + suffix)
+        for n in itertools.count(1):
+            if not os.path.lexists(kept):
+                break
+            kept = self.path.with_name(f"{self.path.name}{suffix}.{n}")
         try:
-            os.replace(self.path, self.path.with_name(self.path.name + suffix))
-        except OSError:
-            pass
+            os.replace(self.path, kept)
+        except OSError as exc:
+            return f"nothing (it cannot be moved to {kept.name}: {exc.strerror or exc}; the next save replaces it)"
+        return kept.name
 
 
 def _lock_exclusively(lock_file) -> None:

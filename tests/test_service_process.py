@@ -525,6 +525,18 @@ def test_an_unreadable_or_foreign_state_file_is_kept_aside_and_the_table_starts_
     assert (tmp_path / kept_as).read_bytes() == content
 
 
+def test_a_second_corrupt_state_file_is_kept_beside_the_first(tmp_path, caplog):
+    """Each start on a corrupt file moved it to <file>.corrupt, over the one an earlier start had kept there."""
+    path = tmp_path / "state.json"
+    for n in range(3):
+        path.write_text(f"{{torn {n}")
+        assert StateStore(path).load() == []
+    kept = ["state.json.corrupt", "state.json.corrupt.1", "state.json.corrupt.2"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == kept
+    assert [(tmp_path / name).read_text() for name in kept] == ["{torn 0", "{torn 1", "{torn 2"]
+    assert "keeping it as state.json.corrupt.2 and starting empty" in caplog.text
+
+
 def test_a_state_file_that_gives_a_key_twice_is_kept_aside_naming_the_key(tmp_path, caplog):
     """A hand edit that added a second "box" to an entry restored the session on the last one, without a word:
     which one was meant is unknown, and the service never writes such a file."""
