@@ -233,7 +233,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
         parsed = super().parse_request()                    # reads the headers
         self.server.expect_head(self.connection, False)     # the head came: streams (/events, /mjpeg) run on
         if parsed and self.command != "POST" and (self.headers.get("Transfer-Encoding") is not None
-                                                  or (self.headers.get("Content-Length") or "0").strip() != "0"):
+                                                  or body_length(self.headers) != 0):
             # only a POST's body is ever read: another's would pass for the next request on this connection
             # (behind a proxy that reuses its connections, a request smuggled past the proxy's own checks)
             self.close_connection = True
@@ -510,10 +510,12 @@ class DashboardHandler(BaseHTTPRequestHandler):
         if ctype != "application/json":
             self._error(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "invalid_request", "send Content-Type: application/json")
             return None
-        try:
-            length = int(self.headers.get("Content-Length") or 0)
-        except ValueError:
-            length = -1
+        length = body_length(self.headers)
+        if length is None or self.headers.get("Transfer-Encoding") is not None:
+            # where the body ends is read another way by a proxy in front: the rest would be a request of its own
+            self._error(HTTPStatus.BAD_REQUEST, "invalid_request", "send the body with one Content-Length of digits "
+                        "and no Transfer-Encoding")
+            return None
         # the body too must come whole within head_timeout_s: the socket timeout restarts on every byte, and a body
         # sent a byte every few seconds held the connection's thread for good
         self.server.expect_head(self.connection, True)
@@ -572,6 +574,19 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
 
 # --- request fields ------------------------------------------------------------------------------------------------
+def body_length(headers) -> int | None:
+    """A request's Content-Length as RFC 9112 has it, 0 when there is none; None when it is not ASCII digits, or is
+    given twice with different values. int() also took `+5`, `1_0` and other digits than ASCII's, which a proxy in
+    front may read otherwise (or not at all), as it may pick another of two values."""
+    values = {value.strip() for value in headers.get_all("Content-Length") or ()}
+    if not values:
+        return 0
+    value = values.pop()
+    if values or not (value.isascii() and value.isdigit()):
+        return None
+    return int(value) if len(value) <= 18 else 10 ** 18     # int() refuses over 4300 digits; any such is too long
+
+
 def _str(body: dict, name: str) -> str:
     value = body.get(name)
     if not isinstance(value, str) or not value:

@@ -776,6 +776,29 @@ def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
         assert reply.count(b"HTTP/1.1 200 ") == 2, reply
 
 
+def test_a_post_body_framed_other_than_by_one_content_length_of_digits_is_refused():
+    """The body's length was read with int(): `+28`, `2_8` and non-ASCII digits were taken, as was the first of two
+    Content-Length headers and a Content-Length beside Transfer-Encoding, where a proxy in front may read the body's
+    end otherwise (RFC 9112 6.3) and pass the rest as a request of its own."""
+    body = b'{"key": "test/dashboard/len"}'
+    framings = (b"Content-Length: +%d" % len(body), b"Content-Length: %d_%d" % divmod(len(body), 10),
+                "Content-Length: \u0662\u0669".encode(), b"Content-Length: %d\r\nContent-Length: 5" % len(body),
+                b"Content-Length: %d\r\nTransfer-Encoding: chunked" % len(body),
+                b"Content-Length: " + b"9" * 5000)
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        for framing in framings:
+            reply = _raw_reply(address, b"POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: "
+                                        b"application/json\r\n" + framing + b"\r\n\r\n" + body, half_close=True)
+            head, _, answer = reply.partition(b"\r\n\r\n")
+            assert head.startswith((b"HTTP/1.1 400 ", b"HTTP/1.1 413 ")), (framing, reply[:200])
+            assert json.loads(answer)["error"] == "invalid_request" and reply.count(b"HTTP/1.1 ") == 1, reply
+        assert app.dashboard.image_keys() == []
+        reply = _raw_reply(address, b"POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json"
+                                    b"\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body), half_close=True)
+        assert reply.startswith(b"HTTP/1.1 200 ") and app.dashboard.image_keys() == ["test/dashboard/len"], reply
+
+
 def test_a_field_given_twice_is_refused_not_read_as_its_last_value():
     """json keeps the last value of a key given twice: {"key": A, "key": B} watched B without a word, as a repeated
     override or sid kept its last value, where a proxy or a log in front reading the first would have seen another
