@@ -412,7 +412,7 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
                                          progress=not args.no_progress, stop=stop))
             except KeyboardInterrupt:
                 print("tacf bench: interrupted", file=sys.stderr)
-                status = 130            # 128 + SIGINT, as tacf.cli answers a Ctrl-C
+                status = stop.exit_code
                 break
             except (LocalServiceError, TacfError, TimeoutError) as exc:    # a service's: its log's last lines too
                 log.error("%d feeds: %s", count, exc)

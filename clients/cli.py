@@ -259,12 +259,26 @@ def _setting(text: str) -> tuple[str, bool | int | float]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+class StopEvent(threading.Event):
+    """Set by a stop signal; `exit_code` is what a shell reports for a command that signal ended (130 for Ctrl-C,
+    143 for SIGTERM), which a command stopped part way returns."""
+    signal_number = signal.SIGINT
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signal_number
+
+
 @contextmanager
 def stop_on_signals():
-    """An Event set by SIGINT / SIGTERM / SIGHUP (the terminal closed: `tacf demo` used to leave its service
+    """A StopEvent set by SIGINT / SIGTERM / SIGHUP (the terminal closed: `tacf demo` used to leave its service
     running) while the block runs (previous handlers restored afterwards)."""
-    stop = threading.Event()
-    handler = lambda *_: stop.set()  # noqa: E731
+    stop = StopEvent()
+
+    def handler(signal_number: int, _frame) -> None:
+        stop.signal_number = signal_number
+        stop.set()
+
     signals = (signal.SIGINT, signal.SIGTERM) + ((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ())
     previous = {sig: signal.signal(sig, handler) for sig in signals}
     try:
@@ -292,7 +306,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
         with stop_on_signals() as stop, source, _reported("publish"), \
                 open_session(options_from_args(args)) as session:
             if args.wait_subscriber > 0 and not _wait_subscriber(session, source, args, stop):
-                return 130          # stopped meanwhile; the session is closed on the way out of the `with`
+                return stop.exit_code   # stopped meanwhile; the session is closed on the way out of the `with`
             stats = publish(session, source, args.key, fps=args.fps, encoding=args.encoding, quality=args.quality,
                             max_frames=args.frames, stop=stop)
     except (SourceError, FrameError) as exc:       # FrameError: frames beyond the wire limits, which no service takes
@@ -309,7 +323,7 @@ def cmd_publish(args: argparse.Namespace) -> int:
               "follows the key, or access control keeps them from the network)", file=sys.stderr)
     if stop.is_set():
         print("tacf publish: interrupted", file=sys.stderr)
-        return 130                  # 128 + SIGINT, as tacf demo and tacf bench answer a Ctrl-C
+        return stop.exit_code
     return 0
 
 
@@ -532,11 +546,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
         except (ValueError, FileNotFoundError) as exc:     # the source cannot be opened or has no frames
             if stop.is_set():       # Ctrl-C while FFmpeg tried to open a stream
                 print("tacf demo: interrupted", file=sys.stderr)
-                return 130
+                return stop.exit_code
             print(f"tacf demo: {exc}", file=sys.stderr)
             return 2
     if report.interrupted:
-        return 130                  # 128 + SIGINT, as tacf.cli answers a Ctrl-C
+        return stop.exit_code
     return 0 if report.ok else 1
 
 
