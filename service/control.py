@@ -136,6 +136,12 @@ class ControlServer:
                                          message=f"unknown control op {op[:64]!r}; use one of "
                                                  f"{', '.join(CONTROL_OPS)}"))
             return
+        if op == "start" and str(query.key_expr) != control_key(self.node, op):
+            # a wildcard reaches every service, and each would start the session: one target tracked once per box
+            self._reply_err(query, Error(code="invalid_request", node=self.node,
+                                         message=f"a start names its service: query {control_key(self.node, op)}, "
+                                                 f"not {str(query.key_expr)[:128]}"))
+            return
         payload = query.payload.to_bytes() if query.payload is not None else _EMPTY_MAP
         try:
             request = decode(payload or _EMPTY_MAP, CONTROL_REQUESTS[op])

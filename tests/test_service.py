@@ -648,6 +648,18 @@ def test_unknown_op_and_wildcard_op(service, client):
         assert decode(replies[0].err.payload.to_bytes(), Error).code == "unknown_op"
 
 
+def test_a_start_sent_to_a_wildcard_of_services_is_refused(service, client, feed):
+    """`tacf/*/control/start` reaches every service on the network, and each started the session: the same target
+    tracked once per edge box. The shipped clients name one service; a raw query with a wildcard is now refused."""
+    request = encode(StartRequest(image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0), profile=PROFILE))
+    for key in ("tacf/*/control/start", "tacf/edge-t$*/control/start", "tacf/**/control/start"):
+        [reply] = client.get(key, payload=request, timeout=10)
+        assert reply.err is not None, key
+        error = decode(reply.err.payload.to_bytes(), Error)
+        assert error.code == "invalid_request" and f"query tacf/{NODE}/control/start" in error.message, error
+    assert call(client, NODE, "list").sessions == []
+
+
 def test_box_outside_image_and_duplicate_id(service, client, feed):
     for box in [(5000.0, 10.0, 20.0, 20.0), (10.0, 400.0, 20.0, 20.0), (-100.0, -100.0, 50.0, 50.0)]:
         with pytest.raises(ControlError) as err:
