@@ -27,6 +27,11 @@ from tacf_schemas.models import ENCODINGS, Frame
 
 log = logging.getLogger(__name__)
 
+# A rate below the one asked is told once, after this long: a replayed source whose frames take longer to read and
+# encode than a period played slower than it was filmed, without a word until the final count.
+SHORTFALL_AFTER_S = 5.0
+SHORTFALL_FRACTION = 0.9
+
 
 @dataclass(frozen=True)
 class PublishStats:
@@ -124,7 +129,7 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
     stop = stop or threading.Event()
     frames = nbytes = 0
     last_seq = first_put = None
-    matched = False
+    matched = shortfall_told = False
     started = last_put = time.monotonic()
     rate = paced_rate(source, fps)
     log.info("publishing %s on %r as %s at %s fps", source.name, key, encoding,
@@ -147,6 +152,13 @@ def publish(session: zenoh.Session, source: FrameSource, key: str, *, fps: float
                 on_frame(frame, src)
             if frames == 1:
                 log.info("first frame: %dx%d, %d bytes", frame.width, frame.height, len(frame.data))
+            if rate and not shortfall_told and last_put - first_put >= SHORTFALL_AFTER_S:
+                shortfall_told = True
+                sent = (frames - 1) / (last_put - first_put)
+                if sent < SHORTFALL_FRACTION * rate:
+                    log.warning("sending %.1f fps, below the %.3g asked: %s", sent, rate, "the camera delivers no more"
+                                if source.live else "a frame takes longer to read and encode than a period, and the "
+                                "replay runs slower than it was filmed (a lighter --encoding or --quality keeps up)")
             if frames == max_frames:
                 break
     stats = PublishStats(frames, nbytes, time.monotonic() - started, last_seq, last_put - (first_put or last_put),

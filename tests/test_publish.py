@@ -22,6 +22,7 @@ import zenoh
 from tacf.eval.metrics import box_iou
 from tacf_clients.local_service import free_port
 from tacf_clients.publisher import FramePublisher, publish
+import tacf_clients.publisher as publisher_module
 from tacf_clients.scene import Scene, SceneSource
 import tacf_clients.sources as sources
 from tacf_clients.sources import (CaptureSource, FrameSource, ImageFolderSource, Pacer, SourceError, SourceFrame,
@@ -458,6 +459,21 @@ def test_publish_stop_event_and_encodings(tmp_path, collector):
     assert frames[1].width == 320 and frames[1].height == 240
 
 
+@pytest.mark.parametrize("fps, encoding_s, warned", [(40, 0.05, True), (10, 0.0, False)])
+def test_a_replay_sent_slower_than_asked_is_told(collector, monkeypatch, caplog, fps, encoding_s, warned):
+    """A replayed source whose frames took longer to read and encode than the period asked played in slow motion,
+    the rate known only from the final count."""
+    monkeypatch.setattr(publisher_module, "SHORTFALL_AFTER_S", 0.5)
+    with _publisher_session(collector.port) as session:
+        _wait_matched(session)
+        stats = publish(session, SceneSource(Scene.from_spec("scene:320x240")), KEY, fps=fps, max_frames=12,
+                        on_frame=lambda *_: time.sleep(encoding_s))
+    told = [r.getMessage() for r in caplog.records if "below the" in r.getMessage()]
+    assert stats.frames == 12 and bool(told) == warned, (stats.fps, told)
+    if warned:
+        assert told[0].startswith("sending ") and "below the 40 asked: a frame takes longer" in told[0], told
+
+
 def test_frames_that_reached_nobody_are_said_so():
     """A camera publishing where no subscriber ever listened (no session on the key, or access control keeping its
     frames from the network: the README's viewer.json5 on a camera) was told "published 20 frames" and nothing
@@ -818,6 +834,19 @@ def test_a_live_source_is_read_on_while_waiting_for_a_subscriber():
         cam.close()
     shown, at = first[0]
     assert at - shown <= 5, f"the first frame published was {at - shown} frames old ({shown}; the camera at {at})"
+
+
+def test_a_camera_slower_than_the_fps_asked_is_told(collector, monkeypatch, caplog):
+    monkeypatch.setattr(publisher_module, "SHORTFALL_AFTER_S", 0.5)
+    cam = CountingCamera(frames_per_connection=250)         # 20 fps
+    try:
+        with _publisher_session(collector.port) as session, open_source(cam.url) as source:
+            _wait_matched(session)
+            stats = publish(session, source, KEY, fps=30, encoding="bgr8", max_frames=16)
+    finally:
+        cam.close()
+    told = [r.getMessage() for r in caplog.records if "below the" in r.getMessage()]
+    assert stats.frames == 16 and len(told) == 1 and "below the 30 asked: the camera delivers no more" in told[0], told
 
 
 def test_a_sender_slower_than_a_live_source_sends_its_newest_frames(collector):
