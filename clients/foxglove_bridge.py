@@ -9,10 +9,10 @@ topics are withdrawn once no session uses it) and session N/S (withdrawn when it
 - `/K/image` (foxglove.CompressedImage): the newest frame of K, at most `image_hz` a second, only while someone
   subscribes; JPEG frames go as they came, raw ones are encoded once.
 - `/K/tracks` (foxglove.ImageAnnotations): the newest box of every session on K, a rectangle (green while the
-  tracker holds the target, red while it reports it lost) labelled with the session id and PME; each rectangle and
-  label, and the message when all its boxes are on one frame (else it has no stamp, which Foxglove would let
-  override theirs), carries the stamp of the frame its box was computed on (images carry their frames' stamps
-  too). Each rectangle's metadata carries node, sid, seq, ok and pme.
+  tracker holds the target, red while it reports it lost; none from a failed worker's last box) labelled with the
+  session id and PME; each rectangle and label, and the message when all its boxes are on one frame (else it has
+  no stamp, which Foxglove would let override theirs), carries the stamp of the frame its box was computed on
+  (images carry their frames' stamps too). Each rectangle's metadata carries node, sid, seq, ok and pme.
 - `/tacf/N/S` (JSON, schema SESSION_SCHEMA): the session as the dashboard's /api/state shows it (box, PME, health:
   fps, latency, frame counts), on every change: a Plot panel plots e.g. `/tacf/N/S.health.fps`.
 With `record` (`--record FILE.mcap`) everything published, images included at the same rate, is also written
@@ -224,6 +224,7 @@ class FoxgloveBridge:
         self._sent_frames: dict[str, tuple[int, int]] = {}       # key -> (seq, received_ns) last sent
         self._unshowable: set[str] = set()                        # keys whose newest frame is no image
         self._sent_boxes: dict[str, tuple] = {}          # key -> (sid id, seq, ok, stamp_ns) of the boxes last sent
+        self._failed_boxes: dict[str, tuple[int, int]] = {}   # sid id -> (seq, stamp_ns) of its box when it failed
 
     def _start_sdk_server(self, name: str, services: list) -> foxglove.WebSocketServer:
         return foxglove.start_server(
@@ -283,11 +284,12 @@ class FoxgloveBridge:
             channel = self._session_channels.pop(sid_id, None)
             if channel is not None:
                 channel.close()
+            self._failed_boxes.pop(sid_id, None)
         self._sent_versions = versions
         by_key: dict[str, list[dict]] = {key: [] for key in self._sent_boxes}
         for session in sessions:
             if session["image_key"] is not None and session["state"] != "stopped":
-                by_key.setdefault(session["image_key"], []).append(session)
+                by_key.setdefault(session["image_key"], []).append(self._without_failed_box(session))
         for key, on_key in by_key.items():
             # a key's annotations change with its boxes (not with health); a key whose last session went away
             # gets one empty message, so that the last rectangle disappears
@@ -307,6 +309,17 @@ class FoxgloveBridge:
         for key in self._tracks.keys() - self._images.keys():
             if not by_key[key]:          # no session left on a key the board does not watch (it watches 32 at most)
                 self._withdraw_tracks(key)
+
+    def _without_failed_box(self, session: dict) -> dict:
+        """The session, its box left out while it is the one it had when its worker failed: no tracker is behind
+        it, and it sat on the live picture as if tracking until the restarted worker's first box on a new frame."""
+        box = session["box"]
+        if box is None:
+            return session
+        mark = (box["seq"], box["stamp_ns"])
+        if session["state"] == "failed":
+            self._failed_boxes[session["id"]] = mark
+        return {**session, "box": None} if self._failed_boxes.get(session["id"]) == mark else session
 
     def publish_images(self) -> None:
         """The newest frame of each watched key whose image topic somebody subscribes to (or all, recording)."""

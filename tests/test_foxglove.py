@@ -524,6 +524,52 @@ def test_the_tracks_of_a_key_the_board_cannot_watch_go_with_its_last_session(rig
         assert fox.pump_until(lambda: not ours(), timeout=15), ours()
 
 
+def test_a_failed_workers_last_box_is_taken_off_until_the_restarted_one_boxes_again(monkeypatch):
+    """A session whose worker died kept its last rectangle on the live picture, green as if tracking, through the
+    restart's backoff: nothing tracked behind it."""
+    import os
+    import signal
+
+    import zenoh
+
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_clients.scene import SceneSource
+    from tacf_service import manager
+    from tacf_service.app import ServiceOptions, TrackingService
+    from tacf_service.config import ZenohOptions
+    from tacf_service.loopback import peer_config
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (4.0,))
+    key, sid, endpoint = "test/foxglove/crashing", "fox-crashing", f"tcp/127.0.0.1:{free_port()}"
+    service = TrackingService(ServiceOptions(node=f"fox{free_port()}", zenoh=ZenohOptions(listen=(endpoint,)),
+                                             spare_workers=0)).open()
+    try:
+        with zenoh.open(peer_config(connect=[endpoint])) as session, \
+                Dashboard(session=session, image_keys=[key]) as board, FoxgloveBridge(board, port=0) as bridge, \
+                foxglove_client(bridge.port) as fox, serving(bridge):
+            camera = HoldingPublisher(session, SceneSource(SCENE), key, 20, "jpeg")
+            camera.start()
+            try:
+                assert fox.pump_until(lambda: camera.last_seq >= 0)
+                seq = camera.last_seq
+                ok, info = fox.call("/tacf/start", {"image_key": key, "box": list(SCENE.box(camera.index_of(seq))),
+                                                    "seq": seq, "sid": sid, "node": service.node})
+                assert ok, info
+                fox.subscribe(f"/{key}/tracks")
+                assert fox.pump_until(lambda: any(m.points for m in fox.received(f"/{key}/tracks")), timeout=30)
+                os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
+                assert fox.pump_until(lambda: board.sessions_json()[0][0]["state"] == "failed", timeout=15)
+                assert fox.pump_until(lambda: not fox.received(f"/{key}/tracks")[-1].points, timeout=2), \
+                    "the failed worker's box was taken off"
+                failed_at = len(fox.received(f"/{key}/tracks"))
+                assert fox.pump_until(lambda: any(m.points for m in fox.received(f"/{key}/tracks")[failed_at:]),
+                                      timeout=40), "the restarted worker's boxes are drawn"
+            finally:
+                camera.close()
+    finally:
+        service.close()
+
+
 def test_closing_with_a_connection_in_its_handshake_finishes_the_recording_at_once(tmp_path):
     """An idle TCP connection (a port scan, a health check) made close() wait out the handshake's 10 s, or fail
     after them with the MCAP file left without its end and the SDK's server still up."""
