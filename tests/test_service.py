@@ -644,7 +644,6 @@ def test_unknown_op_and_wildcard_op(service, client):
     for key in (f"tacf/{NODE}/control/explode", f"tacf/{NODE}/control/*"):
         replies = list(client.get(key, timeout=3))
         assert len(replies) == 1 and replies[0].err is not None
-        from tacf_schemas import Error, decode
         assert decode(replies[0].err.payload.to_bytes(), Error).code == "unknown_op"
 
 
