@@ -236,6 +236,7 @@ class Health(WireModel):
     processing_ms_mean: FiniteFloat          # per frame: decode, locate and learn (the box is sent before learning)
     processing_ms_p95: FiniteFloat
     frame_age_ms: Optional[FiniteFloat] = None   # now - stamp_ns of the last processed frame
+    # The counters are over the session's life: a restarted worker's go on from the last Health of the one before.
     frames_received: Count = 0               # = processed + dropped + rejected; catch-up frames and seq gaps included
     frames_processed: Count = 0
     frames_dropped: Count = 0                # not processed: superseded (latest-only, seq gaps), duplicate or older,

@@ -11,10 +11,16 @@ FPS_WINDOW_S = 2.0
 TIMING_WINDOW = 120          # processing times kept for mean / p95
 
 
-class HealthStats:
-    """Updated by the worker's frame loop (one thread); snapshot() builds a Health message."""
+COUNTERS = ("frames_received", "frames_processed", "frames_dropped", "frames_rejected", "frames_lost")
 
-    def __init__(self) -> None:
+
+class HealthStats:
+    """Updated by the worker's frame loop (one thread); snapshot() builds a Health message, whose counters add
+    `earlier_counts` (those of the session's earlier workers, up to their last Health): they count over the
+    session's life, not from 0 again after each restart."""
+
+    def __init__(self, earlier_counts: dict[str, int] | None = None) -> None:
+        self.earlier_counts = {name: int((earlier_counts or {}).get(name) or 0) for name in COUNTERS}
         self.frames_received = 0
         self.frames_processed = 0
         self.frames_dropped = 0
@@ -76,8 +82,6 @@ class HealthStats:
         age = (now_ns - self.last_stamp_ns) / 1e6 if self.last_stamp_ns else None
         return Health(node=node, sid=sid, state=state, stamp_ns=now_ns, fps=self.fps(),
                       processing_ms_mean=mean, processing_ms_p95=p95, frame_age_ms=age,
-                      frames_received=self.frames_received, frames_processed=self.frames_processed,
-                      frames_dropped=self.frames_dropped, frames_rejected=self.frames_rejected,
-                      frames_lost=self.frames_lost,
+                      **{name: self.earlier_counts[name] + getattr(self, name) for name in COUNTERS},
                       pme=self.last_pme, last_seq=self.last_seq, restarts=restarts,
                       message=message[:1024] if message else None)

@@ -29,6 +29,7 @@ from tacf_schemas.keys import InvalidKeyError, validate_image_key
 from .config import ZenohOptions
 from .errors import ServiceError
 from .frames import FrameHistory, StoredFrame, box_problem
+from .health import COUNTERS
 from .pool import WorkerHandle, WorkerPool, worker_is_silent
 from .state import PersistedSession, StateStore
 from .trackers import DEFAULT_FACTORY, checked_overrides, default_profile
@@ -379,8 +380,9 @@ class SessionManager:
         is either attached before the stop, which then stops it, or never. A session given a live worker
         meanwhile (a reinit while its start waited for a frame, two reinits after a crash) keeps that one, which
         takes the pending init: a second worker would serve it unseen and outlive its stop."""
+        earlier = session.health.model_dump(include=set(COUNTERS)) if session.health is not None else {}
         assignment = Assignment(sid=session.sid, image_key=session.image_key, profile=session.profile,
-                                overrides=session.overrides, restarts=session.restarts)
+                                overrides=session.overrides, restarts=session.restarts, earlier_counts=earlier)
         with self._lock:
             if self._is_gone(session):
                 raise _stopped_meanwhile(session, self.node)
@@ -619,8 +621,7 @@ class SessionManager:
         import zenoh
 
         last = session.health
-        counters = last.model_dump(include={"frames_received", "frames_processed", "frames_dropped",
-                                            "frames_rejected", "frames_lost", "pme", "last_seq"}) if last else {}
+        counters = last.model_dump(include={*COUNTERS, "pme", "last_seq"}) if last else {}
         health = Health(node=self.node, sid=session.sid, state=state, stamp_ns=time.time_ns(), fps=0.0,
                         processing_ms_mean=0.0, processing_ms_p95=0.0, restarts=session.restarts,
                         message=(message or "")[:1024] or None, **counters)

@@ -93,6 +93,7 @@ class Assignment:
     profile: str
     overrides: dict = field(default_factory=dict)
     restarts: int = 0
+    earlier_counts: dict = field(default_factory=dict)     # the frame counters of the session's earlier workers
 
 
 class LatestFrame:
@@ -335,7 +336,7 @@ class Worker:
 
         from .health import HealthStats
 
-        self._stats = HealthStats()
+        self._stats = HealthStats(self.job.earlier_counts)
         encoding = zenoh.Encoding(MSGPACK_ENCODING)
         node, sid = self.spec.node, self.job.sid
         token = session.liveliness().declare_token(session_liveliness_key(node, sid))

@@ -786,6 +786,7 @@ def test_a_killed_worker_is_reported_and_recovers_from_its_last_box(service, cli
         start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="victim2")
         assert wait_until(lambda: len(results.results()) >= 8, 30)
         assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+        assert wait_until(lambda: any(h.frames_processed >= 30 for h in results.health), 30)   # told the service
         pid = service.manager.worker_pids()["victim2"]
         os.kill(pid, sig)
         grace = SIGTERM_GRACE_S if sig == signal.SIGTERM else 0.0
@@ -800,6 +801,15 @@ def test_a_killed_worker_is_reported_and_recovers_from_its_last_box(service, cli
         info = call(client, NODE, "status", StatusRequest(sid="victim2"))
         assert info.restarts == 1 and info.state in ("tracking", "lost")
         assert mean_iou(results.results()[count:], feed.truth) > 0.5    # continued from its last box
+        # the counters go on from the dead worker's last Health (they started from 0 again with each worker)
+        [last_word] = [h for h in results.health if h.state == "failed"]
+
+        def restarted() -> list:
+            return [h for h in results.health if h.restarts == 1 and h.state in ("tracking", "lost")]
+
+        assert wait_until(restarted, 5)
+        assert restarted()[0].frames_processed > last_word.frames_processed >= 30, (restarted()[0], last_word)
+        assert restarted()[0].frames_received > last_word.frames_received
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="victim2"))
