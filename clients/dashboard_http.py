@@ -305,7 +305,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
         except TacfError as exc:
             status = next(s for cls, s in _ERROR_STATUS if isinstance(exc, cls))
             self._error(status, getattr(exc, "code", type(exc).__name__), str(exc))
-        except (ValueError, TypeError, KeyError, OverflowError) as exc:     # the last: an override msgpack cannot carry
+        except (ValueError, TypeError, KeyError) as exc:
             self._error(HTTPStatus.BAD_REQUEST, "invalid_request", str(exc) or type(exc).__name__)
         else:
             self._json(HTTPStatus.OK, reply)

@@ -81,8 +81,10 @@ PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 #: A seq alone, validated as WireModel.from_wire does within a message (the worker peeks at a frame's seq).
 SEQ = TypeAdapter(Seq)
 #: A tracker config override (TrackerConfig.profile(profile, **overrides)): strict even where a Python caller
-#: builds the message, so that "0.5" or "true" typed into a form is refused, not sent as a number.
-Override = Union[StrictBool, StrictInt, StrictFloat]
+#: builds the message, so that "0.5" or "true" typed into a form is refused, not sent as a number. Ints within
+#: int64, as msgpack carries them (a larger one raised OverflowError in encode); past it, as the JSON Schema's
+#: "number", an int is a float, which the service refuses for an int field (invalid_config).
+Override = Union[StrictBool, Annotated[StrictInt, Field(ge=-2**63, lt=2**63)], StrictFloat]
 
 #: [x, y, w, h], any finite values (a tracker's output).
 Box = Annotated[tuple[FiniteFloat, FiniteFloat, FiniteFloat, FiniteFloat], BeforeValidator(_wire_array)]

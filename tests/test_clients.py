@@ -195,6 +195,14 @@ def test_error_replies_raise_typed_exceptions(client, camera, service):
         client.stop("twice")
 
 
+
+def test_an_override_int_msgpack_cannot_carry_is_the_service_s_to_refuse(client, camera):
+    """`tacf start --set cell_size=99999999999999999999` (or overrides={"cell_size": 10**20}) ended in msgpack's
+    OverflowError traceback: now it goes as the number it is and the service names the bound it breaks."""
+    with pytest.raises(InvalidConfig, match="cell_size"):
+        client.start(camera.key, SCENE.box(0), sid="huge", overrides={"cell_size": 10**20})
+    assert "huge" not in {info.sid for info in client.list()}
+
 def test_no_service_and_timeout():
     port = free_port()
     hub = f"tcp/127.0.0.1:{port}"
