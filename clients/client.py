@@ -105,7 +105,7 @@ class TrackingClient:
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
         deadline, target = self._deadline(), node or self.node
         if target == LEAST_LOADED:                                       # every service, even with self.node set
-            target = least_loaded(self._services(keys.WILDCARD, deadline, settle=True))
+            target = least_loaded(self._services(None, deadline, settle=True))
         elif target is None:
             target = self._single_node(deadline)
         info = self._call_one(target, "start", request, SessionInfo, deadline)

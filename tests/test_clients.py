@@ -300,6 +300,16 @@ def test_a_call_to_one_service_refuses_the_wildcard_node():
                 call()
 
 
+
+def test_a_start_on_the_least_loaded_service_with_none_says_none_answered():
+    """With no service on the network, `start(..., node=LEAST_LOADED)` (`tacf start --node auto`) said "service '*'
+    did not answer", as if a service were named '*'."""
+    from tacf_clients.client import LEAST_LOADED
+
+    with TrackingClient(no_service_options(), timeout=0.5) as client, pytest.raises(NoService) as none:
+        client.start("cam/a", (1, 2, 3, 4), node=LEAST_LOADED)
+    assert str(none.value) == "no tracking service answered on tacf/*/control/list"
+
 def _cli_error(main, argv: list[str], capsys) -> str:
     """The one line a command prints on stderr when it fails with exit code 1 (SystemExit, not a traceback)."""
     with pytest.raises(SystemExit) as exc:
