@@ -105,7 +105,9 @@ class TrackingClient:
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
         deadline, target = self._deadline(), node or self.node
         if target == LEAST_LOADED:                                       # every service, even with self.node set
-            target = least_loaded(self._services(None, deadline, settle=True))
+            listings = self._services(None, deadline, settle=True)
+            target = least_loaded(listings)
+            _refuse_twins([listing.node for listing in listings if listing.node == target])
         elif target is None:
             target = self._single_node(deadline)
         info = self._call_one(target, "start", request, SessionInfo, deadline)
@@ -230,10 +232,7 @@ class TrackingClient:
         nodes = [listing.node for listing in self._services(None, deadline)]
         if not nodes:
             raise NoService("no tracking service answered on tacf/*/control/list")
-        if twins := sorted({node for node in nodes if nodes.count(node) > 1}):
-            # node=... cannot tell them apart: every query to that node reaches all of them
-            raise AmbiguousNode(f"several services answer as node {', '.join(map(repr, twins))}: give each its own "
-                                "node id (tacf serve --node); a session started there would run on each of them")
+        _refuse_twins(nodes)
         if len(nodes) > 1:
             raise AmbiguousNode(f"{len(nodes)} services on the network ({', '.join(nodes)}): {SAY_WHICH_NODE}")
         return nodes[0]
@@ -376,6 +375,14 @@ def least_loaded(listings: list[SessionList]) -> str:
     if not free:
         raise TooManySessions(f"every service is full ({', '.join(lst.node for lst in listings)})")
     return min(free, key=lambda lst: (len(lst.sessions), node_load(lst), lst.node)).node
+
+
+def _refuse_twins(nodes: list[str]) -> None:
+    """AmbiguousNode if several of the services that answered have one node id: node=... cannot tell them apart,
+    and every query to that node reaches all of them."""
+    if twins := sorted({node for node in nodes if nodes.count(node) > 1}):
+        raise AmbiguousNode(f"several services answer as node {', '.join(map(repr, twins))}: give each its own "
+                            "node id (tacf serve --node); a session started there would run on each of them")
 
 
 def _node_of_token(key_expr) -> str | None:

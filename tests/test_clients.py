@@ -310,6 +310,36 @@ def test_a_start_on_the_least_loaded_service_with_none_says_none_answered():
         client.start("cam/a", (1, 2, 3, 4), node=LEAST_LOADED)
     assert str(none.value) == "no tracking service answered on tacf/*/control/list"
 
+
+def test_a_start_on_the_least_loaded_service_refuses_a_node_id_two_services_answer_as():
+    """Two boxes flashed from one image answer as one node id: `start()` without node= refused that, but
+    node=LEAST_LOADED picked the id and started the session on both (the target tracked twice, once per box)."""
+    from tacf_clients.client import LEAST_LOADED
+    from tacf_schemas.codec import MSGPACK_ENCODING, encode
+    from tacf_schemas.models import SessionList
+
+    info = SessionInfo(node="twin", sid="s", image_key="cam/a", profile="default", state="starting",
+                       box=(1, 2, 3, 4), created_ns=1)
+    replies = {"list": SessionList(node="twin", max_sessions=8), "start": info}
+    started = []
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as boxes:
+        def answer(query):
+            op = str(query.key_expr).rsplit("/", 1)[-1]
+            started.extend([op] if op == "start" else [])
+            query.reply(query.key_expr, encode(replies[op]), encoding=zenoh.Encoding(MSGPACK_ENCODING))
+
+        twins = [boxes.declare_queryable("tacf/twin/control/*", answer) for _ in range(2)]
+        try:
+            with TrackingClient(ZenohOptions.loopback(port), timeout=1.0) as client:
+                assert client.nodes() == ["twin", "twin"]
+                with pytest.raises(AmbiguousNode, match="several services answer as node 'twin'"):
+                    client.start("cam/a", (1, 2, 3, 4), node=LEAST_LOADED)
+            assert started == [], "no start was sent"
+        finally:
+            for queryable in twins:
+                queryable.undeclare()
+
 def _cli_error(main, argv: list[str], capsys) -> str:
     """The one line a command prints on stderr when it fails with exit code 1 (SystemExit, not a traceback)."""
     with pytest.raises(SystemExit) as exc:
