@@ -472,7 +472,10 @@ def _box(box: BoxLike) -> tuple[float, float, float, float]:
         values = ()
     if len(values) != 4 or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in values):
         raise InvalidBox(f"box must be 4 numbers (x, y, w, h), got {box!r}")
-    return tuple(float(v) for v in values)  # type: ignore[return-value]
+    try:
+        return tuple(float(v) for v in values)  # type: ignore[return-value]
+    except OverflowError:       # an int past the float range (10**400); not printed: str() of 4,300 digits raises
+        raise InvalidBox("box must be 4 numbers (x, y, w, h) a float holds, got one past its range") from None
 
 
 def _image_key(key: str) -> str:

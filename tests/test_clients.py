@@ -175,8 +175,8 @@ def test_error_replies_raise_typed_exceptions(client, camera, service):
         client.start("bad/*/key", (1, 2, 3, 4))
     with pytest.raises(InvalidBox):
         client.start(camera.key, (10, 10, 0, 5))
-    for box in (("10", "10", "20", "20"), (10, 10, True, 20), (10, 10, 20), "abcd"):    # no numbers: not sent
-        with pytest.raises(InvalidBox, match="4 numbers"):
+    for box in (("10", "10", "20", "20"), (10, 10, True, 20), (10, 10, 20), "abcd", (10**400, 10, 20, 20)):
+        with pytest.raises(InvalidBox, match="4 numbers"):       # no numbers, or none a float holds: not sent
             client.start(camera.key, box)
     with pytest.raises(InvalidId):
         client.stop("not a valid id")
