@@ -195,13 +195,13 @@ def test_error_replies_raise_typed_exceptions(client, camera, service):
         client.stop("twice")
 
 
-
 def test_an_override_int_msgpack_cannot_carry_is_the_service_s_to_refuse(client, camera):
     """`tacf start --set cell_size=99999999999999999999` (or overrides={"cell_size": 10**20}) ended in msgpack's
     OverflowError traceback: now it goes as the number it is and the service names the bound it breaks."""
     with pytest.raises(InvalidConfig, match="cell_size"):
         client.start(camera.key, SCENE.box(0), sid="huge", overrides={"cell_size": 10**20})
     assert "huge" not in {info.sid for info in client.list()}
+
 
 def test_no_service_and_timeout():
     port = free_port()
@@ -300,7 +300,6 @@ def test_a_call_to_one_service_refuses_the_wildcard_node():
                 call()
 
 
-
 def test_a_start_on_the_least_loaded_service_with_none_says_none_answered():
     """With no service on the network, `start(..., node=LEAST_LOADED)` (`tacf start --node auto`) said "service '*'
     did not answer", as if a service were named '*'."""
@@ -339,6 +338,7 @@ def test_a_start_on_the_least_loaded_service_refuses_a_node_id_two_services_answ
         finally:
             for queryable in twins:
                 queryable.undeclare()
+
 
 def _cli_error(main, argv: list[str], capsys) -> str:
     """The one line a command prints on stderr when it fails with exit code 1 (SystemExit, not a traceback)."""

@@ -132,12 +132,12 @@ def test_integral_floats_are_ints_on_the_wire():
     assert request.overrides == {"cell_size": 6, "learning_rate": 0.5, "use_motion": True}
 
 
-
 def test_an_override_int_past_int64_is_sent_as_the_number_it_is():
     """The model took any int as an override, so `tacf start --set cell_size=99999999999999999999` passed it and
     encode raised msgpack's OverflowError: a traceback, where the service refuses the value (invalid_config)."""
     request = StartRequest(image_key="cam", box=(1, 2, 3, 4), overrides={"cell_size": 10**20, "num_scales": 2**63 - 1})
     assert decode(encode(request), StartRequest).overrides == {"cell_size": 1e20, "num_scales": 2**63 - 1}
+
 
 def _pairs(*pairs) -> bytes:
     """A msgpack map of these (key, value) pairs in this order, a key possibly twice (packb takes a dict)."""
