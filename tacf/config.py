@@ -123,6 +123,26 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
             raise ValueError(f"{name}.{field} must be {allowed}, got {getattr(config, field)}")
 
 
+def shared_combination_problems(config) -> list[str]:
+    """What the filter grid (fixed_area / cell_size**2 cells), the colour histogram (hist_bins cubed) and the scale
+    filter's range of a config must be for its tracker to run: TrackerConfig's, and tacf.staple's StapleConfig's,
+    whose fields alone let through a one-cell grid or 3 bins (init failed), 256 bins (16.7 M, a gigabyte) and scale
+    patches up to 2**64 times the target (init failed)."""
+    problems = []
+    if config.hist_bins > MAX_HIST_BINS or 256 % config.hist_bins:
+        problems.append(f"hist_bins must be a power of two up to {MAX_HIST_BINS} (its cube is the colour "
+                        f"histogram's size), got {config.hist_bins}")
+    cells = config.fixed_area / config.cell_size**2
+    if not MIN_CELLS <= cells <= MAX_CELLS:
+        problems.append(f"fixed_area / cell_size**2 (the filter's cells) must be in [{MIN_CELLS}, {MAX_CELLS}], "
+                        f"got {cells:g}")
+    widest = config.scale_step ** ((config.num_scales - 1) / 2)
+    if widest > MAX_SCALE_RANGE:
+        problems.append(f"scale_step ** ((num_scales - 1) / 2), the largest scale patch over the target, must "
+                        f"be <= {MAX_SCALE_RANGE}, got {widest:g}")
+    return problems
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     # The field defaults are the `authors` values; profile() builds the others. Not `profile`: that is the constructor.
@@ -261,17 +281,7 @@ class TrackerConfig:
                             f"{WEAK_CN_CORRELATION:g}, the Color Names kernel's change over a weak correlation, must "
                             f"be >= {cn_change_floor:g} (lambda1, at most {MIN_CN_CHANGE:g}), or Color Names answers "
                             f"nothing; got 10**{cn_change_digits:.3g}: raise cn_poly_a or lower cn_poly_b")
-        if self.hist_bins > MAX_HIST_BINS or 256 % self.hist_bins:
-            problems.append(f"hist_bins must be a power of two up to {MAX_HIST_BINS} (its cube is the colour "
-                            f"histogram's size), got {self.hist_bins}")
-        cells = self.fixed_area / self.cell_size**2
-        if not MIN_CELLS <= cells <= MAX_CELLS:
-            problems.append(f"fixed_area / cell_size**2 (the filter's cells) must be in [{MIN_CELLS}, {MAX_CELLS}], "
-                            f"got {cells:g}")
-        widest = self.scale_step ** ((self.num_scales - 1) / 2)
-        if widest > MAX_SCALE_RANGE:
-            problems.append(f"scale_step ** ((num_scales - 1) / 2), the largest scale patch over the target, must "
-                            f"be <= {MAX_SCALE_RANGE}, got {widest:g}")
+        problems += shared_combination_problems(self)
         if problems:
             raise ValueError("TrackerConfig: " + "; ".join(problems))
 

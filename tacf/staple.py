@@ -29,7 +29,7 @@ import scipy.fft
 from tacf.attention import pme
 from tacf.boxes import box_around, check_box, overlapping
 from tacf.colour import ColourModel
-from tacf.config import check_fields
+from tacf.config import check_fields, shared_combination_problems
 from tacf.correlator import gaussian_label
 from tacf.features import fhog
 from tacf.fft import squared_magnitude
@@ -70,6 +70,9 @@ class StapleConfig:
                                      "scale_sigma_factor", "scale_model_max_area"),
                      rates=("learning_rate", "merge_factor", "hist_learning_rate", "scale_learning_rate",
                             "scale_min_visible"))
+        problems = shared_combination_problems(self)
+        if problems:
+            raise ValueError("StapleConfig: " + "; ".join(problems))
 
 
 def window_means(likelihood: np.ndarray, window_hw) -> np.ndarray:

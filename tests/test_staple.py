@@ -55,6 +55,19 @@ def test_bad_parameters_are_refused(change):
         StapleConfig(**change)
 
 
+@pytest.mark.parametrize("change, message", [
+    ({"hist_bins": 3}, "power of two up to 64"),          # init failed, and update() after it with a TypeError
+    ({"hist_bins": 256}, "power of two up to 64"),        # 16.7 M bins, as TrackerConfig refuses them
+    ({"fixed_area": 16.0}, "the filter's cells"),         # one cell: init failed, update() after it AttributeError
+    ({"fixed_area": 100.0}, "the filter's cells"),
+    ({"scale_step": 2.0, "num_scales": 129}, "largest scale patch"),   # 2**64 times the target: init failed
+    ({"scale_step": 2.0}, "largest scale patch"),                      # 65,536 times
+])
+def test_parameters_the_tracker_cannot_run_are_refused(change, message):
+    with pytest.raises(ValueError, match="StapleConfig: .*" + message):
+        StapleConfig(**change)
+
+
 def test_tiny_target_leaving_the_image_and_a_target_larger_than_most_of_the_frame():
     images, truth = moving_target_sequence(frames=60, target=(9, 10), velocity=(0.0, 5.0))  # leaves at frame ~54
     tracker = Staple()
