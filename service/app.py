@@ -75,12 +75,15 @@ class TrackingService:
     def open(self) -> "TrackingService":
         import zenoh
         options = self.options
+        # Zenoh checks the endpoints as the config is built: a malformed --listen is refused with its reason here,
+        # where worker_endpoints, which skips what it cannot parse, would ask for a --listen as if none were given
+        config = service_config(options.zenoh)
         endpoints = worker_endpoints(options.zenoh)
         if options.state_file:
             self._store = StateStore(options.state_file)
             self._store.lock()          # before the session: a service that cannot persist never goes live
         try:
-            self._session = zenoh.open(service_config(options.zenoh))
+            self._session = zenoh.open(config)
             _refuse_a_taken_node(self._session, self.node)
             if own_endpoints(options.zenoh):    # a router the workers would reach instead may come up later
                 _check_workers_can_connect(options.zenoh, endpoints)

@@ -756,10 +756,14 @@ def test_serve_fails_cleanly_when_the_port_is_taken(tmp_path):
 @pytest.mark.parametrize("argv, reason", [
     (["--connect", "bogus"], "Zenoh: Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: "
                              "bogus"),
+    (["--listen", "bogus"], "Zenoh: Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: "
+                            "bogus"),
     (["--zenoh-config", "/nonexistent/zenoh.json5"], "Zenoh (/nonexistent/zenoh.json5): No such file or directory")])
 def test_serve_refuses_bad_zenoh_settings_in_one_line(argv, reason):
     """`tacf serve --connect bogus` logged Zenoh's Json5Err(Message { msg: ..., location: ... }) with two Rust
-    source paths in it, and exited 1 as for a failure at run time: it is a usage error."""
+    source paths in it, and exited 1 as for a failure at run time: it is a usage error. `--listen bogus` was
+    refused with exit 1 as if no --listen had been given ("worker processes need an endpoint of the service: give
+    --listen with a fixed port")."""
     out = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--node", NODE, *argv],
                          capture_output=True, text=True, timeout=30)
     assert out.returncode == 2 and len(out.stderr.splitlines()) == 1, out.stderr
