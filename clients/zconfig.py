@@ -111,15 +111,23 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
         raise ZenohSettingsError(f"cannot open a Zenoh session: {reason}") from exc
 
 
-# The files a session's settings name: Zenoh reports one missing on a client's side only as "Unable to connect"
+# The files a session's settings name: Zenoh reports one missing or unreadable on a client's side only as "Unable to
+# connect"
 FILE_SETTINGS = ("transport/link/tls/root_ca_certificate", "transport/link/tls/connect_certificate",
                  "transport/link/tls/connect_private_key", "transport/link/tls/listen_certificate",
                  "transport/link/tls/listen_private_key", "transport/auth/usrpwd/dictionary_file")
 
 
 def _check_files(conf) -> None:
-    """ZenohSettingsError naming a file the settings give that is not there."""
+    """ZenohSettingsError naming a file the settings give that is not there or that this user may not read (a key
+    that make-certs.sh, run as root, left readable by root only)."""
     for key in FILE_SETTINGS:
         path = json.loads(conf.get_json(key))
-        if isinstance(path, str) and path and not Path(path).is_file():
+        if not (isinstance(path, str) and path):
+            continue
+        if not Path(path).is_file():
             raise ZenohSettingsError(f"{key}: no such file: {path}")
+        try:
+            Path(path).open("rb").close()
+        except OSError as exc:
+            raise ZenohSettingsError(f"{key}: cannot read {path}: {(exc.strerror or str(exc)).lower()}") from None
