@@ -102,6 +102,7 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
 
     conf = options if isinstance(options, zenoh.Config) else make_config(options)
     _check_files(conf)
+    _check_protocols(conf)
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
@@ -131,3 +132,16 @@ def _check_files(conf) -> None:
             Path(path).open("rb").close()
         except OSError as exc:
             raise ZenohSettingsError(f"{key}: cannot read {path}: {(exc.strerror or str(exc)).lower()}") from None
+
+
+def _check_protocols(conf) -> None:
+    """ZenohSettingsError naming a connect endpoint whose protocol transport/link/protocols leaves out (tcp/ with a
+    TLS-only file): Zenoh skips it, and then says only "Unable to connect" as a client, nothing as a peer."""
+    protocols = json.loads(conf.get_json("transport/link/protocols"))
+    endpoints = json.loads(conf.get_json("connect/endpoints"))
+    if not protocols or not isinstance(endpoints, list):      # a per-mode {peer: [...], ...} list: Zenoh's to pick
+        return
+    for endpoint in endpoints:
+        if endpoint.split("/", 1)[0] not in protocols:
+            raise ZenohSettingsError(f"cannot connect to {endpoint}: transport/link/protocols allows only "
+                                     f"{', '.join(protocols)}")

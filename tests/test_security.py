@@ -231,6 +231,19 @@ def test_a_client_that_may_not_read_a_file_its_settings_name_is_told_which(etc, 
         f"tacf list: transport/link/tls/connect_private_key: cannot read {key}: permission denied"
 
 
+def test_a_client_connecting_with_a_protocol_its_settings_leave_out_is_told_so(etc):
+    """`--connect tcp/...` with the TLS-only ground.json5: Zenoh skips the endpoint, and the command said no Zenoh
+    node was reachable (exit 1) as a client, no service answered as a peer."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    for mode in ("client", "peer"):
+        done = subprocess.run([sys.executable, "-m", "tacf.cli", "list", "--zenoh-config", str(etc / "ground.json5"),
+                               "--connect", endpoint, "--mode", mode, "--timeout", "1"],
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.strip() == f"tacf list: cannot connect to {endpoint}: transport/link/protocols allows " \
+                                      "only tls"
+
+
 def test_a_service_whose_workers_cannot_log_in_refuses_to_start(etc):
     """Settings only the workers use (here the password they present, changed in users.txt but not in the service's
     file) used to fail in every worker, again and again, while the service said it was ready and accepted starts."""
