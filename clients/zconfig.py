@@ -112,8 +112,8 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
         raise ZenohSettingsError(f"cannot open a Zenoh session: {reason}") from exc
 
 
-# The files a session's settings name: Zenoh reports one missing or unreadable on a client's side only as "Unable to
-# connect"
+# The files a session's settings name: Zenoh reports one missing or unreadable on a client's side only as
+# "Unable to connect"
 FILE_SETTINGS = ("transport/link/tls/root_ca_certificate", "transport/link/tls/connect_certificate",
                  "transport/link/tls/connect_private_key", "transport/link/tls/listen_certificate",
                  "transport/link/tls/listen_private_key", "transport/auth/usrpwd/dictionary_file")
