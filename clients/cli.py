@@ -513,16 +513,24 @@ def cmd_nodes(args: argparse.Namespace) -> int:
 def _follow_nodes(args: argparse.Namespace) -> int:
     from datetime import datetime
 
+    reader_gone = threading.Event()
+
     def show(node: str, alive: bool) -> None:
         now = datetime.now()
-        if args.json:
-            print(json.dumps({"time": now.timestamp(), "node": node, "alive": alive}), flush=True)
-        else:
-            print(f"{now:%H:%M:%S.%f}"[:-3] + f"  {'up  ' if alive else 'down'}  {node}", flush=True)
+        try:
+            if args.json:
+                print(json.dumps({"time": now.timestamp(), "node": node, "alive": alive}), flush=True)
+            else:
+                print(f"{now:%H:%M:%S.%f}"[:-3] + f"  {'up  ' if alive else 'down'}  {node}", flush=True)
+        except BrokenPipeError:     # `... | head -1`: on this Zenoh thread it was only logged, and the command ran on
+            reader_gone.set()
+            stop.set()
 
     # A peer: it links to every service (gossip), so the loss of the one it connected to is not the loss of all.
     with stop_on_signals() as stop, _client(args, one_shot=False) as client, client.watch_nodes(show):
         stop.wait(args.duration)
+    if reader_gone.is_set():
+        raise BrokenPipeError       # ends as a filter whose reader left (tacf.cli: exit 141)
     return 0
 
 
