@@ -106,6 +106,14 @@ def box(text: str) -> Box:
     return values  # type: ignore[return-value]
 
 
+def source(text: str) -> str:
+    """A SOURCE to read frames from (file, folder, camera, URL): not empty, as "$VIDEO" is when the variable is
+    unset, which read the current folder as a folder of images."""
+    if not text:
+        raise argparse.ArgumentTypeError("'': expected a source to read frames from, not an empty name")
+    return text
+
+
 def take_negative_numbers(parser: argparse.ArgumentParser) -> None:
     """Let `parser`'s option values start with a negative number, "-5,20,40,30" as "-5" (argparse's own test)."""
     parser._negative_number_matcher = NEGATIVE_NUMBER

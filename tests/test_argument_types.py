@@ -81,3 +81,14 @@ def test_every_command_refuses_a_meaningless_number_as_a_usage_error(argv, capsy
         main(argv)
     err = capsys.readouterr().err
     assert refused.value.code == 2 and f"error: argument {argv[-2]}" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("argv", [["publish", "", "--key", "cam/a"], ["demo", ""], ["track", "", "--box", "1,2,3,4"]])
+def test_an_empty_source_is_a_usage_error(argv, capsys):
+    """An empty SOURCE ("$VIDEO" with the variable unset) was the current folder, read as a folder of images."""
+    from tacf.cli import main
+
+    with pytest.raises(SystemExit) as refused:
+        main(argv)
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and "error: argument SOURCE: '': expected a source" in err, err
