@@ -13,7 +13,7 @@ import sys
 import threading
 from contextlib import contextmanager
 
-from tacf.argument_types import (box, integer, port, positive_number, positive_up_to, quality, seconds,
+from tacf.argument_types import (box, integer, port, positive_number, positive_up_to, quality, seconds, source,
                                  take_negative_numbers)
 from tacf.config import PROFILES      # plain data: `tacf demo --profile` is checked before a service starts
 
@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "an image folder (or a sequence folder with img/), a camera index or "
                                           "device (/dev/video0), a stream URL, or 'scene' (the generated demo "
                                           "scene).")
-    p.add_argument("source", metavar="SOURCE")
+    p.add_argument("source", metavar="SOURCE", type=source)
     p.add_argument("--key", "-k", required=True, type=_image_key,
                    help="Zenoh key to publish on, e.g. uav1/camera/front")
     p.add_argument("--fps", type=positive_number, help="rate (default: the source's own, or 30)")
@@ -134,7 +134,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description="Start a local tracking service, publish SOURCE (default: a generated "
                                           "scene with a moving target), start a session on it, print boxes and "
                                           "health, then stop everything cleanly.")
-    p.add_argument("source", metavar="SOURCE", nargs="?", default="scene",
+    p.add_argument("source", metavar="SOURCE", nargs="?", default="scene", type=source,
                    help="video file, image folder, camera index, URL or 'scene' (default)")
     p.add_argument("--box", "-b", type=box,
                    help="initial box x,y,w,h (default: the scene's target, a sequence's groundtruth.txt, "
@@ -513,16 +513,24 @@ def cmd_nodes(args: argparse.Namespace) -> int:
 def _follow_nodes(args: argparse.Namespace) -> int:
     from datetime import datetime
 
+    reader_gone = threading.Event()
+
     def show(node: str, alive: bool) -> None:
         now = datetime.now()
-        if args.json:
-            print(json.dumps({"time": now.timestamp(), "node": node, "alive": alive}), flush=True)
-        else:
-            print(f"{now:%H:%M:%S.%f}"[:-3] + f"  {'up  ' if alive else 'down'}  {node}", flush=True)
+        try:
+            if args.json:
+                print(json.dumps({"time": now.timestamp(), "node": node, "alive": alive}), flush=True)
+            else:
+                print(f"{now:%H:%M:%S.%f}"[:-3] + f"  {'up  ' if alive else 'down'}  {node}", flush=True)
+        except BrokenPipeError:     # `... | head -1`: on this Zenoh thread it was only logged, and the command ran on
+            reader_gone.set()
+            stop.set()
 
     # A peer: it links to every service (gossip), so the loss of the one it connected to is not the loss of all.
     with stop_on_signals() as stop, _client(args, one_shot=False) as client, client.watch_nodes(show):
         stop.wait(args.duration)
+    if reader_gone.is_set():
+        raise BrokenPipeError       # ends as a filter whose reader left (tacf.cli: exit 141)
     return 0
 
 

@@ -21,7 +21,7 @@ from tacf.stop_signals import STOP_SIGNALS, release_stop_signals
 from tacf.zenoh_options import zenoh_error_text
 from tacf_schemas import LEAST_LOADED, sanitise_id, service_liveliness_key, validate_node_id
 
-from .config import ZenohOptions, own_endpoints, service_config, worker_config, worker_endpoints
+from .config import WorkerConnectError, ZenohOptions, own_endpoints, service_config, worker_config, worker_endpoints
 from .control import ControlServer
 from .frames import FrameHistory
 from .manager import FRAME_SAVE_PERIOD_S, SessionManager
@@ -189,10 +189,6 @@ def _refuse_a_taken_node(session, node: str) -> None:
         raise RuntimeError(f"another tacf service already runs as node {node!r} on this network; give this one its "
                            "own --node (a service that has just died keeps its token until its link drops: up to "
                            "10 s on a lost network)")
-
-
-class WorkerConnectError(ValueError):
-    """The worker processes' settings do not let them into the service (a usage error)."""
 
 
 def _check_workers_can_connect(zenoh_options: ZenohOptions, endpoints: list[str]) -> None:

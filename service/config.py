@@ -65,9 +65,13 @@ def own_endpoints(options: ZenohOptions) -> list[str]:
     return endpoints
 
 
+class WorkerConnectError(ValueError):
+    """The worker processes' settings do not let them into the service (a usage error)."""
+
+
 def worker_endpoints(options: ZenohOptions) -> list[str]:
     """Endpoints a worker process on this host connects to: the service's own (own_endpoints); without any, the
-    service's connect endpoints (a router)."""
+    service's connect endpoints (a router). WorkerConnectError when there is neither."""
     if endpoints := own_endpoints(options):
         return endpoints
     connect = list(options.connect or ())
@@ -75,8 +79,8 @@ def worker_endpoints(options: ZenohOptions) -> list[str]:
         connect = _configured_list(options, "connect/endpoints")
     if connect:
         return connect
-    raise ValueError("worker processes need an endpoint of the service: give --listen with a fixed port "
-                     "(or --connect to a router)")
+    raise WorkerConnectError("worker processes need an endpoint of the service: give --listen with a fixed port "
+                             "(or --connect to a router)")
 
 
 def worker_config(options: ZenohOptions, endpoints: list[str]):

@@ -2,7 +2,8 @@
 line naming the option) when the command line is parsed, not a traceback or a silent oddity later.
 
 Numbers that are times, rates or sizes must be finite: float() takes 'nan' and 'inf', and NaN passes any
-`value <= 0` check (every comparison with it is false), then waits for ever or overflows a timeout.
+`value <= 0` check (every comparison with it is false), then waits for ever or overflows a timeout. A finite one
+overflowed too when huge: those of positive_number and seconds are at most LARGEST.
 
 Only argparse at import time: `tacf --help` loads every command's arguments.
 """
@@ -17,6 +18,10 @@ Box = tuple[float, float, float, float]
 # What argparse takes for a negative number rather than an option, as from Python 3.14 on: before, only "-5" or
 # "-.5" itself, and a box across the left or top border, "--box -5,20,40,30", was an option ("expected one argument").
 NEGATIVE_NUMBER = re.compile(r"-\.?\d")
+# The largest time or rate taken, 31 years in seconds: a wait past threading.TIMEOUT_MAX (9.2e9 s on Linux) raised
+# an OverflowError (nodes --follow --duration 1e10, a start on `serve --init-wait 1e10`), a Zenoh query timeout past
+# 1.8e19 s a ValueError (list --timeout 1e20).
+LARGEST = 1e9
 
 
 def _number(text: str, expected: str) -> float:
@@ -30,10 +35,11 @@ def _number(text: str, expected: str) -> float:
 
 
 def positive_number(text: str) -> float:
-    """A rate, a timeout, a duration that must pass: finite and > 0."""
-    value = _number(text, "a finite number > 0")
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number > 0")
+    """A rate, a timeout, a duration that must pass: > 0 and <= LARGEST."""
+    expected = f"a finite number > 0 and <= {LARGEST:g}"
+    value = _number(text, expected)
+    if not 0 < value <= LARGEST:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
     return value
 
 
@@ -51,10 +57,11 @@ def positive_up_to(maximum: float) -> Callable[[str], float]:
 
 
 def seconds(text: str) -> float:
-    """A wait that may be none: a finite number of seconds >= 0."""
-    value = _number(text, "a finite number of seconds >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number of seconds >= 0")
+    """A wait that may be none: a number of seconds >= 0 and <= LARGEST."""
+    expected = f"a finite number of seconds >= 0 and <= {LARGEST:g}"
+    value = _number(text, expected)
+    if not 0 <= value <= LARGEST:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
     return value
 
 
@@ -97,6 +104,14 @@ def box(text: str) -> Box:
     if len(values) != 4 or not all(map(math.isfinite, values)) or values[2] <= 0 or values[3] <= 0:
         raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}")
     return values  # type: ignore[return-value]
+
+
+def source(text: str) -> str:
+    """A SOURCE to read frames from (file, folder, camera, URL): not empty, as "$VIDEO" is when the variable is
+    unset, which read the current folder as a folder of images."""
+    if not text:
+        raise argparse.ArgumentTypeError("'': expected a source to read frames from, not an empty name")
+    return text
 
 
 def take_negative_numbers(parser: argparse.ArgumentParser) -> None:

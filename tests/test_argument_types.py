@@ -32,6 +32,8 @@ def test_good_values_are_taken(parse, text, value):
     (types.seconds, "nan", "expected a finite number of seconds >= 0"),
     (types.seconds, "inf", "expected a finite number of seconds >= 0"),
     (types.seconds, "-0.1", "expected a finite number of seconds >= 0"),
+    (types.positive_number, "1e300", "expected a finite number > 0 and <= 1e+09"),
+    (types.seconds, "1e10", "expected a finite number of seconds >= 0 and <= 1e+09"),
     (types.integer(1), "0", "expected an integer >= 1"),
     (types.integer(1), "2.5", "expected an integer >= 1"),
     (types.integer(maximum=3), "4", "expected an integer <= 3"),
@@ -69,6 +71,8 @@ def test_bad_values_are_refused_with_the_value_and_what_was_expected(parse, text
     ["track", "clip.mp4", "--box", "1,2,3,inf"], ["eval", "root", "--workers", "0"],
     ["eval", "root", "--max-frames", "0"], ["eval", "root", "--shifts", "-1"],
     ["bench", "tracker", "--max-frames", "-5"],
+    # finite but past what a wait takes: an OverflowError, Zenoh's "negative timeout"
+    ["nodes", "--follow", "--duration", "1e10"], ["list", "--timeout", "1e20"],
 ])
 def test_every_command_refuses_a_meaningless_number_as_a_usage_error(argv, capsys):
     from tacf.cli import main
@@ -77,3 +81,14 @@ def test_every_command_refuses_a_meaningless_number_as_a_usage_error(argv, capsy
         main(argv)
     err = capsys.readouterr().err
     assert refused.value.code == 2 and f"error: argument {argv[-2]}" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("argv", [["publish", "", "--key", "cam/a"], ["demo", ""], ["track", "", "--box", "1,2,3,4"]])
+def test_an_empty_source_is_a_usage_error(argv, capsys):
+    """An empty SOURCE ("$VIDEO" with the variable unset) was the current folder, read as a folder of images."""
+    from tacf.cli import main
+
+    with pytest.raises(SystemExit) as refused:
+        main(argv)
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and "error: argument SOURCE: '': expected a source" in err, err

@@ -15,6 +15,8 @@ from tacf_schemas.models import Health, SessionInfo, SessionList
 from tacf_service.loopback import FramePublisher, wait_until
 from tacf_service.scene import MovingTargetScene
 
+from closed_pipe import head
+
 pytestmark = pytest.mark.zenoh
 
 A, B = "edge-a", "edge-b"
@@ -109,6 +111,14 @@ def test_two_nodes_list_start_on_a_chosen_or_the_least_loaded_node(network, clie
     finally:
         for info in started:
             client.stop(info.sid, node=info.node)
+
+
+def test_nodes_follow_read_by_head_ends_quietly(network):
+    """`tacf nodes --follow | head -1` never ended: the next line, printed on a Zenoh callback thread, failed there
+    with a BrokenPipeError traceback in the log, and the command went on following."""
+    a, _ = network
+    code, _, err = head(["nodes", "--follow", "--connect", a.endpoint], 0, timeout=30)
+    assert (code, err) == (141, ""), err
 
 
 def test_a_killed_node_is_seen_gone_within_3_s(network, client, camera, capsys):

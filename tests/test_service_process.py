@@ -722,6 +722,16 @@ def test_serve_refuses_a_bad_setting_in_one_line(option, value, capsys):
     assert exit_.value.code == 2
     assert capsys.readouterr().err.splitlines()[-1].startswith(f"tacf serve: error: argument {option}: '{value}'")
 
+
+def test_serve_refuses_a_listen_endpoint_workers_cannot_use_as_a_usage_error():
+    """Exit 1, a failure, for a setting of the command line (a malformed --listen: see
+    test_serve_refuses_bad_zenoh_settings_in_one_line)."""
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--listen", "tcp/127.0.0.1:0", "--node", NODE,
+                           "--spare-workers", "0"], stderr=subprocess.PIPE, text=True, timeout=60)
+    reason = "worker processes need an endpoint of the service: give --listen with a fixed port"
+    assert done.returncode == 2 and f"cannot start the service: {reason}" in done.stderr, done.stderr
+
+
 def test_serve_starts_before_the_router_its_workers_go_through():
     """The workers' login is checked at start when they connect to the service's own listeners; with no listener
     of its own they go through a router, which may come up after the service: that must not stop it starting."""

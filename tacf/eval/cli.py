@@ -12,7 +12,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from tacf.argument_types import box, integer, take_negative_numbers
+from tacf.argument_types import box, integer, source, take_negative_numbers
 
 log = logging.getLogger(__name__)
 
@@ -104,7 +104,7 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser("track", help="track one target through a video file or an image folder",
                               description="Write one box line per frame and, with --video, an annotated mp4.")
-    p.add_argument("source", metavar="SOURCE", type=Path, help="video file or image folder")
+    p.add_argument("source", metavar="SOURCE", type=source, help="video file or image folder")
     p.add_argument("--box", required=True, type=box, metavar="X,Y,W,H",
                    help="initial box, 0-based pixels, top-left x,y")
     take_negative_numbers(p)       # a box across the left or top border: --box -5,20,40,30
@@ -292,7 +292,7 @@ def cmd_track(args: argparse.Namespace) -> int:
         log.error("%s", exc)
         return 2
     try:
-        n = track_source(tracker, args.source, args.box, args.out, args.video)
+        n = track_source(tracker, Path(args.source), args.box, args.out, args.video)
     except BrokenPipeError:
         raise                   # stdout's reader left: not an error of the source or the output files
     except (ValueError, FileNotFoundError, OSError) as exc:
