@@ -26,7 +26,7 @@ _SESSION_METRICS = (
      lambda v: v.health.frame_age_ms if v.health else None),
     ("tacf_session_box_latency_ms", "gauge", "Capture to dashboard latency of the newest box, ms.",
      lambda v: (v.box_received_ns - v.box.stamp_ns) / 1e6 if v.box and v.box_received_ns else None),
-    ("tacf_session_pme", "gauge", "Peak-to-mean energy of the newest box (low: target likely lost).",
+    ("tacf_session_pme", "gauge", "Peak-to-median energy of the newest box (low: target likely lost).",
      lambda v: v.box.pme if v.box else (v.health.pme if v.health else None)),
     ("tacf_session_frames_received_total", "counter", "Frames the session's worker received.",
      lambda v: v.health.frames_received if v.health else None),
