@@ -308,7 +308,11 @@ def test_an_interrupt_at_any_moment_of_start_up_ends_as_a_later_one(tmp_path, to
                 assert wait_until(lambda: "ready" in serve.log(), 30, period=0.005), serve.log()
             time.sleep(delay)
             (os.killpg if to_group else os.kill)(serve.proc.pid, signal.SIGINT)
-            code = serve.proc.wait(timeout=10)
+            try:
+                code = serve.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:       # what it was doing, before cleanup() kills it and its log goes
+                pytest.fail(f"{since} + {delay} s: still running 10 s after the signal; "
+                            f"{cmdlines(group_members(serve.proc.pid))}; log:\n{serve.log()}")
             assert wait_until(lambda: not group_members(serve.proc.pid), 5.0), cmdlines(group_members(serve.proc.pid))
         finally:
             serve.cleanup()
