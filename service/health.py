@@ -41,10 +41,13 @@ class HealthStats:
     def rejected(self) -> None:
         self.frames_rejected += 1
 
-    def processed(self, seq: int, stamp_ns: int, processing_ms: float | None, pme: float | None, ok: bool) -> None:
+    def processed(self, seq: int, stamp_ns: int, processing_ms: float | None, pme: float | None, ok: bool,
+                  live: bool = True) -> None:
         """A frame used: tracked (with its pme), or the tracker initialised on it (pme None: the last one stays).
         processing_ms None leaves the frame out of the times: an init's (a worker's first takes 0.1-0.2 s) is not
-        what a frame costs, and it held the mean above the p95 for the window's 120 frames."""
+        what a frame costs, and it held the mean above the p95 for the window's 120 frames. live False leaves it out
+        of the rate: the init frame and the catch-up after it go back to back from the service's history, and the
+        first Health after a start read twice the feed's rate."""
         self.frames_processed += 1
         self.frames_lost += not ok
         self.last_seq, self.last_stamp_ns = seq, stamp_ns
@@ -52,7 +55,8 @@ class HealthStats:
             self.last_pme = pme
         if processing_ms is not None:
             self._processing_ms.append(processing_ms)
-        self._processed_at.append(time.monotonic())
+        if live:
+            self._processed_at.append(time.monotonic())
         self._forget_old_frames()
 
     def _forget_old_frames(self) -> None:

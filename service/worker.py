@@ -275,6 +275,7 @@ class Worker:
         self._connected = False         # the Zenoh session is open
         self._last_frame_id: tuple[int, int] | None = None   # (seq, stamp_ns) of the last frame used
         self._extra_received = 0        # catch-up frames handed over by the service
+        self._catching_up = False       # while they are tracked: back to back, not at the feed's rate
         self._skipped = 0               # frames not used: duplicates, no box to track yet, or a reinit came
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
@@ -451,14 +452,18 @@ class Worker:
         # init on the first decodable payload, then catch up through the newer ones while the budget lasts
         # (a slow tracker would otherwise spend seconds on stale frames); the live feed takes over after
         budget_ends = None
-        for payload in payloads:
-            self._extra_received += 1
-            if budget_ends is not None and time.monotonic() > budget_ends:
-                self._skipped += 1
-                continue
-            self._process(payload)
-            if budget_ends is None and self._image_shape is not None:
-                budget_ends = time.monotonic() + CATCH_UP_BUDGET_S
+        self._catching_up = True
+        try:
+            for payload in payloads:
+                self._extra_received += 1
+                if budget_ends is not None and time.monotonic() > budget_ends:
+                    self._skipped += 1
+                    continue
+                self._process(payload)
+                if budget_ends is None and self._image_shape is not None:
+                    budget_ends = time.monotonic() + CATCH_UP_BUDGET_S
+        finally:
+            self._catching_up = False
 
     def _init_arrived(self) -> bool:
         """Whether a reinit came in while this frame was being tracked (it is applied before the next one)."""
@@ -518,7 +523,7 @@ class Worker:
                 self._reject(f"tracker learning failed: {exc}")
                 return
         self._stats.processed(frame.seq, frame.stamp_ns, (time.perf_counter() - started) * 1e3, _finite(result.pme),
-                              bool(result.ok))
+                              bool(result.ok), live=not self._catching_up)
 
     def _initialise(self, image, frame) -> None:
         """Initialise the tracker on this frame; counted as processed (no box is published for it), or as rejected
@@ -541,7 +546,7 @@ class Worker:
         self._image_shape, self._last_box = image.shape, tuple(box)
         self._init_box = None
         self._state = "tracking"
-        self._stats.processed(frame.seq, frame.stamp_ns, None, None, True)
+        self._stats.processed(frame.seq, frame.stamp_ns, None, None, True, live=False)
         self._send(("initialised", frame.seq, self._init_generation))
         log.info("initialised on seq %d with box %s", frame.seq, box)
 

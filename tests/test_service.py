@@ -1216,6 +1216,34 @@ def test_health_reads_a_steady_frame_rate_as_it_is_from_the_first_frame_and_p95_
     assert stats.snapshot("n", "s", "tracking").processing_ms_p95 == 19.0
 
 
+def test_the_init_and_its_catch_up_are_left_out_of_the_rate(monkeypatch):
+    """They go back to back from the service's history: a start 10 frames back on a 10 fps feed read 20 fps."""
+    clock = [100.0]
+    monkeypatch.setattr(health.time, "monotonic", lambda: clock[0])
+    stats = health.HealthStats()
+    for i in range(11):                                     # the init frame and 10 catch-up frames, in 50 ms
+        clock[0] = 100.0 + i * 0.005
+        stats.processed(i, time.time_ns(), processing_ms=None if i == 0 else 5.0, pme=None, ok=True, live=False)
+    for i in range(11, 21):
+        clock[0] = 100.05 + (i - 10) / 10
+        stats.processed(i, time.time_ns(), processing_ms=5.0, pme=None, ok=True)
+    assert stats.fps() == pytest.approx(10.0) and stats.frames_processed == 21
+
+
+def test_a_start_frames_back_reads_the_feed_s_rate_in_its_first_health(service, client, feed):
+    results = Collector(client, NODE, "catching-up")
+    try:
+        assert wait_until(lambda: feed.seq >= 14, 10)
+        seq = feed.seq - 10
+        start(client, service, image_key=feed.key, box=feed.truth[seq], seq=seq, sid="catching-up")
+        assert wait_until(lambda: any(h.fps > 0 for h in results.health), 30)
+        first = next(h for h in results.health if h.fps > 0)
+        assert first.fps < 12.5, [(h.fps, h.frames_processed) for h in results.health]      # a 10 fps feed
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="catching-up"))
+
+
 def test_watch_lists_a_service_s_sessions_first(service, client, feed, endpoint):
     """`tacf watch` shows what the services list before any box arrives, and warns only when none answers."""
     from tacf_clients.watch import watch
