@@ -17,6 +17,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from tacf.argument_types import config_file
 from tacf.zenoh_options import ZenohOptions, base_config, zenoh_error_text
 from tacf_clients.errors import ZenohSettingsError, ZenohUnavailable
 
@@ -88,7 +89,7 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, mode_default: str = "pe
     group.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
                        help=f"endpoint to listen on, repeatable (default {LOOPBACK_LISTEN} when connecting on "
                             "loopback)")
-    group.add_argument("--zenoh-config", type=Path, metavar="FILE",
+    group.add_argument("--zenoh-config", type=config_file, metavar="FILE",
                        help="Zenoh JSON5 config file (router, TLS, access control); flags override it")
     group.add_argument("--mode", choices=("peer", "client"), help=f"Zenoh session mode (default {mode_default})")
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from tacf.argument_types import integer, seconds
+from tacf.argument_types import config_file, integer, seconds
 
 
 def register(subparsers) -> None:
@@ -17,7 +17,7 @@ def register(subparsers) -> None:
                              "--connect nor --zenoh-config is given)")
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                         help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
-    parser.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (TLS, access control...); "
+    parser.add_argument("--zenoh-config", type=config_file, metavar="FILE", help="Zenoh JSON5 config file (TLS, access control...); "
                                                               "--listen/--connect override its endpoints")
     parser.add_argument("--mode", choices=("peer", "client", "router"),
                         help="Zenoh mode (default peer, or the --zenoh-config file's)")

@@ -106,12 +106,19 @@ def box(text: str) -> Box:
     return values  # type: ignore[return-value]
 
 
-def source(text: str) -> str:
-    """A SOURCE to read frames from (file, folder, camera, URL): not empty, as "$VIDEO" is when the variable is
-    unset, which read the current folder as a folder of images."""
-    if not text:
-        raise argparse.ArgumentTypeError("'': expected a source to read frames from, not an empty name")
-    return text
+def not_empty(expected: str) -> Callable[[str], str]:
+    """A name that must be given, refused when empty, as "$VIDEO" is when the variable is unset: an empty SOURCE was
+    the current folder, read as a folder of images; an empty --zenoh-config no file to the service and the current
+    folder to the clients ("Is a directory")."""
+    def check(text: str) -> str:
+        if not text:
+            raise argparse.ArgumentTypeError(f"'': expected {expected}, not an empty name")
+        return text
+    return check
+
+
+source = not_empty("a source to read frames from")          # file, folder, camera, URL
+config_file = not_empty("a Zenoh JSON5 config file")
 
 
 def take_negative_numbers(parser: argparse.ArgumentParser) -> None:

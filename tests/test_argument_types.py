@@ -92,3 +92,15 @@ def test_an_empty_source_is_a_usage_error(argv, capsys):
         main(argv)
     err = capsys.readouterr().err
     assert refused.value.code == 2 and "error: argument SOURCE: '': expected a source" in err, err
+
+
+@pytest.mark.parametrize("command", ["serve", "list", "watch", "publish scene --key cam/a"])
+def test_an_empty_zenoh_config_is_a_usage_error(command, capsys):
+    """`--zenoh-config "$ZENOH_CONFIG"` with the variable unset: the service took it for no file (Zenoh's defaults,
+    without a word), the clients for the current folder ("bad Zenoh configuration (.): Is a directory")."""
+    from tacf.cli import main
+
+    with pytest.raises(SystemExit) as refused:
+        main([*command.split(), "--zenoh-config", ""])
+    err = capsys.readouterr().err
+    assert refused.value.code == 2 and "argument --zenoh-config: '': expected a Zenoh JSON5 config file" in err, err
