@@ -530,6 +530,11 @@ def test_a_killed_service_turns_the_status_to_error_and_a_restored_one_back_to_a
 
     key, sid = "test/mavlink/dying", "mavlink-dying"
     with _own_service(key, "--state", str(tmp_path / "sessions.json")) as (service, session, gcs, port):
+        # The component's 2 s timeout (its session checks must go unanswered soon after the kill) is shorter than a
+        # first start can take on a loaded box, while the fork server that makes the workers starts: warm it first.
+        warm_up = TrackingClient(session=session, node=service.node, timeout=30.0)
+        warm_up.start(key, SCENE.box(0), sid="warm-up")
+        warm_up.stop("warm-up")
         with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, options=service.options, sid=sid,
                            timeout=2.0) as component, serving(component):
             assert _receive(gcs, "HEARTBEAT") is not None
