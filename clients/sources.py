@@ -23,7 +23,6 @@ from typing import TypeVar
 import cv2
 import numpy as np
 
-from tacf.eval.datasets.base import list_frames
 from tacf.eval.datasets.folders import frames_of
 from tacf.images import IMAGE_SUFFIXES, read_image
 
@@ -132,11 +131,12 @@ class FrameSource:
 
 class ImageFolderSource(FrameSource):
     """Sorted images of a folder (2.png before 10.png). A sequence folder (`<seq>/img/*.jpg`, VOT's
-    `<seq>/color/`) may be given as `<seq>` too, as to `tacf track`."""
+    `<seq>/color/`) may be given as `<seq>` too, and reads as in `tacf track` and `tacf eval`: its img/, not a
+    stray image beside it."""
 
     def __init__(self, folder: str | Path, loop: bool = False, fps: float | None = None):
         folder = Path(folder)
-        self.paths = list_frames(folder) or frames_of(folder)
+        self.paths = frames_of(folder)
         if not self.paths:
             raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
         folder = self.paths[0].parent

@@ -163,6 +163,16 @@ def test_image_folder_source_sorted_skips_non_images_and_loops(tmp_path):
         ImageFolderSource(tmp_path / "seq" / "img" / ".." / "..")   # no images anywhere
 
 
+def test_a_sequence_folder_plays_its_img_not_a_stray_image_beside_it(tmp_path):
+    # as tacf track and tacf eval read it (publish and demo played the preview alone, demo with the sequence's box)
+    images = _frames(4)
+    _write_folder(tmp_path / "seq" / "img", images)
+    cv2.imwrite(str(tmp_path / "seq" / "preview.png"), images[3])
+    with open_source(str(tmp_path / "seq")) as source:
+        assert source.folder == tmp_path / "seq" / "img" and len(source) == 4
+        assert all(np.array_equal(f.image, image) for f, image in zip(source, images))
+
+
 def test_a_folder_of_unreadable_images_is_an_error_even_looping(tmp_path):
     folder = tmp_path / "garbage"
     folder.mkdir()
