@@ -515,6 +515,14 @@ def test_an_image_folder_plays_in_natural_order(tmp_path):
     assert [p.stem for p in ImageFolderSource(tmp_path).paths] == ["1", "2", "3", "10", "11"]
 
 
+def test_an_image_named_with_a_superscript_digit_is_listed(tmp_path):
+    # '²' is a digit to str.isdigit but not to the \d that splits the names: int('²') failed the whole folder
+    png = cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
+    for name in ("1.png", "²2.png", "3.png"):
+        (tmp_path / name).write_bytes(png)
+    assert [p.name for p in ImageFolderSource(tmp_path).paths] == ["1.png", "3.png", "²2.png"]
+
+
 def test_publish_command_line_fails_on_a_video_without_frames(tmp_path, collector):
     """A video whose headers survive but whose frames were cut off opens, then yields nothing: that is no success."""
     clip = tmp_path / "clip.avi"

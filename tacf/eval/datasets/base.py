@@ -91,7 +91,8 @@ def write_boxes(path: Path, boxes: np.ndarray, one_based: bool = True) -> None:
 
 def natural_key(path: Path) -> list:
     """Sort key that orders img2.jpg before img10.jpg."""
-    return [int(t) if t.isdigit() else t.lower() for t in _DIGITS.split(Path(path).name)]
+    # isdecimal, what \d matches: isdigit is also true of a '²' between the digit runs, which int() refuses
+    return [int(t) if t.isdecimal() else t.lower() for t in _DIGITS.split(Path(path).name)]
 
 
 def frame_number(path: Path) -> int | None:
