@@ -157,7 +157,13 @@ class HoldingPublisher:
     def _run(self) -> None:
         try:
             for frame in paced_frames(self.source, self.fps, self.stop, hold=self.hold):
-                self._put(frame)
+                try:
+                    self._put(frame)
+                except FrameError as exc:
+                    if self.last_seq < 0:
+                        raise
+                    # as publish() does: one odd image in a folder ended the whole demo with its error
+                    log.warning("frame %d of %s skipped: %s", frame.index, self.source.name, exc)
         except (FrameError, SourceError) as exc:     # what the source gives cannot be sent: the demo says so
             self.error = exc
         except BaseException as exc:  # reported by the demo, never lost on this thread

@@ -175,6 +175,32 @@ def test_a_frame_s_source_index_is_known_before_it_can_be_answered():
     assert len(known) >= 10 and None not in known, known
 
 
+def test_a_frame_beyond_the_wire_s_limits_is_skipped_once_frames_went_out(tmp_path):
+    """As `tacf publish` skips it: the demo ended there, exit 2 with the frame's error, its summary never printed."""
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_schemas import Frame, decode
+
+    scene = Scene.from_spec("scene:160x120")
+    for i in range(4):
+        cv2.imwrite(str(tmp_path / f"{i + 1}.png"), scene.frame(i) if i != 2 else np.zeros((8, 8200, 3), np.uint8))
+    sent = []
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        publisher = HoldingPublisher(session, open_source(str(tmp_path)), "test/demo/wide", 50, "jpeg")
+        subscriber = session.declare_subscriber(
+            "test/demo/wide", lambda sample: sent.append(publisher.index_of(decode(sample.payload.to_bytes(),
+                                                                                    Frame).seq)))
+        publisher.hold.clear()
+        publisher.start()
+        try:
+            assert publisher.ended.wait(5)
+            time.sleep(0.2)                                  # the last frame's delivery
+        finally:
+            publisher.close()
+            subscriber.undeclare()
+    assert publisher.error is None
+    assert sent == [0, 1, 3]
+
+
 def test_a_local_service_leaves_its_log_only_when_it_failed():
     """Every `tacf demo` (and test) left /tmp/tacf-serve-<node>-<port>.log behind: hundreds piled up. The log of a
     service that stopped cleanly goes; one that failed keeps it, since the error names it."""
