@@ -224,6 +224,16 @@ def test_otb_david_starts_at_frame_300(tmp_path):
     assert len(seq) == 11 and seq.frames[0].name == "0300.jpg"
 
 
+def test_otb_david_given_as_dot_or_dot_dot_still_starts_at_frame_300(tmp_path, monkeypatch):
+    """`tacf eval .` in David's folder (or `..` from its img/) matched the ground truth with frames 1 to 11."""
+    write_frames(tmp_path / "David" / "img", 310, "{:04d}.jpg")
+    (tmp_path / "David" / "groundtruth_rect.txt").write_text("1,1,5,5\n" * 11)
+    for cwd, root in ((tmp_path / "David", "."), (tmp_path / "David" / "img", "..")):
+        monkeypatch.chdir(cwd)
+        (seq,) = load_sequences(Path(root))
+        assert seq.name == "David" and seq.frames[0].name == "0300.jpg", root
+
+
 # --- UAVDT (generated, official layout) -----------------------------------------------------------------------
 def test_uavdt_layout(tmp_path):
     for name, n in (("S0101", 4), ("S0102", 3)):

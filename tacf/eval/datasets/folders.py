@@ -81,8 +81,10 @@ def load(root: Path) -> list[Sequence]:
     seqs = []
     for folder in annotated_folders(root):
         rel = folder.relative_to(root).as_posix()
-        # ROOT itself: its own name, which "." and ".." lack (`tacf eval .` in a sequence folder named it "")
-        base = Path(os.path.abspath(folder)).name if rel == "." else rel
+        # the folder's own name, which "." and ".." lack (`tacf eval .` in a sequence folder named it "", and
+        # in OTB's David folder matched its ground truth with the frames from 1 instead of 300)
+        own_name = Path(os.path.abspath(folder)).name
+        base = own_name if rel == "." else rel
         frames = frames_of(folder)
         if not frames:
             log.warning("%s: ground truth but no frames (%s files) in %s, its img/ or its color/; skipped", base,
@@ -91,7 +93,7 @@ def load(root: Path) -> list[Sequence]:
         attributes = read_attribute_list(folder / ATTRIBUTES) if (folder / ATTRIBUTES).is_file() else None
         for suffix, gt_path in _gt_files(folder):
             gt = read_boxes(gt_path)
-            first = OTB_FIRST_FRAME.get(folder.name.lower(), 1) if len(frames) > len(gt) else 1
+            first = OTB_FIRST_FRAME.get(own_name.lower(), 1) if len(frames) > len(gt) else 1
             seq = make_sequence(base + suffix, frames[first - 1:], gt, attributes)
             if seq is not None:
                 seqs.append(seq)
