@@ -40,7 +40,8 @@ class ZenohOptions:
 
     connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the side's default, () = none.
     listen: endpoints to listen on; empty = the side's default. One endpoint may be given as a string, here and above.
-    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
+    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it. None = no
+        file; "" is refused (ValueError).
     mode: "peer", "client" or "router"; None keeps the file's mode (or peer without a file).
     extra: (key path, JSON5 value) pairs, applied last (a service applies them to its own session, not its workers').
     """
@@ -56,6 +57,10 @@ class ZenohOptions:
         for name in ("connect", "listen"):
             if isinstance(getattr(self, name), str):
                 object.__setattr__(self, name, (getattr(self, name),))
+        # As on the command line (tacf.argument_types.config_file): an empty path is almost always a variable left
+        # unset, and it meant Zenoh's defaults without a word (for a client: listening on every interface).
+        if self.config_file == "":
+            raise ValueError("config_file is empty: give a Zenoh JSON5 file, or None for the defaults")
 
     def refusal(self, exc: BaseException) -> str:
         """Why Zenoh refused these settings, naming the config file when there is one: ' (FILE): reason'."""
