@@ -14,11 +14,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tacf.argument_types import config_file
-from tacf.zenoh_options import ZenohOptions, base_config, zenoh_error_text
+from tacf.zenoh_options import ZenohOptions, base_config, unreadable_file, zenoh_error_text
 from tacf_clients.errors import ZenohSettingsError, ZenohUnavailable
 
 if TYPE_CHECKING:
@@ -102,7 +101,8 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
     import zenoh
 
     conf = options if isinstance(options, zenoh.Config) else make_config(options)
-    _check_files(conf)
+    if problem := unreadable_file(conf):
+        raise ZenohSettingsError(problem)
     _check_protocols(conf)
     try:
         return zenoh.open(conf)
@@ -111,28 +111,6 @@ def open_session(options: "ZenohOptions | zenoh.Config | None" = None) -> "zenoh
         if reason.startswith("Unable to connect"):
             raise ZenohUnavailable(f"no Zenoh node reachable: {reason}") from exc
         raise ZenohSettingsError(f"cannot open a Zenoh session: {reason}") from exc
-
-
-# The files a session's settings name: Zenoh reports one missing or unreadable on a client's side only as
-# "Unable to connect"
-FILE_SETTINGS = ("transport/link/tls/root_ca_certificate", "transport/link/tls/connect_certificate",
-                 "transport/link/tls/connect_private_key", "transport/link/tls/listen_certificate",
-                 "transport/link/tls/listen_private_key", "transport/auth/usrpwd/dictionary_file")
-
-
-def _check_files(conf) -> None:
-    """ZenohSettingsError naming a file the settings give that is not there or that this user may not read (a key
-    that make-certs.sh, run as root, left readable by root only)."""
-    for key in FILE_SETTINGS:
-        path = json.loads(conf.get_json(key))
-        if not (isinstance(path, str) and path):
-            continue
-        if not Path(path).is_file():
-            raise ZenohSettingsError(f"{key}: no such file: {path}")
-        try:
-            Path(path).open("rb").close()
-        except OSError as exc:
-            raise ZenohSettingsError(f"{key}: cannot read {path}: {(exc.strerror or str(exc)).lower()}") from None
 
 
 def _check_protocols(conf) -> None:

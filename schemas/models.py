@@ -242,7 +242,7 @@ class Health(WireModel):
     frames_received: Count = 0               # = processed + dropped + rejected; catch-up frames and seq gaps included
     frames_processed: Count = 0
     frames_dropped: Count = 0                # not processed: superseded (latest-only, seq gaps), duplicate or older,
-                                             # before the init or as a stop came
+                                             # before the init or as a stop came, or while the session had no worker
     frames_rejected: Count = 0               # undecodable, wrong size, wrong fields
     frames_lost: Count = 0                   # processed with the target flagged lost (BoxResult.ok False)
     pme: Optional[FiniteFloat] = None

@@ -18,7 +18,7 @@ import time
 from dataclasses import dataclass, field
 
 from tacf.stop_signals import STOP_SIGNALS, release_stop_signals
-from tacf.zenoh_options import zenoh_error_text
+from tacf.zenoh_options import unreadable_file, zenoh_error_text
 from tacf_schemas import LEAST_LOADED, sanitise_id, service_liveliness_key, validate_node_id
 
 from .config import WorkerConnectError, ZenohOptions, own_endpoints, service_config, worker_config, worker_endpoints
@@ -83,7 +83,8 @@ class TrackingService:
             self._store = StateStore(options.state_file)
             self._store.lock()          # before the session: a service that cannot persist never goes live
         try:
-            self._session = zenoh.open(config)
+            self._session = zenoh.open(config)          # names a file of its own it cannot read (listener, users)
+            _check_worker_files(options.zenoh, endpoints)
             _refuse_a_taken_node(self._session, self.node)
             if own_endpoints(options.zenoh):    # a router the workers would reach instead may come up later
                 _check_workers_can_connect(options.zenoh, endpoints)
@@ -189,6 +190,15 @@ def _refuse_a_taken_node(session, node: str) -> None:
         raise RuntimeError(f"another tacf service already runs as node {node!r} on this network; give this one its "
                            "own --node (a service that has just died keeps its token until its link drops: up to "
                            "10 s on a lost network)")
+
+
+def _check_worker_files(zenoh_options: ZenohOptions, endpoints: list[str]) -> None:
+    """WorkerConnectError naming a file of the workers' settings that is not there or that this user may not read:
+    the CA that checks the service's certificate, their mutual-TLS certificate or key failed the worker check only
+    after its 5 s connect timeout, as "Unable to connect ... Timeout!", naming no file."""
+    if problem := unreadable_file(worker_config(zenoh_options, endpoints)):
+        raise WorkerConnectError(f"its worker processes cannot use the settings of {zenoh_options.config_file}: "
+                                 f"{problem}")
 
 
 def _check_workers_can_connect(zenoh_options: ZenohOptions, endpoints: list[str]) -> None:

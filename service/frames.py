@@ -29,21 +29,24 @@ class StoredFrame:
     width: int
     height: int
     payload: bytes          # the Frame's msgpack bytes as received
+    arrival: int | None = None      # how many samples of its key came before it (FrameHistory.arrivals); None if
+                                    # the service did not receive it on the key (carried by a request, or stored)
 
     @classmethod
-    def from_frame(cls, frame: Frame, payload: bytes) -> "StoredFrame":
-        return cls(frame.seq, frame.stamp_ns, frame.width, frame.height, payload)
+    def from_frame(cls, frame: Frame, payload: bytes, arrival: int | None = None) -> "StoredFrame":
+        return cls(frame.seq, frame.stamp_ns, frame.width, frame.height, payload, arrival)
 
     @classmethod
-    def from_payload(cls, payload: bytes) -> "StoredFrame":
+    def from_payload(cls, payload: bytes, arrival: int | None = None) -> "StoredFrame":
         """Parse a Frame payload (DecodeError if it is not one)."""
-        return cls.from_frame(decode(payload, Frame), payload)
+        return cls.from_frame(decode(payload, Frame), payload, arrival)
 
 
 class _KeyHistory:
     def __init__(self, depth: int) -> None:
         self.frames: deque[StoredFrame] = deque(maxlen=depth)
         self.users = 0
+        self.arrived = 0            # samples taken from the subscriber, frames or not
         self.subscriber = None
         self.pump: threading.Thread | None = None
 
@@ -111,20 +114,31 @@ class FrameHistory:
                 sample = ring.recv()
             except zenoh.ZError:
                 return                      # undeclared or session closed
+            with self._cond:
+                history = self._keys.get(key)
+                if history is None:
+                    continue
+                arrival = history.arrived
+                history.arrived += 1
             try:
-                stored = StoredFrame.from_payload(sample.payload.to_bytes())
+                stored = StoredFrame.from_payload(sample.payload.to_bytes(), arrival)
             except DecodeError:
                 continue                    # the workers count rejected frames
             with self._cond:
-                history = self._keys.get(key)
-                if history is not None:
-                    history.add(stored)
-                    self._cond.notify_all()
+                history.add(stored)
+                self._cond.notify_all()
 
     def _kept(self, key: str) -> list[StoredFrame]:
         with self._cond:
             history = self._keys.get(key)
             return list(history.frames) if history else []
+
+    def arrivals(self, key: str) -> int:
+        """How many samples of `key` have come since it is kept (0 if it is not): the frames that came between two
+        readings, for a session that had no worker to count them."""
+        with self._cond:
+            history = self._keys.get(key)
+            return history.arrived if history else 0
 
     def frames_from(self, key: str, seq: int | None) -> list[StoredFrame]:
         """The frame with `seq` (the latest to arrive, should a camera have restarted its count) and every one kept

@@ -87,6 +87,9 @@ class Session:
     started: bool = False               # its start was answered (or it was restored): only such are persisted
     restart_at: float | None = None
     crashes: deque = field(default_factory=deque)
+    # FrameHistory.arrivals of its key when its worker died: the frames that come until a new worker subscribes
+    # are in no worker's counters (_unserved_frames)
+    unserved_since: int | None = None
 
     def info(self, node: str) -> SessionInfo:
         return SessionInfo(node=node, sid=self.sid, image_key=self.image_key, profile=self.profile,
@@ -280,9 +283,10 @@ class SessionManager:
             _reap([process] if process else [], time.monotonic() + STOP_GRACE_S)
             self._drain(session)                # the worker's last Health: the counters the "stopped" one carries
             _close_conn(session)
+            unserved = self._unserved_frames(session, sent=[])      # stopped before a new worker served it
             self._release_history(session)
             session.state = "stopped"
-            self._publish_health(session, "stopped", "stopped by request")
+            self._publish_health(session, "stopped", "stopped by request", unserved)
         finally:
             with self._lock:
                 self._stopping.discard(sid)
@@ -467,7 +471,21 @@ class SessionManager:
         else:
             frames = self._history.frames_from(session.image_key, None)
         frames = catch_up_subset(frames, CATCHUP_FRAMES)
+        if unserved := self._unserved_frames(session, sent=frames):
+            self._send(session, ("unserved", unserved))
         return self._send(session, ("init", box, [f.payload for f in frames], generation))
+
+    def _unserved_frames(self, session: Session, sent: Sequence[StoredFrame]) -> int:
+        """The frames of the session's key that came while it had no worker subscribed (from its worker's death to
+        now, its new worker's "ready" or its stop), less those `sent` to the new worker, which counts them itself:
+        no worker counted them, and they go into its received and dropped counters. Counted once."""
+        with self._lock:
+            since, session.unserved_since = session.unserved_since, None
+        if since is None:
+            return 0
+        now = self._history.arrivals(session.image_key)
+        caught_up = sum(1 for f in sent if f.arrival is not None and since <= f.arrival < now)
+        return max(0, now - since - caught_up)
 
     def _send(self, session: Session, message: tuple) -> threading.Event | None:
         """Queue a message to the session's worker (Outbox); the event is set once it is written."""
@@ -572,6 +590,8 @@ class SessionManager:
                 # must stay the session's last Health, is reaping it
                 return
             worker, session.worker, session.conn, session.process = session.worker, None, None, None
+            if session.unserved_since is None:      # else a worker that died before it was ready: counting on
+                session.unserved_since = self._history.arrivals(session.image_key)
         if worker is not None:
             worker.close()
         code = process.exitcode
@@ -616,12 +636,16 @@ class SessionManager:
             return                              # stopped meanwhile
         self._dirty = True
 
-    def _publish_health(self, session: Session, state: str, message: str | None) -> None:
-        """Health on behalf of a session whose worker cannot publish it (dead or stopped)."""
+    def _publish_health(self, session: Session, state: str, message: str | None, unserved: int = 0) -> None:
+        """Health on behalf of a session whose worker cannot publish it (dead or stopped), with `unserved` frames
+        (_unserved_frames) added to the last one's counters."""
         import zenoh
 
         last = session.health
         counters = last.model_dump(include={*COUNTERS, "pme", "last_seq"}) if last else {}
+        if unserved:
+            for name in ("frames_received", "frames_dropped"):
+                counters[name] = counters.get(name, 0) + unserved
         health = Health(node=self.node, sid=session.sid, state=state, stamp_ns=time.time_ns(), fps=0.0,
                         processing_ms_mean=0.0, processing_ms_p95=0.0, restarts=session.restarts,
                         message=(message or "")[:1024] or None, **counters)

@@ -33,6 +33,8 @@ Parent <-> worker protocol over a multiprocessing Pipe (tuples):
                                                            the rest; [] = init on the next live frame. The
                                                            generation counts the session's inits, so that the
                                                            service can tell a reply to an init it has replaced
+                       ("unserved", count)                 frames of the key that came while the session had no
+                                                           worker, not among the init's: received and dropped
                        ("stop",)
 The worker also stops when the pipe breaks (the service died), so no worker outlives its service.
 """
@@ -277,6 +279,7 @@ class Worker:
         self._extra_received = 0        # catch-up frames handed over by the service
         self._catching_up = False       # while they are tracked: back to back, not at the feed's rate
         self._skipped = 0               # frames not used: duplicates, no box to track yet, or a reinit came
+        self._unserved = 0              # frames that came while the session had no worker (told by the service)
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
 
     def on_sigterm(self, *_) -> None:
@@ -428,6 +431,8 @@ class Worker:
                     self._newest_init_generation = message[3]
                     self._pending_init = (tuple(message[1]), list(message[2]), message[3])
                 self._slot.wake()
+            elif message[0] == "unserved":
+                self._unserved += message[1]
             elif message[0] == "stop":
                 self.request_stop()
 
@@ -589,8 +594,9 @@ class Worker:
     def _publish_health(self) -> None:
         from tacf_schemas import encode
         stats = self._stats
-        stats.frames_received = self._slot.received + self._ring_dropped + self._extra_received
-        stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped
+        unserved = self._unserved           # read once: the commands thread adds to it
+        stats.frames_received = self._slot.received + self._ring_dropped + self._extra_received + unserved
+        stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped + unserved
         message = self._message
         idle_s = time.monotonic() - self._slot.last_put
         if idle_s > STALL_S and self._state not in ("failed", "stopped"):     # a stopped session waits for nothing

@@ -9,6 +9,7 @@ imported only when a config is built.
 from __future__ import annotations
 
 import argparse
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +26,11 @@ _JSON5_MESSAGE = re.compile(r'Json5Err\(Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*
 # the place helps (for a field given twice, that of the object holding it).
 _FILE_MESSAGE = re.compile(r'JSON error: Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)*)", '
                            r'location: Some\(Location \{ line: (?P<line>\d+), column: (?P<column>\d+) \}\) \}')
+# The files a session's settings name: Zenoh reports one missing or unreadable on a connecting side only as "Unable
+# to connect" (a client at once, a service's worker after its 5 s connect timeout)
+FILE_SETTINGS = ("transport/link/tls/root_ca_certificate", "transport/link/tls/connect_certificate",
+                 "transport/link/tls/connect_private_key", "transport/link/tls/listen_certificate",
+                 "transport/link/tls/listen_private_key", "transport/auth/usrpwd/dictionary_file")
 
 
 @dataclass(frozen=True)
@@ -34,7 +40,8 @@ class ZenohOptions:
 
     connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the side's default, () = none.
     listen: endpoints to listen on; empty = the side's default. One endpoint may be given as a string, here and above.
-    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it.
+    config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it. None = no
+        file; "" is refused (ValueError).
     mode: "peer", "client" or "router"; None keeps the file's mode (or peer without a file).
     extra: (key path, JSON5 value) pairs, applied last (a service applies them to its own session, not its workers').
     """
@@ -50,6 +57,10 @@ class ZenohOptions:
         for name in ("connect", "listen"):
             if isinstance(getattr(self, name), str):
                 object.__setattr__(self, name, (getattr(self, name),))
+        # As on the command line (tacf.argument_types.config_file): an empty path is almost always a variable left
+        # unset, and it meant Zenoh's defaults without a word (for a client: listening on every interface).
+        if self.config_file == "":
+            raise ValueError("config_file is empty: give a Zenoh JSON5 file, or None for the defaults")
 
     def refusal(self, exc: BaseException) -> str:
         """Why Zenoh refused these settings, naming the config file when there is one: ' (FILE): reason'."""
@@ -85,6 +96,22 @@ def base_config(config_file: str | Path | None) -> "zenoh.Config":
     conf = zenoh.Config()
     conf.insert_json5("scouting/multicast/enabled", "false")
     return conf
+
+
+def unreadable_file(conf: "zenoh.Config") -> str | None:
+    """What is wrong with a file the settings give that is not there or that this user may not read (a key that
+    make-certs.sh, run as root, left readable by root only), naming the setting and the file; None if nothing."""
+    for key in FILE_SETTINGS:
+        path = json.loads(conf.get_json(key))
+        if not (isinstance(path, str) and path):
+            continue
+        if not Path(path).is_file():
+            return f"{key}: no such file: {path}"
+        try:
+            Path(path).open("rb").close()
+        except OSError as exc:
+            return f"{key}: cannot read {path}: {(exc.strerror or str(exc)).lower()}"
+    return None
 
 
 def zenoh_error_text(exc: BaseException) -> str:

@@ -104,3 +104,13 @@ def test_an_empty_zenoh_config_is_a_usage_error(command, capsys):
         main([*command.split(), "--zenoh-config", ""])
     err = capsys.readouterr().err
     assert refused.value.code == 2 and "argument --zenoh-config: '': expected a Zenoh JSON5 config file" in err, err
+
+
+def test_an_empty_zenoh_config_file_is_refused_from_python_too():
+    """`ZenohOptions(config_file=os.environ.get("ZENOH_CONFIG", ""))` with the variable unset: the service took it
+    for no file, a client for no file and none of its loopback defaults (listening on every interface)."""
+    from tacf.zenoh_options import ZenohOptions
+
+    with pytest.raises(ValueError, match="config_file is empty: give a Zenoh JSON5 file, or None for the defaults"):
+        ZenohOptions(config_file="")
+    assert ZenohOptions(config_file=None).config_file is None

@@ -11,6 +11,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -252,6 +253,22 @@ def test_a_service_whose_workers_cannot_log_in_refuses_to_start(etc):
     assert f"cannot start the service: its worker processes cannot connect to it at {endpoint} with the settings " \
         f"of {config}" in done.stderr, done.stderr[-2000:]
     assert "ready" not in done.stderr
+
+
+def test_a_service_missing_a_file_only_its_workers_read_is_told_which_at_once(etc, tmp_path):
+    """The CA that the workers check the service's certificate with: the worker check failed after its 5 s connect
+    timeout with "Unable to connect ... Timeout!", naming no file, as a client once did (the test above it)."""
+    missing = tmp_path / "missing-ca.pem"
+    config = derive(etc / "service.json5", tmp_path / "service-missing-ca.json5",
+                    {"transport/link/tls/root_ca_certificate": str(missing)})
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--zenoh-config", str(config), "--listen",
+                           f"tls/127.0.0.1:{free_port()}", "--node", "missing-ca", "--spare-workers", "0"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert f"cannot start the service: its worker processes cannot use the settings of {config}: " \
+        f"transport/link/tls/root_ca_certificate: no such file: {missing}" in done.stderr, done.stderr[-2000:]
+    assert time.monotonic() - started < 4.5, "waited for the workers' connect timeout"
 
 
 def test_mutual_tls_with_access_control_by_certificate_common_name(etc):

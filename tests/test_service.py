@@ -391,11 +391,11 @@ def test_a_stop_while_the_supervisor_reports_a_crash_leaves_stopped_the_last_hea
         assert wait_until(lambda: len(results.results()) >= 3, 30)
         reporting, publish = threading.Event(), manager.SessionManager._publish_health
 
-        def slow_to_report(self, session, state, message):
+        def slow_to_report(self, session, state, *rest):
             if state == "failed":           # the supervisor's thread set aside between its check and its report
                 reporting.set()
                 time.sleep(0.5)
-            return publish(self, session, state, message)
+            return publish(self, session, state, *rest)
         monkeypatch.setattr(manager.SessionManager, "_publish_health", slow_to_report)
         os.kill(service.manager.worker_pids()["reported"], signal.SIGKILL)
         assert reporting.wait(10)
@@ -840,6 +840,50 @@ def test_a_restart_long_after_the_crash_starts_on_the_last_box_s_own_frame(servi
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="late"))
+
+
+@pytest.mark.parametrize("stop_before_restart", [False, True], ids=["restarted", "stopped"])
+def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped(service, client, monkeypatch,
+                                                                                 stop_before_restart):
+    """Between a worker's death and its successor's subscription (the restart's backoff, a fork server started
+    again) the frames of the feed were in no counter, beyond the few the new worker catches up through: summing a
+    session's counters lost them silently. Here 40 frames come in the gap, 24 of them kept by the service."""
+    import tacf_service.manager as manager
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (6.0,) * len(manager.RESTART_BACKOFF_S))
+    key, sid = "test/cam/gap", "gap"
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher(key)
+    results = Collector(client, NODE, sid)
+    try:
+        play_frames(publisher, scene, 0, 3)
+        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
+        play_frames(publisher, scene, 3, 20)
+        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
+        before = results.last_health()                      # every frame from the init frame to 19 counted
+        os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5)
+        play_frames(publisher, scene, 20, 60)               # 4 s, within the 6 s backoff
+        if stop_before_restart:
+            assert call(client, NODE, "status", StatusRequest(sid=sid)).restarts == 0
+        else:
+            assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "tracking", 30)
+            play_frames(publisher, scene, 60, 70)
+            assert wait_until(lambda: results.results()[-1].seq == 69, 10)
+        call(client, NODE, "stop", StopRequest(sid=sid))
+        final = wait_until(lambda: next((h for h in reversed(results.health) if h.message == "stopped by request"),
+                                        None), 5)
+        assert final, results.health
+        assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, final
+        published = 40 if stop_before_restart else 50       # after `before`, which counted every frame up to 19
+        assert final.frames_received - before.frames_received >= published, (before, final)
+        caught_up = 0 if stop_before_restart else manager.CATCHUP_FRAMES      # frames the new worker counts itself
+        assert final.frames_dropped - before.frames_dropped >= 40 - caught_up, (before, final)
+    finally:
+        results.close()
+        publisher.undeclare()
+        with contextlib.suppress(ControlError):
+            call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
