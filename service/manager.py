@@ -634,6 +634,15 @@ class SessionManager:
             self._spawn(session)
         except ServiceError:
             return                              # stopped meanwhile
+        except Exception as exc:                # no process to be had (a fork failing for memory, the process limit)
+            with self._lock:                    # tried again after the longest backoff, not on every round
+                session.restart_at = time.monotonic() + RESTART_BACKOFF_S[-1]
+                session.message = (f"cannot start a worker process: {exc}; trying again in "
+                                   f"{RESTART_BACKOFF_S[-1]:.0f} s")
+                if not self._is_gone(session):
+                    self._publish_health(session, "failed", session.message)
+            log.warning("session %s: %s", session.sid, session.message)
+            return
         self._dirty = True
 
     def _publish_health(self, session: Session, state: str, message: str | None, unserved: int = 0) -> None:

@@ -4,7 +4,8 @@ A spare is a worker started before any session needs it: once its tracker's modu
 session is open it says "idle", and repeats it every worker.IDLE_HEARTBEAT_S until a session takes it, so that a
 start gets a tracking worker in milliseconds. The supervisor keeps `spare_workers` spares (replenish): a spare
 not warm WORKER_SILENCE_S after it started, or warm but silent for SPARE_SILENCE_S, is hung: it is handed no
-session, killed and replaced; a spare that dies is replaced at most every SPARE_RESPAWN_MIN_S.
+session, killed and replaced; a spare that dies, or could not be started, is replaced at most every
+SPARE_RESPAWN_MIN_S.
 
 The pool shares the SessionManager's lock and closing event: the manager takes a spare, or puts one back, in the
 same step as its check of the session under that lock, and no worker enters the pool once the service closes,
@@ -101,6 +102,7 @@ class WorkerPool:
         self._deliver = deliver             # a message of a worker taken from the pool while it was drained
         self._spares: list[WorkerHandle] = []
         self._spawned_at = 0.0
+        self._start_failed = False          # the last spare could not be started: held back as after a death
 
     def new_worker(self) -> WorkerHandle:
         """Start a worker process (not a spare: the caller owns it)."""
@@ -146,11 +148,20 @@ class WorkerPool:
                 self._spares.remove(handle)
                 handle.close()
             missing = self._spare_target - len(self._spares)
-            if missing <= 0 or self._closing.is_set() or (dead and now - self._spawned_at < SPARE_RESPAWN_MIN_S):
+            held_back = (dead or self._start_failed) and now - self._spawned_at < SPARE_RESPAWN_MIN_S
+            if missing <= 0 or self._closing.is_set() or held_back:
                 return
-            self._spawned_at = now
+            self._spawned_at, self._start_failed = now, False
         for _ in range(missing):
-            handle = self.new_worker()
+            try:
+                handle = self.new_worker()
+            except Exception as exc:    # no process to be had (a fork failing for memory, the process limit)
+                # The supervisor's round goes on to the sessions' workers; the spares are tried again after
+                # SPARE_RESPAWN_MIN_S, as after a spare's death.
+                with self._lock:
+                    self._start_failed = True
+                log.warning("cannot start a spare worker: %s; trying again in %.0f s", exc, SPARE_RESPAWN_MIN_S)
+                return
             with self._lock:
                 if not self._closing.is_set():
                     self._spares.append(handle)

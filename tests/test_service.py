@@ -815,6 +815,53 @@ def test_a_killed_worker_is_reported_and_recovers_from_its_last_box(service, cli
         call(client, NODE, "stop", StopRequest(sid="victim2"))
 
 
+def test_workers_that_cannot_be_started_stop_nothing_else_and_are_tried_again_later(service, client, feed,
+                                                                                   monkeypatch):
+    """With no process to be had (a fork failing for memory or the process limit, on a small edge box), the spare
+    the supervisor could not replace ended each of its rounds before it looked at the sessions' workers: a worker
+    that died then was never noticed. And a restart that could not start its worker was tried again on every round,
+    five a second, its session's `restarts` climbing with each try."""
+    import errno
+
+    import tacf_service.pool as pool
+
+    results = Collector(client, NODE, "forkless")
+    new_worker = pool.WorkerPool.new_worker
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="forkless")
+        assert wait_until(lambda: len(results.results()) >= 5, 30)
+        assert wait_until(lambda: service.manager.idle_spares() >= 2, 60)
+
+        def cannot_fork(self):
+            raise OSError(errno.EAGAIN, "Resource temporarily unavailable")
+        monkeypatch.setattr(pool.WorkerPool, "new_worker", cannot_fork)
+        for restart in (1, 2):              # each on a warm spare, which the pool cannot replace
+            pid = service.manager.worker_pids()["forkless"]
+            os.kill(pid, signal.SIGKILL)
+            assert wait_until(lambda: service.manager.worker_pids().get("forkless") not in (None, pid), 10), restart
+            count = len(results.results())
+            assert wait_until(lambda: len(results.results()) > count, 10), restart
+        failures = sum(h.state == "failed" for h in results.health)
+        os.kill(service.manager.worker_pids()["forkless"], signal.SIGKILL)     # no spare left: a restart must fork
+        assert wait_until(lambda: sum(h.state == "failed" for h in results.health) > failures, 5)
+        time.sleep(3.0)
+        info = call(client, NODE, "status", StatusRequest(sid="forkless"))
+        assert info.state == "failed" and info.restarts <= 4, info
+        told = results.health[-1]           # why, for the ground station
+        assert told.state == "failed" and "cannot start a worker process: " in told.message, told
+        assert "Resource temporarily unavailable" in told.message, told
+
+        monkeypatch.setattr(pool.WorkerPool, "new_worker", new_worker)     # the system recovers: so does the session
+        count = len(results.results())
+        assert wait_until(lambda: len(results.results()) >= count + 5, 20)
+        assert call(client, NODE, "status", StatusRequest(sid="forkless")).state in ("tracking", "lost")
+        assert wait_until(lambda: service.manager.idle_spares() >= 1, 60)
+    finally:
+        monkeypatch.setattr(pool.WorkerPool, "new_worker", new_worker)
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="forkless"))
+
+
 def test_a_restart_long_after_the_crash_starts_on_the_last_box_s_own_frame(service, client, feed, monkeypatch):
     """A restart comes after its backoff (2 and 5 s for the fourth and fifth crash within a minute), or later when
     it waits for a fork server started again under load: by then the last box's frame had left the 24 frames kept
