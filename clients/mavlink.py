@@ -531,6 +531,10 @@ class MavlinkCamera:
         # a TCP link whose reconnection failed has no port, and pymavlink's close() would fail on it
         if getattr(self, "mav", None) is not None and self.mav.port is not None:
             self.mav.close()
+        if isinstance(getattr(self, "mav", None), mavutil.mavtcpin):
+            # pymavlink's close() of a tcpin link closes only its ground station's connection: the listening
+            # socket kept the port, and a component opened on it again was refused (Address already in use)
+            self.mav.listen.close()
         if self._boxes is not None:
             self._boxes.close()
         if self._frames is not None:

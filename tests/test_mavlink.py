@@ -725,6 +725,24 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
         component.close()
 
 
+def test_a_component_listening_on_tcp_lets_go_of_its_port_when_closed():
+    """With --link tcpin:HOST:PORT the component listens for the ground station. close() left the listening socket
+    open (pymavlink's close() of that link closes only the connection), so a component opened on the port again in
+    the same process was refused with 'Address already in use', whether a ground station had come or not."""
+    port = free_port()
+    for ground_station_comes in (False, True, False):
+        component = MavlinkCamera(f"tcpin:127.0.0.1:{port}", "test/mavlink/tcpin", options=no_service_options())
+        try:
+            if ground_station_comes:
+                with serving(component):
+                    gcs = mavutil.mavlink_connection(f"tcp:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                                     source_component=GCS_COMPONENT, dialect="common")
+                    assert _receive(gcs, "HEARTBEAT") is not None
+                    gcs.close()
+        finally:
+            component.close()
+
+
 def test_closing_while_the_service_hangs_ends_without_an_error(caplog):
     """Ctrl-C with the service hung (stopped here) took 17 s and ended in an uncaught zenoh.ZError: a stop that
     waited out its timeout, then a session close that Zenoh gave up on. The stop is skipped when the service did
