@@ -11,7 +11,8 @@ commands, sent as COMMAND_LONG or COMMAND_INT:
   the key; DENIED for a rectangle that is not inside 0..1 or is empty; FAILED with the service's refusal.
 - MAV_CMD_CAMERA_TRACK_POINT (a click rather than a drag): the same with the square of half-side radius around
   the point, cut to the frame (point_box: x, y normalised to the frame, the radius to its width, 0 one pixel);
-  DENIED for values outside 0..1. Its statuses are in point mode, with the box's half-side as their radius.
+  DENIED for values outside 0..1. Its statuses are in point mode, with the box's half-side as their radius
+  (point_radius, at most 1).
 - MAV_CMD_CAMERA_STOP_TRACKING: stops it (ACCEPTED also when nothing runs), and clears a failed session.
 Calls to the service run on one thread of their own, in the order the commands came, so that the loop goes on
 answering (heartbeats, statuses, other commands) meanwhile: such a command is answered IN_PROGRESS at once and
@@ -495,7 +496,7 @@ class MavlinkCamera:
                 target_data = mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS
                 point, corners = box.center_norm, box.corners_normalised
                 if mode == mav.CAMERA_TRACKING_MODE_POINT:      # the box's half-side, in image widths
-                    radius = max(box.box[2], box.box[3]) / 2 / box.frame_size[0]
+                    radius = point_radius(box.box[2], box.box[3], box.frame_size[0])
                 if not box.ok:
                     status |= mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
         self.mav.mav.camera_tracking_image_status_send(status, mode, target_data, *point, radius, *corners)
@@ -571,6 +572,12 @@ def point_box(point: tuple[float, float, float], width: int, height: int) -> tup
     cx, cy, half = x * width, y * height, max(1.0, radius * width)
     left, top = max(0.0, cx - half), max(0.0, cy - half)
     return left, top, min(float(width), cx + half) - left, min(float(height), cy + half) - top
+
+
+def point_radius(box_width: float, box_height: float, width: int) -> float:
+    """A point-mode status's radius for a box: its half-side in image widths, the inverse of point_box's, at most 1
+    (the whole width), as MAVLink bounds it: a box over twice the width tall (a portrait frame) went past it."""
+    return min(1.0, max(box_width, box_height) / 2 / width)
 
 
 def _target_camera(message) -> int:

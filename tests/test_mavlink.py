@@ -25,7 +25,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from tacf_clients.mavlink import MavlinkCamera, point_box, signing_key_from_passphrase  # noqa: E402
+from tacf_clients.mavlink import MavlinkCamera, point_box, point_radius, signing_key_from_passphrase  # noqa: E402
 
 pytestmark = pytest.mark.zenoh
 
@@ -299,6 +299,11 @@ def test_a_point_is_the_square_of_its_radius_around_it_cut_to_the_frame():
     assert point_box((0.5, 0.5, 0.0), 320, 240) == (159.0, 119.0, 2.0, 2.0)       # 0 is one pixel
     assert point_box((1.0, 0.0, 0.1), 320, 240) == (288.0, 0.0, 32.0, 32.0)        # at a corner: its quarter in view
     assert point_box((0.5, 0.5, 1.0), 320, 240) == (0.0, 0.0, 320.0, 240.0)
+
+
+def test_a_status_radius_is_the_box_s_half_side_in_image_widths_at_most_one():
+    assert point_radius(32.0, 20.0, 320) == pytest.approx(0.05)        # point_box's square, back
+    assert point_radius(20.0, 700.0, 320) == 1.0        # a tall box on a portrait frame: MAVLink's radius is 0..1
 
 
 def test_a_clicked_point_is_tracked_and_shown_in_point_mode(rig):
