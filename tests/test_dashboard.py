@@ -1636,6 +1636,49 @@ def test_a_finger_draws_a_box_on_a_touch_screen(stack, browser):
                 client.stop(sid)
 
 
+def test_a_box_dragged_past_the_frame_s_corner_reaches_the_image_edges(stack, browser):
+    """A target entering the frame: the operator drags past the image's corner and lets go outside it. The drag
+    ended where the mouse left the canvas, at its last move inside (up to a move's length short of the edge,
+    more in a quick drag), so the box sent stopped short of the edges the operator dragged to."""
+    from selenium.webdriver.common.by import By
+
+    from tacf_service.loopback import FramePublisher
+    from tacf_service.scene import MovingTargetScene
+
+    app, client, _, _ = stack
+    key, sid = "test/dashboard/edge", "edge"
+    corners = """const c = document.querySelector('#new-canvas');
+        c.scrollIntoView({block: 'center'});
+        const r = c.getBoundingClientRect();
+        return [r.left, r.top, r.right, r.bottom];"""
+    with FramePublisher(client.session, key, MovingTargetScene(400, 300, target=48), fps=10):
+        try:
+            assert _post(app.url + "api/watch", {"key": key})[0] == 200
+            _open_page(browser, app)
+            _select_key(browser, key)
+            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400), "its frames are shown"
+            browser.find_element(By.ID, "sid-input").send_keys(sid)
+            browser.execute_script(_RECORD_STARTS)
+            left, top, right, bottom = browser.execute_script(corners)
+            mouse = functools.partial(browser.execute_cdp_cmd, "Input.dispatchMouseEvent")
+            x0, y0 = left + (right - left) / 2, top + (bottom - top) / 2
+            mouse({"type": "mouseMoved", "x": x0, "y": y0})
+            mouse({"type": "mousePressed", "x": x0, "y": y0, "button": "left", "buttons": 1, "clickCount": 1})
+            mouse({"type": "mouseMoved", "x": right - (right - left) / 8, "y": bottom - (bottom - top) / 8,
+                   "button": "left", "buttons": 1})
+            mouse({"type": "mouseMoved", "x": right + 20, "y": bottom + 20, "button": "left", "buttons": 1})
+            mouse({"type": "mouseReleased", "x": right + 20, "y": bottom + 20, "button": "left", "clickCount": 1})
+            said = _wait(lambda: re.search("started|failed", t := browser.find_element(By.ID, "new-status").text)
+                         and t, timeout=30)
+            assert said and "started" in said, browser.find_element(By.ID, "new-status").text
+            [start] = browser.execute_script("return window.starts")
+            x, y, w, h = start["box"]
+            assert (x + w, y + h) == (400, 300), f"the box stops short of the frame's corner: {start['box']}"
+        finally:
+            if any(info.sid == sid for info in client.list()):
+                client.stop(sid)
+
+
 def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(stack, browser):
     """With a second service on the network, the page's start named no service and got 409 ambiguous_node. A start
     with none now goes to the least-loaded service, and the page offers each service by name."""

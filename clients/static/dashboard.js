@@ -215,7 +215,7 @@ function enableDrawing(canvas, feedOf, onBox) {
     const draft = drafts.get(canvas);
     if (!draft) return;
     drafts.delete(canvas);
-    if (event) [draft.x1, draft.y1] = canvasPoint(canvas, event);
+    [draft.x1, draft.y1] = canvasPoint(canvas, event);
     const clamp = (v, max) => Math.min(Math.max(v, 0), max);
     const x0 = clamp(Math.min(draft.x0, draft.x1), canvas.width), x1 = clamp(Math.max(draft.x0, draft.x1), canvas.width);
     const y0 = clamp(Math.min(draft.y0, draft.y1), canvas.height), y1 = clamp(Math.max(draft.y0, draft.y1), canvas.height);
@@ -224,7 +224,9 @@ function enableDrawing(canvas, feedOf, onBox) {
     onBox([Math.round(x0), Math.round(y0), Math.round(x1 - x0), Math.round(y1 - y0)], draft.seq, draft.key);
   };
   canvas.addEventListener("mouseup", finish);
-  canvas.addEventListener("mouseleave", () => { if (drafts.get(canvas)) finish(null); });
+  // Leaving the canvas ends the drag where the mouse went out (clamped to the edge): a box dragged past the frame's
+  // edge reaches it, not the last move inside, which can be far from it in a quick drag.
+  canvas.addEventListener("mouseleave", finish);
   // A finger draws too (a tablet at the ground station): a touch that moves fires no mouse event at all, and
   // would scroll the page. A second finger (a pinch) drops the draft.
   canvas.addEventListener("touchstart", (event) => {
