@@ -1363,6 +1363,13 @@ _RECORD_STARTS = """
         if (String(url) === '/api/start') window.starts.push(JSON.parse(options.body));
         return fetched(url, options);
     };"""
+_COUNT_POSTS = """
+    window.posts = [];
+    const fetched = window.fetch;
+    window.fetch = (url, options) => {
+        if (options && options.method === 'POST') window.posts.push(String(url));
+        return fetched(url, options);
+    };"""
 
 
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
@@ -1677,6 +1684,35 @@ def test_a_box_dragged_past_the_frame_s_corner_reaches_the_image_edges(stack, br
         finally:
             if any(info.sid == sid for info in client.list()):
                 client.stop(sid)
+
+
+def test_escape_in_mid_drag_cancels_a_reinit(stack, browser):
+    """The card's hint says Esc cancels a re-init: Esc left the card's draft, so letting go of the mouse after it
+    re-initialised the session on the box the operator had just given up."""
+    from selenium.webdriver.common.by import By
+
+    app, _, _, service = stack
+    sid_id = f"{service.node}/pre"
+    _open_page(browser, app)
+    assert _wait(lambda: _canvas_state(browser, sid_id)), "the card shows a frame"
+    browser.execute_script(_COUNT_POSTS)
+    browser.find_element(By.CSS_SELECTOR, 'tr[data-sid="pre"] button.reinit').click()
+    left, top, right, bottom = browser.execute_script(
+        "const c = window.tacf.cards.get(arguments[0]).frame; c.scrollIntoView({block: 'center'});"
+        "const r = c.getBoundingClientRect(); return [r.left, r.top, r.right, r.bottom];", sid_id)
+    mouse = functools.partial(browser.execute_cdp_cmd, "Input.dispatchMouseEvent")
+    key = functools.partial(browser.execute_cdp_cmd, "Input.dispatchKeyEvent")
+    x0, y0, x1, y1 = (left + (right - left) / 4, top + (bottom - top) / 4, left + (right - left) / 2,
+                      top + (bottom - top) / 2)
+    mouse({"type": "mouseMoved", "x": x0, "y": y0})
+    mouse({"type": "mousePressed", "x": x0, "y": y0, "button": "left", "buttons": 1, "clickCount": 1})
+    mouse({"type": "mouseMoved", "x": x1, "y": y1, "button": "left", "buttons": 1})
+    for kind in ("keyDown", "keyUp"):
+        key({"type": kind, "key": "Escape", "code": "Escape", "windowsVirtualKeyCode": 27})
+    assert _wait(lambda: browser.execute_script("return window.tacf.reinit") is None), "Esc ends the re-init"
+    mouse({"type": "mouseReleased", "x": x1, "y": y1, "button": "left", "clickCount": 1})
+    time.sleep(1.0)
+    assert browser.execute_script("return window.posts") == [], "a re-init cancelled with Esc was sent"
 
 
 def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(stack, browser):

@@ -327,6 +327,8 @@ function setReinit(id) {
     card.root.classList.toggle("reinit", on);
     card.frame.classList.toggle("drawable", on);
     $(".reinit-hint", card.root).hidden = !on;
+    // a box being drawn on a card no longer re-initialising is dropped: Esc in mid-drag cancels, as the hint says
+    if (!on && drafts.delete(card.frame)) scheduleDraw();
   }
 }
 document.addEventListener("keydown", (event) => { if (event.key === "Escape") setReinit(null); });
