@@ -480,7 +480,9 @@ def cmd_nodes(args: argparse.Namespace) -> int:
     from tacf_clients.watch import columns
 
     with _client(args, json_list=args.json) as client:
-        alive = client.alive_nodes()
+        # --node (accepted, not advertised) shows that service only: the list query asks it alone, and every
+        # other live service showed as "no answer"
+        alive = [node for node in client.alive_nodes() if client.node in (None, node)]
         listings: dict[str, list] = {}
         try:
             answers = client.services()     # a row per service that answers, even two under one node id

@@ -33,6 +33,8 @@ log = logging.getLogger(__name__)
 
 SHUTDOWN_BUDGET_S = 1.3     # workers get this long in total; the whole exit stays under 2 s
 NODE_CHECK_TIMEOUT_S = 1.0  # the liveliness query ends as soon as every linked node has answered
+# The boxes gossip names link within ~10 ms of the open (measured); this long with no new link, all have
+GOSSIP_SETTLE_S = 0.2
 
 
 def default_node_id() -> str:
@@ -183,8 +185,9 @@ def serve(options: ServiceOptions) -> int:
 def _refuse_a_taken_node(session, node: str) -> None:
     """Two services under one node id both answer every query to it: a start there starts the session on both, whose
     boxes then interleave on one key. Boxes flashed from one SD-card image share a hostname, the default id. The
-    check sees the nodes linked when the session opens (those of --connect, and the ones gossip has named by then),
+    check sees the nodes linked as the session opens (those of --connect, and the ones gossip names through them),
     not one found later by multicast scouting; clients name such a clash when they meet it (AmbiguousNode)."""
+    _wait_for_gossip_links(session, NODE_CHECK_TIMEOUT_S)
     replies = session.liveliness().get(service_liveliness_key(node), timeout=NODE_CHECK_TIMEOUT_S)
     if any(reply.ok is not None for reply in replies):
         raise RuntimeError(f"another tacf service already runs as node {node!r} on this network; give this one its "
@@ -199,6 +202,25 @@ def _check_worker_files(zenoh_options: ZenohOptions, endpoints: list[str]) -> No
     if problem := unreadable_file(worker_config(zenoh_options, endpoints)):
         raise WorkerConnectError(f"its worker processes cannot use the settings of {zenoh_options.config_file}: "
                                  f"{problem}")
+
+
+def _wait_for_gossip_links(session, budget_s: float) -> None:
+    """Wait until no new Zenoh node has linked for GOSSIP_SETTLE_S (at most `budget_s`). The open returns once the
+    --connect nodes are linked, and those answer a liveliness query for their own tokens only (peers do not relay
+    for peers): a twin linked to the same box was met through gossip only after the check, and went live."""
+    def linked() -> set[str]:
+        return {str(zid) for zid in [*session.info.peers_zid(), *session.info.routers_zid()]}
+
+    seen = linked()
+    if not seen:                # nothing to gossip with: no node will link through one
+        return
+    deadline = time.monotonic() + budget_s
+    quiet_until = time.monotonic() + GOSSIP_SETTLE_S
+    while time.monotonic() < min(deadline, quiet_until):
+        time.sleep(0.01)
+        if not (now_linked := linked()) <= seen:
+            seen |= now_linked
+            quiet_until = time.monotonic() + GOSSIP_SETTLE_S
 
 
 def _check_workers_can_connect(zenoh_options: ZenohOptions, endpoints: list[str]) -> None:

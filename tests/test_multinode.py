@@ -121,6 +121,15 @@ def test_nodes_follow_read_by_head_ends_quietly(network):
     assert (code, err) == (141, ""), err
 
 
+def test_nodes_with_a_node_shows_that_one_only(network, client, capsys):
+    """`tacf nodes --node edge-b` asked edge-b alone for its sessions, then printed edge-a, alive and answering
+    every query, as "no answer"."""
+    a, _ = network
+    assert main(["nodes", "--node", B, "--connect", a.endpoint]) == 0
+    rows = capsys.readouterr().out.splitlines()[1:]
+    assert [row.split()[:3] for row in rows] == [[B, "yes", "0/8"]]
+
+
 def test_a_killed_node_is_seen_gone_within_3_s(network, client, camera, capsys):
     a, b = network
     events: list[tuple[float, str, bool]] = []
