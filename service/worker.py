@@ -135,6 +135,13 @@ class LatestFrame:
                 self.overwritten += 1
             self._payload = None
 
+    def counts(self) -> tuple[int, int]:
+        """(received, overwritten), read together, the payload still waiting left out of received: it is neither
+        processed nor dropped yet, and a Health that counted it received did not add up (under a feed faster than
+        the tracker, nearly every one)."""
+        with self._cond:
+            return self.received - (self._payload is not None), self.overwritten
+
 
 if "forkserver" in multiprocessing.get_all_start_methods():       # its classes are not there on Windows
     class _ForkServerPopen(multiprocessing.popen_forkserver.Popen):
@@ -594,9 +601,11 @@ class Worker:
     def _publish_health(self) -> None:
         from tacf_schemas import encode
         stats = self._stats
-        unserved = self._unserved           # read once: the commands thread adds to it
-        stats.frames_received = self._slot.received + self._ring_dropped + self._extra_received + unserved
-        stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped + unserved
+        # each read once: the commands thread adds to _unserved, the pump thread to the others meanwhile
+        unserved, ring_dropped = self._unserved, self._ring_dropped
+        received, overwritten = self._slot.counts()
+        stats.frames_received = received + ring_dropped + self._extra_received + unserved
+        stats.frames_dropped = overwritten + ring_dropped + self._skipped + unserved
         message = self._message
         idle_s = time.monotonic() - self._slot.last_put
         if idle_s > STALL_S and self._state not in ("failed", "stopped"):     # a stopped session waits for nothing
