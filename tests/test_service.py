@@ -1311,6 +1311,29 @@ def test_health_reads_a_steady_frame_rate_as_it_is_from_the_first_frame_and_p95_
     assert stats.snapshot("n", "s", "tracking").processing_ms_p95 == 19.0
 
 
+def test_a_feed_that_resumes_after_a_pause_reads_its_rate_again_at_once(monkeypatch):
+    """The rate was counted from the last frame before the pause: a 10 fps feed that resumed after 10 s read 1.1 fps
+    a second later (2.4 at the next Health), where a session's first second reads 10. A feed slower than one frame
+    a window (a frame every 2.5 s) still reads its rate right after each frame."""
+    clock = [100.0]
+    monkeypatch.setattr(health.time, "monotonic", lambda: clock[0])
+    stats = health.HealthStats()
+
+    def play(first: int, end: int, start: float, period: float) -> list[float]:
+        readings = []
+        for i in range(first, end):
+            clock[0] = start + (i - first) * period
+            stats.processed(i, time.time_ns(), processing_ms=5.0, pme=None, ok=True)
+            readings.append(stats.fps())
+        return readings
+    play(0, 40, 100.0, 0.1)
+    clock[0] = 110.0
+    assert stats.fps() == 0.0
+    assert play(40, 60, 110.0, 0.1)[1:] == pytest.approx([10.0] * 19)
+    clock[0] = 120.0
+    assert play(60, 64, 120.0, 2.5)[1:] == pytest.approx([0.4] * 3)
+
+
 def test_the_init_and_its_catch_up_are_left_out_of_the_rate(monkeypatch):
     """They go back to back from the service's history: a start 10 frames back on a 10 fps feed read 20 fps."""
     clock = [100.0]
