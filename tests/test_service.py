@@ -1464,6 +1464,34 @@ def test_a_feed_that_changes_its_frame_size_goes_on_being_tracked(service, clien
         call(client, NODE, "stop", StopRequest(sid="resized"))
 
 
+def test_a_frame_too_small_to_track_of_the_feed_s_aspect_ratio_fails_no_session(service, client):
+    """A 2x2 frame on a square feed (hostile, or a stream scaled down too far) is the same view at another size, but
+    too small for the tracker to start again on: the worker failed the session for good, which the service then
+    listed as failed (and would not restart after a crash) while its worker tracked the next frames on. The frame is
+    rejected, the session lost until frames it can track come, as for a crop."""
+    scene = MovingTargetScene(320, 320, target=48, speed=1.0)
+    publisher = client.declare_publisher("test/cam/shrunk")
+    results = Collector(client, NODE, "shrunk")
+    try:
+        play_frames(publisher, scene, 0, 2)
+        start(client, service, image_key="test/cam/shrunk", box=scene.box(1), seq=1, sid="shrunk")
+        play_frames(publisher, scene, 2, 10)
+        assert wait_until(lambda: results.results() and results.results()[-1].seq == 9, 10)
+        play_frames(publisher, scene, 10, 11, size=(2, 2))
+        assert wait_until(lambda: results.health and results.health[-1].frames_rejected == 1, 5), results.health
+        assert results.health[-1].state == "lost" and "cannot re-initialise" in results.health[-1].message
+        play_frames(publisher, scene, 11, 20)
+        assert wait_until(lambda: results.results()[-1].seq == 19, 10)
+        assert mean_iou(results.results()[-5:], {i: scene.box(i) for i in range(15, 20)}) > 0.6
+        info = call(client, NODE, "status", StatusRequest(sid="shrunk"))
+        assert (info.state, info.last_seq) == ("tracking", 19), info
+        assert not any(h.state == "failed" for h in results.health), results.health
+    finally:
+        results.close()
+        publisher.undeclare()
+        call(client, NODE, "stop", StopRequest(sid="shrunk"))
+
+
 def play_frames(publisher, scene, first: int, end: int, size: tuple[int, int] | None = None) -> None:
     """Publish frames first..end-1 of a scene at 10 fps, resized to `size` (w, h) if given."""
     for i in range(first, end):
