@@ -60,18 +60,24 @@ class HealthStats:
         self._forget_old_frames()
 
     def _forget_old_frames(self) -> None:
-        """Keep the frames processed within FPS_WINDOW_S, and the newest one before them (fps's start)."""
+        """Keep the frames processed within FPS_WINDOW_S, and the newest one before them (fps's start), unless a
+        pause longer than the window came between it and them: the feed's rate starts again from the first frame
+        after the pause, as from a session's first (counted from the last frame before the pause, a 10 fps feed
+        that resumed after 10 s read 1.1 then 2.4 fps in its first two Health). A feed with a frame every window or
+        more keeps its start: it has one frame in the window at most."""
         now = time.monotonic()
         while len(self._processed_at) >= 2 and now - self._processed_at[1] >= FPS_WINDOW_S:
+            self._processed_at.popleft()
+        if len(self._processed_at) >= 3 and self._processed_at[1] - self._processed_at[0] > FPS_WINDOW_S:
             self._processed_at.popleft()
 
     def fps(self) -> float:
         """Frames processed a second: the frames of the last FPS_WINDOW_S over the time from the newest frame before
-        them (or the first frame, while a window has not yet passed) to now. A Health goes out right after a frame,
-        so on a steady feed this is its rate; it falls as soon as the feed stops, to 0 once a window has passed
-        without a frame. Counting the frames within the window counted both of its ends, one frame too many: a
-        steady 10 fps feed read 10.5 in a third to a half of its Health (and a window not yet filled made the first
-        Health read 6.5)."""
+        them (or the first frame, while a window has not yet passed or after a longer pause) to now. A Health goes
+        out right after a frame, so on a steady feed this is its rate; it falls as soon as the feed stops, to 0 once
+        a window has passed without a frame. Counting the frames within the window counted both of its ends, one
+        frame too many: a steady 10 fps feed read 10.5 in a third to a half of its Health (and a window not yet
+        filled made the first Health read 6.5)."""
         self._forget_old_frames()
         if len(self._processed_at) < 2:
             return 0.0

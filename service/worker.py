@@ -135,6 +135,13 @@ class LatestFrame:
                 self.overwritten += 1
             self._payload = None
 
+    def counts(self) -> tuple[int, int]:
+        """(received, overwritten), read together, the payload still waiting left out of received: it is neither
+        processed nor dropped yet, and a Health that counted it received did not add up (under a feed faster than
+        the tracker, nearly every one)."""
+        with self._cond:
+            return self.received - (self._payload is not None), self.overwritten
+
 
 if "forkserver" in multiprocessing.get_all_start_methods():       # its classes are not there on Windows
     class _ForkServerPopen(multiprocessing.popen_forkserver.Popen):
@@ -533,21 +540,32 @@ class Worker:
     def _initialise(self, image, frame) -> None:
         """Initialise the tracker on this frame; counted as processed (no box is published for it), or as rejected
         when the box does not fit it, so that received = processed + dropped + rejected."""
-        from .frames import box_problem
         box = self._init_box
-        try:
-            problem = box_problem(box, image.shape[1], image.shape[0])
-            if problem is not None:
-                raise ValueError(problem)
-            self._tracker.init(image, box)
-        except Exception as exc:        # a bad box, or a tracker bug on a hostile one: fail the session, not the worker
+        problem = self._init_problem(image, box)
+        if problem is not None:     # a bad box, or a tracker bug on a hostile one: fail the session, not the worker
             self._init_box = None
-            self._state, self._message = "failed", f"cannot initialise on seq {frame.seq}: {exc}"
+            self._state, self._message = "failed", f"cannot initialise on seq {frame.seq}: {problem}"
             self._stats.rejected()
             log.warning("%s", self._message)
             self._send(("failed", self._message, self._init_generation))
             self._publish_health()
             return
+        self._initialised(image, frame, box)
+
+    def _init_problem(self, image, box: tuple) -> str | None:
+        """Initialise the tracker on `image` with `box`; why it cannot, or None (tacf's Tracker refuses before any of
+        its state changes: it keeps its target)."""
+        from .frames import box_problem
+        problem = box_problem(box, image.shape[1], image.shape[0])
+        if problem is not None:
+            return problem
+        try:
+            self._tracker.init(image, box)
+        except Exception as exc:
+            return str(exc)
+        return None
+
+    def _initialised(self, image, frame, box: tuple) -> None:
         self._image_shape, self._last_box = image.shape, tuple(box)
         self._init_box = None
         self._state = "tracking"
@@ -568,11 +586,16 @@ class Worker:
             self._reject(f"{change} changes the aspect ratio; reinit the session with a box on the new frames")
             return
         x, y, w, h = self._last_box
-        self._init_box = (x * scale_x, y * scale_y, w * scale_x, h * scale_y)
+        box = (x * scale_x, y * scale_y, w * scale_x, h * scale_y)
         log.info("%s: re-initialising from the last box, scaled", change)
-        self._initialise(image, frame)
-        if self._state == "tracking":
-            self._message = f"{change}: re-initialised on seq {frame.seq} from the last box, scaled"
+        problem = self._init_problem(image, box)
+        if problem is not None:     # a frame too small for the tracker: frames of the old size still are not
+            self._state = "lost"
+            self._reject(f"{change}: cannot re-initialise from the last box, scaled: {problem}; reinit the session "
+                         f"with a box on the new frames")
+            return
+        self._initialised(image, frame, box)
+        self._message = f"{change}: re-initialised on seq {frame.seq} from the last box, scaled"
 
     def _reject(self, reason: str) -> None:
         self._stats.rejected()
@@ -594,9 +617,11 @@ class Worker:
     def _publish_health(self) -> None:
         from tacf_schemas import encode
         stats = self._stats
-        unserved = self._unserved           # read once: the commands thread adds to it
-        stats.frames_received = self._slot.received + self._ring_dropped + self._extra_received + unserved
-        stats.frames_dropped = self._slot.overwritten + self._ring_dropped + self._skipped + unserved
+        # each read once: the commands thread adds to _unserved, the pump thread to the others meanwhile
+        unserved, ring_dropped = self._unserved, self._ring_dropped
+        received, overwritten = self._slot.counts()
+        stats.frames_received = received + ring_dropped + self._extra_received + unserved
+        stats.frames_dropped = overwritten + ring_dropped + self._skipped + unserved
         message = self._message
         idle_s = time.monotonic() - self._slot.last_put
         if idle_s > STALL_S and self._state not in ("failed", "stopped"):     # a stopped session waits for nothing

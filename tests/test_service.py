@@ -457,15 +457,19 @@ def test_a_session_whose_tracker_cannot_be_built_says_why_on_its_health_key(endp
         results.close()
 
 
-def test_the_stopped_health_counts_every_frame_received(endpoint, client, feed):
-    """With a tracker slower than the feed, stop found a frame in the worker's slot (never counted: received was one
-    more than processed + dropped + rejected), and the service's "stopped" Health, sent after the worker's, carried
-    the counters of a Health a second older."""
+def test_every_health_counts_every_frame_received(endpoint, client, feed):
+    """With a tracker slower than the feed, a frame nearly always waits in the worker's slot: each Health counted it
+    received, not yet processed nor dropped, so that received was one more than processed + dropped + rejected in
+    nearly every one. Stop found one there too (never counted at all), and the service's "stopped" Health, sent
+    after the worker's, carried the counters of a Health a second older."""
     with plugin_service(endpoint, client, "slow2", "slow_tracker:slow_tracker"), \
             contextlib.closing(Collector(client, "slow2", "counted")) as results:
         call(client, "slow2", "start", StartRequest(sid="counted", image_key=feed.key, box=(20.0, 20.0, 60.0, 60.0)),
              timeout=10)
-        assert wait_until(lambda: len(results.results()) >= 6, 10)
+        assert wait_until(lambda: len([h for h in results.health if h.frames_processed > 1]) >= 3, 10)
+        unbalanced = [h for h in results.health
+                      if h.frames_received != h.frames_processed + h.frames_dropped + h.frames_rejected]
+        assert unbalanced == [], unbalanced
         call(client, "slow2", "stop", StopRequest(sid="counted"), timeout=10)
 
         def finals():   # the worker's and the service's, by their message: two sessions, no order between them
@@ -1307,6 +1311,29 @@ def test_health_reads_a_steady_frame_rate_as_it_is_from_the_first_frame_and_p95_
     assert stats.snapshot("n", "s", "tracking").processing_ms_p95 == 19.0
 
 
+def test_a_feed_that_resumes_after_a_pause_reads_its_rate_again_at_once(monkeypatch):
+    """The rate was counted from the last frame before the pause: a 10 fps feed that resumed after 10 s read 1.1 fps
+    a second later (2.4 at the next Health), where a session's first second reads 10. A feed slower than one frame
+    a window (a frame every 2.5 s) still reads its rate right after each frame."""
+    clock = [100.0]
+    monkeypatch.setattr(health.time, "monotonic", lambda: clock[0])
+    stats = health.HealthStats()
+
+    def play(first: int, end: int, start: float, period: float) -> list[float]:
+        readings = []
+        for i in range(first, end):
+            clock[0] = start + (i - first) * period
+            stats.processed(i, time.time_ns(), processing_ms=5.0, pme=None, ok=True)
+            readings.append(stats.fps())
+        return readings
+    play(0, 40, 100.0, 0.1)
+    clock[0] = 110.0
+    assert stats.fps() == 0.0
+    assert play(40, 60, 110.0, 0.1)[1:] == pytest.approx([10.0] * 19)
+    clock[0] = 120.0
+    assert play(60, 64, 120.0, 2.5)[1:] == pytest.approx([0.4] * 3)
+
+
 def test_the_init_and_its_catch_up_are_left_out_of_the_rate(monkeypatch):
     """They go back to back from the service's history: a start 10 frames back on a 10 fps feed read 20 fps."""
     clock = [100.0]
@@ -1435,6 +1462,34 @@ def test_a_feed_that_changes_its_frame_size_goes_on_being_tracked(service, clien
         results.close()
         publisher.undeclare()
         call(client, NODE, "stop", StopRequest(sid="resized"))
+
+
+def test_a_frame_too_small_to_track_of_the_feed_s_aspect_ratio_fails_no_session(service, client):
+    """A 2x2 frame on a square feed (hostile, or a stream scaled down too far) is the same view at another size, but
+    too small for the tracker to start again on: the worker failed the session for good, which the service then
+    listed as failed (and would not restart after a crash) while its worker tracked the next frames on. The frame is
+    rejected, the session lost until frames it can track come, as for a crop."""
+    scene = MovingTargetScene(320, 320, target=48, speed=1.0)
+    publisher = client.declare_publisher("test/cam/shrunk")
+    results = Collector(client, NODE, "shrunk")
+    try:
+        play_frames(publisher, scene, 0, 2)
+        start(client, service, image_key="test/cam/shrunk", box=scene.box(1), seq=1, sid="shrunk")
+        play_frames(publisher, scene, 2, 10)
+        assert wait_until(lambda: results.results() and results.results()[-1].seq == 9, 10)
+        play_frames(publisher, scene, 10, 11, size=(2, 2))
+        assert wait_until(lambda: results.health and results.health[-1].frames_rejected == 1, 5), results.health
+        assert results.health[-1].state == "lost" and "cannot re-initialise" in results.health[-1].message
+        play_frames(publisher, scene, 11, 20)
+        assert wait_until(lambda: results.results()[-1].seq == 19, 10)
+        assert mean_iou(results.results()[-5:], {i: scene.box(i) for i in range(15, 20)}) > 0.6
+        info = call(client, NODE, "status", StatusRequest(sid="shrunk"))
+        assert (info.state, info.last_seq) == ("tracking", 19), info
+        assert not any(h.state == "failed" for h in results.health), results.health
+    finally:
+        results.close()
+        publisher.undeclare()
+        call(client, NODE, "stop", StopRequest(sid="shrunk"))
 
 
 def play_frames(publisher, scene, first: int, end: int, size: tuple[int, int] | None = None) -> None:
