@@ -715,10 +715,11 @@ def test_serve_mode_overrides_the_config_files(tmp_path):
 
 
 @pytest.mark.parametrize("option, value", [("--init-wait", "nan"), ("--init-wait", "inf"), ("--init-wait", "-1"),
-                                           ("--spare-workers", "-3"), ("--max-sessions", "0")])
+                                           ("--spare-workers", "-3"), ("--max-sessions", "0"), ("--state", "")])
 def test_serve_refuses_a_bad_setting_in_one_line(option, value, capsys):
     """--init-wait nan let every start on a feed with no frame yet wait for ever, holding a control thread and a
-    session slot; a negative count was silently taken as 0."""
+    session slot; a negative count was silently taken as 0; --state "$STATE" with the variable unset ran the
+    service without persistence, without a word."""
     from tacf.cli import main
 
     with pytest.raises(SystemExit) as exit_:
