@@ -625,6 +625,22 @@ def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
     service("third").open().close()             # the first one's exit released the file
 
 
+def test_a_state_file_given_through_a_link_is_the_file_it_names(tmp_path):
+    """A second service given a link to the first one's state file took a lock of its own beside the link, restored
+    the first one's sessions, and its first save replaced the link with a file of its own."""
+    real, link = tmp_path / "sessions.json", tmp_path / "link.json"
+    link.symlink_to(real.name)
+    first, second = StateStore(real), StateStore(link)
+    first.lock()
+    try:
+        with pytest.raises(StateError, match="in use by another service"):
+            second.lock()
+    finally:
+        first.unlock()
+    second.save([SAVED])
+    assert link.is_symlink() and StateStore(real).load() == [SAVED]
+
+
 def test_serve_with_a_state_file_it_cannot_write_fails_at_start(tmp_path):
     """Not an error every second for as long as it runs, and sessions that never survive a restart."""
     not_a_dir = tmp_path / "file"
