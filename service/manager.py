@@ -172,7 +172,10 @@ class SessionManager:
             self._queue_init(session, box, seq, released=True, frames=frames)
             if saved_frame is not None:
                 session.saved_frame_seq, session.saved_frame_box = saved_frame.seq, tuple(box)
-            self._spawn(session)
+            try:
+                self._spawn(session)
+            except Exception as exc:    # no process to be had: tried again as a restart is, the session kept
+                self._no_worker_yet(session, exc)
             restored += 1
         if restored:
             log.info("restored %d session(s) from %s", restored, self._store.path)
@@ -634,16 +637,21 @@ class SessionManager:
             self._spawn(session)
         except ServiceError:
             return                              # stopped meanwhile
-        except Exception as exc:                # no process to be had (a fork failing for memory, the process limit)
-            with self._lock:                    # tried again after the longest backoff, not on every round
-                session.restart_at = time.monotonic() + RESTART_BACKOFF_S[-1]
-                session.message = (f"cannot start a worker process: {exc}; trying again in "
-                                   f"{RESTART_BACKOFF_S[-1]:.0f} s")
-                if not self._is_gone(session):
-                    self._publish_health(session, "failed", session.message)
-            log.warning("session %s: %s", session.sid, session.message)
+        except Exception as exc:
+            self._no_worker_yet(session, exc)
             return
         self._dirty = True
+
+    def _no_worker_yet(self, session: Session, exc: Exception) -> None:
+        """A worker could not be started for the session (a fork failing for memory, the process limit): it is
+        `failed` and tried again after the longest backoff, not on every round."""
+        with self._lock:
+            session.restart_at = time.monotonic() + RESTART_BACKOFF_S[-1]
+            session.state = "failed"
+            session.message = f"cannot start a worker process: {exc}; trying again in {RESTART_BACKOFF_S[-1]:.0f} s"
+            if not self._is_gone(session):
+                self._publish_health(session, "failed", session.message)
+        log.warning("session %s: %s", session.sid, session.message)
 
     def _publish_health(self, session: Session, state: str, message: str | None, unserved: int = 0) -> None:
         """Health on behalf of a session whose worker cannot publish it (dead or stopped), with `unserved` frames

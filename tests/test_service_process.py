@@ -2,6 +2,7 @@
 in under 2 s with no child process left, and the state file's robustness."""
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -607,6 +608,32 @@ def test_a_saved_session_not_restored_takes_no_slot_of_max_sessions(tmp_path, ca
     with restored_from(tmp_path, caplog, saved, max_sessions=2) as sids:
         assert sids == ["a", "b"]
         assert "not restoring session old: " in caplog.text and "beyond --max-sessions" not in caplog.text
+
+
+def test_a_restored_session_whose_worker_cannot_start_is_kept_and_tried_again(tmp_path, monkeypatch):
+    """A fork failing (memory, the process limit of a small edge box) in the middle of a restore failed the
+    service's start, and the close after it saved the table restored so far: the sessions after it were lost."""
+    from tacf_service import pool
+
+    new_worker, forks = pool.WorkerPool.new_worker, []
+
+    def second_fork_fails(self):
+        forks.append(None)
+        if len(forks) == 2:
+            raise OSError(errno.EAGAIN, "Resource temporarily unavailable")
+        return new_worker(self)
+    monkeypatch.setattr(pool.WorkerPool, "new_worker", second_fork_fails)
+    state = tmp_path / "sessions.json"
+    StateStore(state).save([SAVED.model_copy(update={"sid": sid}) for sid in ("a", "b", "c")])
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                             state_file=str(state), spare_workers=0)).open()
+    try:
+        b = service.manager.status("b")
+        assert b.state == "failed" and "cannot start a worker process: " in b.health.message, b
+        assert wait_until(lambda: set(service.manager.worker_pids()) == {"a", "b", "c"}, 20)   # as a restart is
+    finally:
+        service.close()
+    assert [s.sid for s in StateStore(state).load()] == ["a", "b", "c"]
 
 
 def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
