@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from tacf.argument_types import config_file, integer, seconds
+from tacf.argument_types import config_file, integer, not_empty, seconds
 
 
 def register(subparsers) -> None:
@@ -24,8 +24,10 @@ def register(subparsers) -> None:
     parser.add_argument("--node", metavar="ID", help="service id, [A-Za-z0-9_-]{1,64} (default: the hostname "
                                                     "sanitised, or 'edge')")
     parser.add_argument("--max-sessions", type=integer(1), default=8, metavar="N", help="session limit (default 8)")
-    parser.add_argument("--state", metavar="FILE", help="persist sessions in FILE and restore them on start (one "
-                                                       "service per file: a second one refuses to start)")
+    # not_empty: --state "$STATE" with the variable unset ran without persistence, without a word
+    parser.add_argument("--state", type=not_empty("a file to keep the sessions in"), metavar="FILE",
+                        help="persist sessions in FILE and restore them on start (one service per file: a second one "
+                             "refuses to start)")
     parser.add_argument("--state-frames-every", type=seconds, default=5.0, metavar="S",
                         help="store each session's box frame beside --state every S seconds, besides at start, "
                              "re-init and shutdown: after a crash a restored tracker starts up to S back "

@@ -172,7 +172,10 @@ class SessionManager:
             self._queue_init(session, box, seq, released=True, frames=frames)
             if saved_frame is not None:
                 session.saved_frame_seq, session.saved_frame_box = saved_frame.seq, tuple(box)
-            self._spawn(session)
+            try:
+                self._spawn(session)
+            except Exception as exc:    # no process to be had: tried again as a restart is, the session kept
+                self._no_worker_yet(session, exc)
             restored += 1
         if restored:
             log.info("restored %d session(s) from %s", restored, self._store.path)
@@ -634,16 +637,21 @@ class SessionManager:
             self._spawn(session)
         except ServiceError:
             return                              # stopped meanwhile
-        except Exception as exc:                # no process to be had (a fork failing for memory, the process limit)
-            with self._lock:                    # tried again after the longest backoff, not on every round
-                session.restart_at = time.monotonic() + RESTART_BACKOFF_S[-1]
-                session.message = (f"cannot start a worker process: {exc}; trying again in "
-                                   f"{RESTART_BACKOFF_S[-1]:.0f} s")
-                if not self._is_gone(session):
-                    self._publish_health(session, "failed", session.message)
-            log.warning("session %s: %s", session.sid, session.message)
+        except Exception as exc:
+            self._no_worker_yet(session, exc)
             return
         self._dirty = True
+
+    def _no_worker_yet(self, session: Session, exc: Exception) -> None:
+        """A worker could not be started for the session (a fork failing for memory, the process limit): it is
+        `failed` and tried again after the longest backoff, not on every round."""
+        with self._lock:
+            session.restart_at = time.monotonic() + RESTART_BACKOFF_S[-1]
+            session.state = "failed"
+            session.message = f"cannot start a worker process: {exc}; trying again in {RESTART_BACKOFF_S[-1]:.0f} s"
+            if not self._is_gone(session):
+                self._publish_health(session, "failed", session.message)
+        log.warning("session %s: %s", session.sid, session.message)
 
     def _publish_health(self, session: Session, state: str, message: str | None, unserved: int = 0) -> None:
         """Health on behalf of a session whose worker cannot publish it (dead or stopped), with `unserved` frames
@@ -695,30 +703,39 @@ class SessionManager:
             box_frames = [s.box_frame for s in sessions]
             self._dirty = False
         self._saved_at = now
-        try:
-            for i, (session, entry, box_frame) in enumerate(zip(sessions, table, box_frames)):
-                due = force or now - session.frame_saved_at >= self._frame_save_period_s
-                # the box too: a reinit drawn on the frame already stored changes the box, not the seq
-                stored = (session.saved_frame_seq, session.saved_frame_box)
-                if due and entry.last_seq is not None and (entry.last_seq, tuple(entry.box)) != stored:
-                    frame = self._history.frame(session.image_key, entry.last_seq)
-                    if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:
-                        frame = box_frame           # carried by a start or reinit: in no history
-                    if frame is not None:
+        failure = None
+        for i, (session, entry, box_frame) in enumerate(zip(sessions, table, box_frames)):
+            due = force or now - session.frame_saved_at >= self._frame_save_period_s
+            # the box too: a reinit drawn on the frame already stored changes the box, not the seq
+            stored = (session.saved_frame_seq, session.saved_frame_box)
+            if due and entry.last_seq is not None and (entry.last_seq, tuple(entry.box)) != stored:
+                frame = self._history.frame(session.image_key, entry.last_seq)
+                if frame is None and box_frame is not None and box_frame.seq == entry.last_seq:
+                    frame = box_frame           # carried by a start or reinit: in no history
+                if frame is not None:
+                    try:
                         self._store.save_frame(session.sid, frame.payload)
+                    except OSError as exc:
+                        # The table goes on without it: a disk with no room for a frame (a megabyte) may still
+                        # have it for the table (a kilobyte), and a stop must reach the file. The entry keeps the
+                        # frame stored before, and its box.
+                        failure = f"the box frame of session {session.sid} in {self._store.frames_dir}: {exc}"
+                    else:
                         session.saved_frame_seq, session.saved_frame_box = entry.last_seq, entry.box
                         session.frame_saved_at = now
-                table[i] = entry.model_copy(update={"frame_seq": session.saved_frame_seq,
-                                                    "frame_box": session.saved_frame_box})
+            table[i] = entry.model_copy(update={"frame_seq": session.saved_frame_seq,
+                                                "frame_box": session.saved_frame_box})
+        try:
             self._store.save(table)
             self._store.prune_frames({s.sid for s in sessions})
         except OSError as exc:
+            failure = f"the session table to {self._store.path}: {exc}"
+        if failure is not None:
             # Saved again every SAVE_PERIOD_S until it works (disk full, say): a stop must reach the file even
             # when nothing else changes after it.
             self._dirty = True
             if not self._save_failing:
-                log.error("cannot save the session table to %s: %s; retrying every %.0f s", self._store.path, exc,
-                          SAVE_PERIOD_S)
+                log.error("cannot save %s; retrying every %.0f s", failure, SAVE_PERIOD_S)
             self._save_failing = True
             return
         if self._save_failing:

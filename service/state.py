@@ -64,7 +64,9 @@ class StateError(Exception):
 
 class StateStore:
     def __init__(self, path: str | os.PathLike) -> None:
-        self.path = Path(path)
+        # The file a link names: through the link, a second service took a lock of its own beside it, restored the
+        # first one's sessions and shared its file, and its first save replaced the link with a file.
+        self.path = Path(os.path.realpath(path))
         self._lock_file = None
 
     def lock(self) -> None:

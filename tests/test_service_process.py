@@ -2,6 +2,7 @@
 in under 2 s with no child process left, and the state file's robustness."""
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -609,6 +610,32 @@ def test_a_saved_session_not_restored_takes_no_slot_of_max_sessions(tmp_path, ca
         assert "not restoring session old: " in caplog.text and "beyond --max-sessions" not in caplog.text
 
 
+def test_a_restored_session_whose_worker_cannot_start_is_kept_and_tried_again(tmp_path, monkeypatch):
+    """A fork failing (memory, the process limit of a small edge box) in the middle of a restore failed the
+    service's start, and the close after it saved the table restored so far: the sessions after it were lost."""
+    from tacf_service import pool
+
+    new_worker, forks = pool.WorkerPool.new_worker, []
+
+    def second_fork_fails(self):
+        forks.append(None)
+        if len(forks) == 2:
+            raise OSError(errno.EAGAIN, "Resource temporarily unavailable")
+        return new_worker(self)
+    monkeypatch.setattr(pool.WorkerPool, "new_worker", second_fork_fails)
+    state = tmp_path / "sessions.json"
+    StateStore(state).save([SAVED.model_copy(update={"sid": sid}) for sid in ("a", "b", "c")])
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                             state_file=str(state), spare_workers=0)).open()
+    try:
+        b = service.manager.status("b")
+        assert b.state == "failed" and "cannot start a worker process: " in b.health.message, b
+        assert wait_until(lambda: set(service.manager.worker_pids()) == {"a", "b", "c"}, 20)   # as a restart is
+    finally:
+        service.close()
+    assert [s.sid for s in StateStore(state).load()] == ["a", "b", "c"]
+
+
 def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
     """It would restore the first one's sessions and track them too, and each would overwrite the other's table."""
     state = str(tmp_path / "sessions.json")
@@ -623,6 +650,22 @@ def test_a_second_service_on_the_same_state_file_refuses_to_start(tmp_path):
     finally:
         first.close()
     service("third").open().close()             # the first one's exit released the file
+
+
+def test_a_state_file_given_through_a_link_is_the_file_it_names(tmp_path):
+    """A second service given a link to the first one's state file took a lock of its own beside the link, restored
+    the first one's sessions, and its first save replaced the link with a file of its own."""
+    real, link = tmp_path / "sessions.json", tmp_path / "link.json"
+    link.symlink_to(real.name)
+    first, second = StateStore(real), StateStore(link)
+    first.lock()
+    try:
+        with pytest.raises(StateError, match="in use by another service"):
+            second.lock()
+    finally:
+        first.unlock()
+    second.save([SAVED])
+    assert link.is_symlink() and StateStore(real).load() == [SAVED]
 
 
 def test_serve_with_a_state_file_it_cannot_write_fails_at_start(tmp_path):
@@ -672,6 +715,33 @@ def test_a_stop_while_the_state_file_cannot_be_written_reaches_it_once_it_can(tm
         client.close()
         service.close()
 
+
+def test_a_stop_reaches_the_state_file_when_a_frame_cannot_be_stored(tmp_path):
+    """A disk with no room left for a session's frame (a megabyte) but some for the table (a kilobyte): the failed
+    frame held the table back too, so a stop never reached the file, not even at shutdown, and a restarted service
+    brought the stopped session back (seen on a 1.8 MB tmpfs with 640x360 bgr8 frames)."""
+    state, endpoint = tmp_path / "sessions.json", f"tcp/127.0.0.1:{free_port()}"
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(endpoint,)), state_file=str(state),
+                                             spare_workers=0, state_frame_period_s=0)).open()
+    client = zenoh.open(peer_config(connect=[endpoint]))
+    try:
+        with FramePublisher(client, "test/cam/moving", MovingTargetScene(320, 240, speed=3.0), fps=10) as feed:
+            assert wait_until(lambda: feed.seq >= 3, 10)
+            for sid in ("kept", "gone"):
+                call(client, NODE, "start", StartRequest(sid=sid, image_key=feed.key, box=feed.truth[feed.seq],
+                                                         seq=feed.seq, profile="kcc"), timeout=30)
+            frame = StateStore(state).frames_dir / "kept.msgpack"
+            frame.unlink()
+            frame.mkdir()
+            (frame / "blocker").write_text("")      # no frame can replace a directory that is not empty
+            init_seq = call(client, NODE, "status", _status("kept")).init_seq
+            assert wait_until(lambda: call(client, NODE, "status", _status("kept")).last_seq != init_seq, 30)
+            call(client, NODE, "stop", StopRequest(sid="gone"), timeout=10)      # saves: kept's frame is due
+            assert [s.sid for s in StateStore(state).load()] == ["kept"]
+    finally:
+        client.close()
+        service.close()
+
 def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     port = free_port()
     path = tmp_path / "zenoh.json5"
@@ -715,10 +785,11 @@ def test_serve_mode_overrides_the_config_files(tmp_path):
 
 
 @pytest.mark.parametrize("option, value", [("--init-wait", "nan"), ("--init-wait", "inf"), ("--init-wait", "-1"),
-                                           ("--spare-workers", "-3"), ("--max-sessions", "0")])
+                                           ("--spare-workers", "-3"), ("--max-sessions", "0"), ("--state", "")])
 def test_serve_refuses_a_bad_setting_in_one_line(option, value, capsys):
     """--init-wait nan let every start on a feed with no frame yet wait for ever, holding a control thread and a
-    session slot; a negative count was silently taken as 0."""
+    session slot; a negative count was silently taken as 0; --state "$STATE" with the variable unset ran the
+    service without persistence, without a word."""
     from tacf.cli import main
 
     with pytest.raises(SystemExit) as exit_:
