@@ -126,18 +126,23 @@ class StateStore:
             return []
         try:
             doc = json.loads(data, object_pairs_hook=unique_keys)    # a key given twice: which one was meant?
-            entries = doc["sessions"] if isinstance(doc, dict) else None
-            if not isinstance(entries, list):
-                raise ValueError("no 'sessions' list")
-        except (ValueError, KeyError, TypeError, RecursionError) as exc:   # bad UTF-8 is a ValueError too
+            if not isinstance(doc, dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, RecursionError) as exc:     # bad UTF-8 is a ValueError too
             log.error("state file %s is corrupt (%s); keeping it as %s and starting empty", self.path, exc,
                       self._set_aside(".corrupt"))
             return []
+        # The version first: a newer service's table may have another shape. An int, exactly: True and 1.0 equal 1.
         version = doc.get("version")
-        if version != STATE_VERSION:
-            suffix = f".v{version}" if isinstance(version, int) else ".corrupt"
+        if type(version) is not int or version != STATE_VERSION:
+            suffix = f".v{version}" if type(version) is int and version > STATE_VERSION else ".corrupt"
             log.error("state file %s has version %r, this service reads version %d; keeping it as %s and starting "
                       "empty", self.path, version, STATE_VERSION, self._set_aside(suffix))
+            return []
+        entries = doc.get("sessions")
+        if not isinstance(entries, list):
+            log.error("state file %s is corrupt (no 'sessions' list); keeping it as %s and starting empty", self.path,
+                      self._set_aside(".corrupt"))
             return []
         sessions: dict[str, PersistedSession] = {}
         for entry in entries:

@@ -519,6 +519,11 @@ def test_a_write_cut_short_leaves_nothing_behind_the_next_service(tmp_path):
     (b"[" * 100_000 + b"]" * 100_000, "state.json.corrupt"),               # nested beyond the JSON parser's depth
     (json.dumps({"sessions": []}).encode(), "state.json.corrupt"),          # no version
     (json.dumps({"version": 2, "sessions": [{"sid": "a", "box": {"cx": 1}}]}).encode(), "state.json.v2"),
+    # a newer table of another shape: kept as the newer table it is (it was set aside as corrupt)
+    (json.dumps({"version": 2, "tables": {"a": {}}}).encode(), "state.json.v2"),
+    # not version 1, though Python's True == 1.0 == 1 (both were read as version 1)
+    (json.dumps({"version": True, "sessions": []}).encode(), "state.json.corrupt"),
+    (json.dumps({"version": 1.0, "sessions": []}).encode(), "state.json.corrupt"),
 ])
 def test_an_unreadable_or_foreign_state_file_is_kept_aside_and_the_table_starts_empty(tmp_path, content, kept_as):
     """Such a file never stops the service from starting, and a newer service's table is neither read with the
