@@ -248,6 +248,7 @@ class Health(WireModel):
     pme: Optional[FiniteFloat] = None
     last_seq: Optional[Seq] = None
     restarts: Count = 0                      # worker restarts after a crash
+    # why the session failed or waits; a rejected frame's reason or a size change's, for worker.NOTICE_HOLD_S
     message: Optional[Annotated[str, Field(max_length=MAX_MESSAGE_LENGTH)]] = None
 
 

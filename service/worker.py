@@ -64,6 +64,8 @@ log = logging.getLogger(__name__)
 HEALTH_PERIOD_S = 1.0
 IDLE_HEARTBEAT_S = 1.0      # a spare repeats "idle" this often (pool.SPARE_SILENCE_S: silent longer, it is hung)
 STALL_S = 2.0               # no frame for this long: health says the session is waiting for frames
+NOTICE_HOLD_S = 5.0         # a rejected frame's reason stays in health this long after the last one: a session
+                            # tracking well again is not shown with the problem of one frame minutes before
 STALE_WINDOW = 64           # a frame up to this many seqs behind the last one used, and not newer, is stale
 MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogus seq, not frames lost in the ring
 # Zenoh priorities, by name (Zenoh loads only after the fork): above the frames' DATA, so that on a link that also
@@ -276,7 +278,9 @@ class Worker:
         self._image_shape: tuple | None = None   # shape of the frame the tracker was initialised on
         self._last_box: tuple | None = None      # the box of the last frame tracked (or initialised on)
         self._state = "starting"
-        self._message: str | None = None
+        self._message: str | None = None         # why the session failed
+        self._notice: str | None = None          # the last rejected frame's reason, or a re-initialisation's
+        self._notice_until = 0.0                 # monotonic time it leaves health (NOTICE_HOLD_S)
         self._stats = None
         self._pump: threading.Thread | None = None
         self.job: Assignment | None = None
@@ -460,7 +464,7 @@ class Worker:
         box, payloads, self._init_generation = pending
         self._init_box, self._image_shape = box, None
         self._last_frame_id = None          # the init frame may be older than the last frame tracked
-        self._state, self._message = "starting", None
+        self._state, self._message, self._notice = "starting", None, None
         # init on the first decodable payload, then catch up through the newer ones while the budget lasts
         # (a slow tracker would otherwise spend seconds on stale frames); the live feed takes over after
         budget_ends = None
@@ -595,13 +599,16 @@ class Worker:
                          f"with a box on the new frames")
             return
         self._initialised(image, frame, box)
-        self._message = f"{change}: re-initialised on seq {frame.seq} from the last box, scaled"
+        self._note(f"{change}: re-initialised on seq {frame.seq} from the last box, scaled")
 
     def _reject(self, reason: str) -> None:
         self._stats.rejected()
-        self._message = reason
+        self._note(reason)
         if self._stats.frames_rejected <= 3 or self._stats.frames_rejected % 100 == 0:
             log.warning("rejected frame (%d so far): %s", self._stats.frames_rejected, reason)
+
+    def _note(self, notice: str) -> None:
+        self._notice, self._notice_until = notice, time.monotonic() + NOTICE_HOLD_S
 
     def _publish_box(self, frame, result, processing_ms: float) -> None:
         from tacf_schemas import BoxResult, encode
@@ -622,8 +629,9 @@ class Worker:
         received, overwritten = self._slot.counts()
         stats.frames_received = received + ring_dropped + self._extra_received + unserved
         stats.frames_dropped = overwritten + ring_dropped + self._skipped + unserved
-        message = self._message
-        idle_s = time.monotonic() - self._slot.last_put
+        now = time.monotonic()
+        message = self._message or (self._notice if now < self._notice_until else None)
+        idle_s = now - self._slot.last_put
         if idle_s > STALL_S and self._state not in ("failed", "stopped"):     # a stopped session waits for nothing
             message = f"waiting for frames: none for {idle_s:.0f} s"
         health = stats.snapshot(self.spec.node, self.job.sid, self._state, self.job.restarts, message)

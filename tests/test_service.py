@@ -694,6 +694,38 @@ def test_a_frame_s_seq_peeked_by_the_worker_is_the_decoder_s(seq):
     assert _peek_seq(payload) == expected and type(_peek_seq(payload)) is type(expected)
 
 
+def test_a_rejected_frame_s_reason_leaves_health_once_the_session_tracks_well_again(service, client, feed):
+    """One malformed frame's reason stayed in every later Health until a reinit: a ground station showed a session
+    tracking well for hours with "malformed msgpack" beside it."""
+    from tacf_service.worker import NOTICE_HOLD_S
+
+    results = Collector(client, NODE, "noticed")
+    publisher = client.declare_publisher(feed.key)
+    try:
+        start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="noticed")
+        assert wait_until(lambda: len(results.results()) >= 3, 30)
+
+        sent = []
+
+        def told() -> Health | None:
+            publisher.put(b"\xc1garbage")         # between two frames of the 10 fps feed: read at once
+            sent.append(time.monotonic())
+            return next((h for h in reversed(results.health) if h.frames_rejected and h.message), None)
+        health = wait_until(told, 10, period=0.5)
+        assert health and health.state == "tracking" and "msgpack" in health.message, health
+
+        def cleared() -> Health | None:
+            last = results.last_health()
+            return last if last.message is None and last.frames_rejected >= health.frames_rejected else None
+        assert wait_until(cleared, NOTICE_HOLD_S + 3.0), results.last_health()
+        assert time.monotonic() - sent[-1] > NOTICE_HOLD_S - 1.0     # told for the while it promises
+        assert results.last_health().state == "tracking"
+    finally:
+        publisher.undeclare()
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="noticed"))
+
+
 def test_bad_frames_are_counted_and_harm_no_session(service, client, feed):
     """Garbage on one session's key is counted as rejected; that session and another one keep tracking."""
     key = "test/cam/hostile"
