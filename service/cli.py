@@ -17,8 +17,9 @@ def register(subparsers) -> None:
                              "--connect nor --zenoh-config is given)")
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                         help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
-    parser.add_argument("--zenoh-config", type=config_file, metavar="FILE", help="Zenoh JSON5 config file (TLS, access control...); "
-                                                              "--listen/--connect override its endpoints")
+    parser.add_argument("--zenoh-config", type=config_file, metavar="FILE",
+                        help="Zenoh JSON5 config file (TLS, access control...); --listen/--connect override its "
+                             "endpoints")
     parser.add_argument("--mode", choices=("peer", "client", "router"),
                         help="Zenoh mode (default peer, or the --zenoh-config file's)")
     parser.add_argument("--node", metavar="ID", help="service id, [A-Za-z0-9_-]{1,64} (default: the hostname "

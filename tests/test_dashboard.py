@@ -1372,6 +1372,18 @@ _COUNT_POSTS = """
     };"""
 
 
+def _ready_to_draw(driver, app, key: str, sid: str, width: int) -> None:
+    """The page open on `key`'s frames (`width` wide) in the New session panel, `sid` typed, its starts recorded."""
+    from selenium.webdriver.common.by import By
+
+    assert _post(app.url + "api/watch", {"key": key})[0] == 200
+    _open_page(driver, app)
+    _select_key(driver, key)
+    assert _wait(lambda: driver.execute_script(_NEW_CANVAS_WIDTH) == width), "its frames are shown"
+    driver.find_element(By.ID, "sid-input").send_keys(sid)
+    driver.execute_script(_RECORD_STARTS)
+
+
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
     """Every key ever selected went on being polled 10 times a second for good, a key without frames (404)
     too: on a thin link each poll of a live key is a JPEG."""
@@ -1615,12 +1627,7 @@ def test_a_finger_draws_a_box_on_a_touch_screen(stack, browser):
                 r.left + (b[0] + b[2]) * r.width / c.width, r.top + (b[1] + b[3]) * r.height / c.height];"""
     with FramePublisher(client.session, key, MovingTargetScene(400, 300, target=48), fps=10):
         try:
-            assert _post(app.url + "api/watch", {"key": key})[0] == 200
-            _open_page(browser, app)
-            _select_key(browser, key)
-            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400), "its frames are shown"
-            browser.find_element(By.ID, "sid-input").send_keys(sid)
-            browser.execute_script(_RECORD_STARTS)
+            _ready_to_draw(browser, app, key, sid, width=400)
             x0, y0, x1, y1 = browser.execute_script(corners, box)
             browser.execute_cdp_cmd("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 1})
             try:
@@ -1660,12 +1667,7 @@ def test_a_box_dragged_past_the_frame_s_corner_reaches_the_image_edges(stack, br
         return [r.left, r.top, r.right, r.bottom];"""
     with FramePublisher(client.session, key, MovingTargetScene(400, 300, target=48), fps=10):
         try:
-            assert _post(app.url + "api/watch", {"key": key})[0] == 200
-            _open_page(browser, app)
-            _select_key(browser, key)
-            assert _wait(lambda: browser.execute_script(_NEW_CANVAS_WIDTH) == 400), "its frames are shown"
-            browser.find_element(By.ID, "sid-input").send_keys(sid)
-            browser.execute_script(_RECORD_STARTS)
+            _ready_to_draw(browser, app, key, sid, width=400)
             left, top, right, bottom = browser.execute_script(corners)
             mouse = functools.partial(browser.execute_cdp_cmd, "Input.dispatchMouseEvent")
             x0, y0 = left + (right - left) / 2, top + (bottom - top) / 2
