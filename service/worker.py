@@ -101,21 +101,25 @@ class Assignment:
 
 
 class LatestFrame:
-    """A one-slot mailbox: put() replaces the held payload (counting it as dropped), take() waits for one."""
+    """A one-slot mailbox: put() replaces the held payload (counting it as dropped), take() waits for one.
+
+    A payload put with fills_gap has a seq the ring's gap count already counted as received and dropped. Dropped
+    here too it was counted twice: overwritten, it adds to gap_fills_dropped, which the counts take off again."""
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self._payload: bytes | None = None
+        self._fills_gap = False
         self._woken = False
         self.received = 0
         self.overwritten = 0
+        self.gap_fills_dropped = 0
         self.last_put = time.monotonic()
 
-    def put(self, payload: bytes) -> None:
+    def put(self, payload: bytes, fills_gap: bool = False) -> None:
         with self._cond:
-            if self._payload is not None:
-                self.overwritten += 1
-            self._payload = payload
+            self._drop_held()
+            self._payload, self._fills_gap = payload, fills_gap
             self.received += 1
             self.last_put = time.monotonic()
             self._cond.notify()
@@ -125,24 +129,30 @@ class LatestFrame:
             self._woken = True
             self._cond.notify()
 
-    def take(self, timeout: float) -> bytes | None:
+    def take(self, timeout: float) -> tuple[bytes | None, bool]:
+        """(payload, whether it fills a counted seq gap), or (None, False) on a timeout or wake()."""
         with self._cond:
             self._cond.wait_for(lambda: self._payload is not None or self._woken, timeout)
-            payload, self._payload, self._woken = self._payload, None, False
-            return payload
+            taken = self._payload, self._fills_gap
+            self._payload, self._fills_gap, self._woken = None, False, False
+            return taken
 
     def discard(self) -> None:
         with self._cond:
-            if self._payload is not None:
-                self.overwritten += 1
+            self._drop_held()
             self._payload = None
 
-    def counts(self) -> tuple[int, int]:
-        """(received, overwritten), read together, the payload still waiting left out of received: it is neither
-        processed nor dropped yet, and a Health that counted it received did not add up (under a feed faster than
-        the tracker, nearly every one)."""
+    def _drop_held(self) -> None:
+        if self._payload is not None:
+            self.overwritten += 1
+            self.gap_fills_dropped += self._fills_gap
+
+    def counts(self) -> tuple[int, int, int]:
+        """(received, overwritten, gap_fills_dropped), read together, the payload still waiting left out of
+        received: it is neither processed nor dropped yet, and a Health that counted it received did not add up
+        (under a feed faster than the tracker, nearly every one)."""
         with self._cond:
-            return self.received - (self._payload is not None), self.overwritten
+            return self.received - (self._payload is not None), self.overwritten, self.gap_fills_dropped
 
 
 if "forkserver" in multiprocessing.get_all_start_methods():       # its classes are not there on Windows
@@ -292,6 +302,7 @@ class Worker:
         self._skipped = 0               # frames not used: duplicates, no box to track yet, or a reinit came
         self._unserved = 0              # frames that came while the session had no worker (told by the service)
         self._ring_dropped = 0          # frames overwritten in the RingChannel(1) (seq gaps)
+        self._gap_fills_skipped = 0     # skipped frames whose seq _ring_dropped had counted (counted twice)
 
     def on_sigterm(self, *_) -> None:
         """Once the service has asked to stop (a stop command, or its pipe closed), SIGTERM is its own and means now:
@@ -368,12 +379,12 @@ class Worker:
         next_health = time.monotonic()
         while not self._stop.is_set():
             self._apply_pending_init()
-            payload = self._slot.take(timeout=0.2)
+            payload, fills_gap = self._slot.take(timeout=0.2)
             if payload is not None:
                 if self._stop.is_set():
-                    self._skipped += 1      # taken as the stop came: dropped, so that the counts add up
+                    self._skip(fills_gap)   # taken as the stop came: dropped, so that the counts add up
                 else:
-                    self._process(payload)
+                    self._process(payload, fills_gap)
             if time.monotonic() >= next_health:
                 self._publish_health()
                 next_health = time.monotonic() + HEALTH_PERIOD_S
@@ -396,13 +407,18 @@ class Worker:
                 return                      # undeclared or session closed
             payload = sample.payload.to_bytes()
             seq = _peek_seq(payload)
+            fills_gap = False
             if seq is not None:
                 # only plausible gaps count: a bogus seq must not inflate the counters (past 2**64 msgpack cannot
-                # encode the Health and the worker died); a reordered frame does not move last_seq back, and one
-                # that fills a gap is taken off the ring's count (the slot counts it now)
+                # encode the Health and the worker died); a reordered frame does not move last_seq back. One that
+                # fills a gap stays in the ring's count, and is taken off it only with its own drop (LatestFrame,
+                # _skip): taken off at once, frames_dropped went down when the frame was then used (a camera that
+                # restarts its count within STALE_WINDOW seqs sends a new frame with the missing seq). One used
+                # counts as a frame of its own: right for a restarted count; a late frame used because it
+                # replaced the one after the gap in the slot is then counted twice, which a counter must accept.
                 if seq in missing:
                     missing.discard(seq)
-                    self._ring_dropped -= 1
+                    fills_gap = True
                 elif last_seq is not None and 0 < seq - last_seq - 1 <= MAX_SEQ_GAP:
                     self._ring_dropped += seq - last_seq - 1
                     missing = {s for s in missing if s > seq - STALE_WINDOW}
@@ -411,7 +427,7 @@ class Worker:
                     if last_seq is not None and seq < last_seq:
                         missing.clear()     # a restarted seq count: the old gaps are not this count's
                     last_seq = seq
-            self._slot.put(payload)
+            self._slot.put(payload, fills_gap)
 
     # ------------------------------------------------------------------ commands from the service
 
@@ -486,12 +502,17 @@ class Worker:
         with self._pending_lock:
             return self._pending_init is not None
 
-    def _process(self, payload: bytes) -> None:
+    def _skip(self, fills_gap: bool = False) -> None:
+        """Count a frame taken but not used as dropped; one that fills a counted seq gap is dropped already."""
+        self._skipped += 1
+        self._gap_fills_skipped += fills_gap
+
+    def _process(self, payload: bytes, fills_gap: bool = False) -> None:
         from tacf_schemas import DecodeError, Frame, decode
         from tacf_schemas.images import FrameError, decode_frame
 
         if self._init_box is None and self._image_shape is None:
-            self._skipped += 1                          # not told what to track yet (waiting for init)
+            self._skip(fills_gap)                       # not told what to track yet (waiting for init)
             return
         started = time.perf_counter()
         try:
@@ -500,7 +521,7 @@ class Worker:
             self._reject(str(exc))
             return
         if _is_stale(frame, self._last_frame_id):
-            self._skipped += 1              # a duplicate (e.g. the live copy of the last catch-up frame) or reordered
+            self._skip(fills_gap)           # a duplicate (e.g. the live copy of the last catch-up frame) or reordered
             return
         try:
             image = decode_frame(frame)
@@ -524,7 +545,7 @@ class Worker:
             self._reject(f"tracker update failed: {exc}")
             return
         if self._init_arrived():
-            self._skipped += 1              # the box is of the target the reinit replaces: never show it
+            self._skip(fills_gap)           # the box is of the target the reinit replaces: never show it
             return
         if not all(math.isfinite(c) for c in result.box):     # a plug-in tracker's bug: no BoxResult can carry it
             self._reject(f"the tracker gave a box that is not finite on seq {frame.seq}: {tuple(result.box)}")
@@ -626,9 +647,10 @@ class Worker:
         stats = self._stats
         # each read once: the commands thread adds to _unserved, the pump thread to the others meanwhile
         unserved, ring_dropped = self._unserved, self._ring_dropped
-        received, overwritten = self._slot.counts()
-        stats.frames_received = received + ring_dropped + self._extra_received + unserved
-        stats.frames_dropped = overwritten + ring_dropped + self._skipped + unserved
+        received, overwritten, gap_fills_dropped = self._slot.counts()
+        counted_twice = gap_fills_dropped + self._gap_fills_skipped     # both in a seq gap and dropped here
+        stats.frames_received = received + ring_dropped + self._extra_received + unserved - counted_twice
+        stats.frames_dropped = overwritten + ring_dropped + self._skipped + unserved - counted_twice
         now = time.monotonic()
         message = self._message or (self._notice if now < self._notice_until else None)
         idle_s = now - self._slot.last_put

@@ -925,6 +925,44 @@ def test_a_restart_long_after_the_crash_starts_on_the_last_box_s_own_frame(servi
         call(client, NODE, "stop", StopRequest(sid="late"))
 
 
+def test_counters_never_go_down_when_a_camera_restarts_its_seq_count(service, client):
+    """A seq gap counts its frames as received and dropped at once. A camera that restarts its count within
+    STALE_WINDOW seqs sends a frame with the missing seq: a new frame, which the worker tracks. It was taken off the
+    gap's count, so frames_dropped (and frames_received while it waited) went down by one, which /metrics exports as
+    a counter: a reset. Every counter of successive Health must only grow, and each Health must add up."""
+    key, sid = "test/cam/recount", "recount"
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher(key)
+    results = Collector(client, NODE, sid)
+
+    def put(scene_index: int, seq: int) -> None:
+        publisher.put(encode(encode_frame(scene.frame(scene_index)[0], seq, "jpeg", quality=85)))
+        time.sleep(0.1)
+
+    try:
+        play_frames(publisher, scene, 0, 3)
+        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
+        for seq in range(3, 21):
+            if seq != 10:                                   # the gap: seq 10 counted received and dropped
+                put(seq, seq)
+        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 20, 10), results.last_health()
+        for seq in range(15):                               # the camera restarts its count, newer stamps
+            put(21 + seq, seq)
+        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 14, 10), results.last_health()
+        time.sleep(1.5)                                     # one more Health after the last frame
+        healths = list(results.health)
+        for h in healths:
+            assert h.frames_received == h.frames_processed + h.frames_dropped + h.frames_rejected, h
+        for name in health.COUNTERS:
+            values = [getattr(h, name) for h in healths]
+            assert values == sorted(values), (name, values)
+    finally:
+        results.close()
+        publisher.undeclare()
+        with contextlib.suppress(ControlError):
+            call(client, NODE, "stop", StopRequest(sid=sid))
+
+
 @pytest.mark.parametrize("stop_before_restart", [False, True], ids=["restarted", "stopped"])
 def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped(service, client, monkeypatch,
                                                                                  stop_before_restart):
