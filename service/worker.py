@@ -480,6 +480,7 @@ class Worker:
         box, payloads, self._init_generation = pending
         self._init_box, self._image_shape = box, None
         self._last_frame_id = None          # the init frame may be older than the last frame tracked
+        self._stats.last_pme = None         # the replaced target's: none until a frame of the new one is tracked
         self._state, self._message, self._notice = "starting", None, None
         # init on the first decodable payload, then catch up through the newer ones while the budget lasts
         # (a slow tracker would otherwise spend seconds on stale frames); the live feed takes over after

@@ -311,6 +311,32 @@ def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="re"))
 
 
+def test_a_health_after_a_reinit_has_no_pme_of_the_old_target(service, client):
+    """A reinit replaces the target: until a frame of the new one is tracked, Health has no pme, as a new session's.
+    It showed the old target's, beside the new init frame's last_seq, for as long as the feed paused."""
+    key, sid = "test/cam/repme", "repme"
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher(key)
+    results = Collector(client, NODE, sid)
+    try:
+        play_frames(publisher, scene, 0, 3)
+        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
+        play_frames(publisher, scene, 3, 15)
+        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 14 and h.pme is not None, 10)
+        before = results.last_health()
+        call(client, NODE, "reinit", ReinitRequest(sid=sid, box=scene.box(14), seq=14))     # the feed paused
+        count = len(results.health)
+        assert wait_until(lambda: len(results.health) >= count + 2, 10)
+        after = results.health[-1]
+        assert after.frames_processed == before.frames_processed + 1, (before, after)     # the init frame
+        assert after.state == "tracking" and after.last_seq == 14 and after.pme is None, after
+    finally:
+        results.close()
+        publisher.undeclare()
+        with contextlib.suppress(ControlError):
+            call(client, NODE, "stop", StopRequest(sid=sid))
+
+
 @contextlib.contextmanager
 def plugin_service(endpoint: str, client, node: str, factory: str):
     """A second service, linked to the tests' one, whose sessions track with the plug-in tracker `factory`; yielded
