@@ -315,12 +315,7 @@ def test_a_health_after_a_reinit_has_no_pme_of_the_old_target(service, client):
     """A reinit replaces the target: until a frame of the new one is tracked, Health has no pme, as a new session's.
     It showed the old target's, beside the new init frame's last_seq, for as long as the feed paused."""
     key, sid = "test/cam/repme", "repme"
-    scene = MovingTargetScene(640, 360, speed=3.0)
-    publisher = client.declare_publisher(key)
-    results = Collector(client, NODE, sid)
-    try:
-        play_frames(publisher, scene, 0, 3)
-        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
+    with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
         play_frames(publisher, scene, 3, 15)
         assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 14 and h.pme is not None, 10)
         before = results.last_health()
@@ -330,11 +325,6 @@ def test_a_health_after_a_reinit_has_no_pme_of_the_old_target(service, client):
         after = results.health[-1]
         assert after.frames_processed == before.frames_processed + 1, (before, after)     # the init frame
         assert after.state == "tracking" and after.last_seq == 14 and after.pme is None, after
-    finally:
-        results.close()
-        publisher.undeclare()
-        with contextlib.suppress(ControlError):
-            call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 @contextlib.contextmanager
@@ -957,17 +947,11 @@ def test_counters_never_go_down_when_a_camera_restarts_its_seq_count(service, cl
     gap's count, so frames_dropped (and frames_received while it waited) went down by one, which /metrics exports as
     a counter: a reset. Every counter of successive Health must only grow, and each Health must add up."""
     key, sid = "test/cam/recount", "recount"
-    scene = MovingTargetScene(640, 360, speed=3.0)
-    publisher = client.declare_publisher(key)
-    results = Collector(client, NODE, sid)
+    with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
+        def put(scene_index: int, seq: int) -> None:
+            publisher.put(encode(encode_frame(scene.frame(scene_index)[0], seq, "jpeg", quality=85)))
+            time.sleep(0.1)
 
-    def put(scene_index: int, seq: int) -> None:
-        publisher.put(encode(encode_frame(scene.frame(scene_index)[0], seq, "jpeg", quality=85)))
-        time.sleep(0.1)
-
-    try:
-        play_frames(publisher, scene, 0, 3)
-        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
         for seq in range(3, 21):
             if seq != 10:                                   # the gap: seq 10 counted received and dropped
                 put(seq, seq)
@@ -982,11 +966,6 @@ def test_counters_never_go_down_when_a_camera_restarts_its_seq_count(service, cl
         for name in health.COUNTERS:
             values = [getattr(h, name) for h in healths]
             assert values == sorted(values), (name, values)
-    finally:
-        results.close()
-        publisher.undeclare()
-        with contextlib.suppress(ControlError):
-            call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 @pytest.mark.parametrize("stop_before_restart", [False, True], ids=["restarted", "stopped"])
@@ -999,12 +978,7 @@ def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped
 
     monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (6.0,) * len(manager.RESTART_BACKOFF_S))
     key, sid = "test/cam/gap", "gap"
-    scene = MovingTargetScene(640, 360, speed=3.0)
-    publisher = client.declare_publisher(key)
-    results = Collector(client, NODE, sid)
-    try:
-        play_frames(publisher, scene, 0, 3)
-        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
+    with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
         play_frames(publisher, scene, 3, 20)
         assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
         before = results.last_health()                      # every frame from the init frame to 19 counted
@@ -1026,11 +1000,6 @@ def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped
         assert final.frames_received - before.frames_received >= published, (before, final)
         caught_up = 0 if stop_before_restart else manager.CATCHUP_FRAMES      # frames the new worker counts itself
         assert final.frames_dropped - before.frames_dropped >= 40 - caught_up, (before, final)
-    finally:
-        results.close()
-        publisher.undeclare()
-        with contextlib.suppress(ControlError):
-            call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
@@ -1596,6 +1565,24 @@ def play_frames(publisher, scene, first: int, end: int, size: tuple[int, int] | 
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         publisher.put(encode(encode_frame(image, i, "jpeg", quality=85)))
         time.sleep(0.1)
+
+
+@contextlib.contextmanager
+def session_on_a_played_feed(client, service, key: str, sid: str):
+    """Session `sid` started on frame 2 of a feed on `key` that the test plays itself (play_frames, 10 fps, from
+    frame 3 on): yields (scene, publisher, results), then stops the session and closes them."""
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    publisher = client.declare_publisher(key)
+    results = Collector(client, NODE, sid)
+    try:
+        play_frames(publisher, scene, 0, 3)
+        start(client, service, image_key=key, box=scene.box(2), seq=2, sid=sid)
+        yield scene, publisher, results
+    finally:
+        results.close()
+        publisher.undeclare()
+        with contextlib.suppress(ControlError):
+            call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 def _parent_pid(pid: int) -> int:
