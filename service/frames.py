@@ -37,9 +37,9 @@ class StoredFrame:
         return cls(frame.seq, frame.stamp_ns, frame.width, frame.height, payload, arrival)
 
     @classmethod
-    def from_payload(cls, payload: bytes, arrival: int | None = None) -> "StoredFrame":
+    def from_payload(cls, payload: bytes) -> "StoredFrame":
         """Parse a Frame payload (DecodeError if it is not one)."""
-        return cls.from_frame(decode(payload, Frame), payload, arrival)
+        return cls.from_frame(decode(payload, Frame), payload)
 
 
 class _KeyHistory:
@@ -114,19 +114,19 @@ class FrameHistory:
                 sample = ring.recv()
             except zenoh.ZError:
                 return                      # undeclared or session closed
+            payload = sample.payload.to_bytes()
+            try:
+                frame = decode(payload, Frame)      # outside the lock: the readers of the history wait on it
+            except DecodeError:
+                frame = None                # an arrival all the same; the workers count rejected frames
             with self._cond:
                 history = self._keys.get(key)
                 if history is None:
                     continue
-                arrival = history.arrived
-                history.arrived += 1
-            try:
-                stored = StoredFrame.from_payload(sample.payload.to_bytes(), arrival)
-            except DecodeError:
-                continue                    # the workers count rejected frames
-            with self._cond:
-                history.add(stored)
-                self._cond.notify_all()
+                arrival, history.arrived = history.arrived, history.arrived + 1
+                if frame is not None:
+                    history.add(StoredFrame.from_frame(frame, payload, arrival))
+                    self._cond.notify_all()
 
     def _kept(self, key: str) -> list[StoredFrame]:
         with self._cond:
