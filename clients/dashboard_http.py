@@ -12,6 +12,7 @@
     POST /api/reinit          {"sid", "box", "seq"?, "node"?}
     GET  /metrics             Prometheus text format (dashboard_metrics.py)
     GET  /healthz             200 {"status": "ok"} while the Zenoh side works, else 503
+    HEAD                      as GET without the body, on every page but the two streams
 
 Latest-only and rate-capped: each /events connection wakes at most `events_hz` times a second and sends only
 what changed since its previous message (newest box and health per session, new chart points), read from the
@@ -272,7 +273,16 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self.close_connection = True
         self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET or POST", {"Allow": "GET, POST"})
 
-    do_HEAD = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed
+    do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed
+
+    def do_HEAD(self) -> None:
+        """GET's status and headers without its body (uptime monitors and `curl -I` probe with it); not on the streams,
+        whose headers promise a body that never ends."""
+        path = urlsplit(self.path).path
+        if path == "/events" or path.startswith("/mjpeg/"):
+            self._not_allowed()
+        else:
+            self.do_GET()
 
     def do_POST(self) -> None:
         path = urlsplit(self.path).path
@@ -320,7 +330,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
             return False
         url = urlsplit(self.path)
         query = parse_qs(url.query)
-        url_token = (query.pop("token", None) or [None])[-1] if self.command == "GET" else None
+        url_token = (query.pop("token", None) or [None])[-1] if self.command in ("GET", "HEAD") else None
         if access.token is not None and url.path in ("/", "/index.html") and access.is_token(url_token):
             # a browser's visit, logged in already or not: keep the token as a cookie, and out of the address bar
             # and history

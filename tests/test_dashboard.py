@@ -706,13 +706,28 @@ def test_odd_requests_get_a_clear_answer():
         for seq in ("%C2%B2", "9" * 5000, "-1"):     # '²'.isdigit() is True, and int() refuses 4300+ digits
             status, _, body = _get(f"{base}/frame/{KEY}?seq={seq}")
             assert status == 400 and json.loads(body)["error"] == "invalid_request", seq[:10]
-        with socket.create_connection(app.server.server_address[:2], timeout=10) as raw:   # two on one connection
-            raw.sendall(b"HEAD /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
-                        b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
-            reply = b"".join(iter(lambda: raw.recv(65536), b""))
-        head, after = reply.split(b"\r\n\r\n", 1)
-        assert head.startswith(b"HTTP/1.1 405") and b"\r\nAllow: GET, POST\r\n" in head, head
-        assert after.startswith(b"HTTP/1.1 200"), "no body after a HEAD reply, to be read as the next reply"
+        for stream in ("/events", f"/mjpeg/{KEY}"):      # headers that promise a body without end
+            head = _raw_reply(app.server.server_address[:2], f"HEAD {stream} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+                              "Connection: close\r\n\r\n".encode())
+            assert head.startswith(b"HTTP/1.1 405") and b"\r\nAllow: GET, POST\r\n" in head, head
+
+
+def test_head_answers_as_get_without_the_body():
+    """Uptime monitors and `curl -I` probe /healthz with HEAD: it was refused, 405. Its reply has GET's
+    status and headers, Content-Length included, and no body, so that the next reply on the connection is read
+    whole."""
+    with DashboardApp(no_service_options(), port=0, image_keys=[KEY]) as app:
+        base = app.url.rstrip("/")
+        for path in ("/healthz", "/metrics", "/", "/api/state", "/static/dashboard.js", "/nowhere"):
+            got_status, got_headers, got_body = _get(base + path)
+            request = (f"HEAD {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
+                       f"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n").encode()
+            head, after = _raw_reply(app.server.server_address[:2], request).split(b"\r\n\r\n", 1)
+            head += b"\r\n"
+            assert head.startswith(b"HTTP/1.1 %d " % got_status), (path, head)
+            assert b"\r\nContent-Length: %d\r\n" % len(got_body) in head or path == "/metrics", (path, head)
+            assert b"Content-Type: " + got_headers["Content-Type"].encode() in head, (path, head)
+            assert after.startswith(b"HTTP/1.1 200 "), (path, after[:80])
 
 
 def _raw_reply(address, request: bytes, half_close: bool = False) -> bytes:
@@ -764,7 +779,7 @@ def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
         address = app.server.server_address[:2]
         for method, framing, body, status in (
                 ("GET", b"Content-Length: %d" % len(smuggled), smuggled, 200),
-                ("HEAD", b"Content-Length: %d" % len(smuggled), smuggled, 405),
+                ("HEAD", b"Content-Length: %d" % len(smuggled), smuggled, 200),
                 ("GET", b"Transfer-Encoding: chunked", chunked, 200)):
             reply = _raw_reply(address, method.encode() + b" /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n" + framing
                                + b"\r\n\r\n" + body)
@@ -973,6 +988,9 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         for path in ("/api/state", "/metrics"):             # programs that cannot send headers (VLC on /mjpeg/)
             assert _get(f"{base}{path}?token={token}")[0] == 200, path
             assert _get(f"{base}{path}?token={token}x")[0] == 401, path
+            for given, status in ((token, 200), (token + "x", 401)):     # a monitor's HEAD, as its GET
+                head = f"HEAD {path}?token={given} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+                assert _raw_reply(app.server.server_address[:2], head.encode()).startswith(b"HTTP/1.1 %d " % status)
         assert _get(base + "/api/state", bearer)[0] == 200
         assert _get(base + "/api/state", {"Host": "evil.example", **bearer})[0] == 200   # the token decides
         assert _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]}, headers=bearer)[0] == 503
