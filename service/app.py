@@ -64,6 +64,10 @@ class TrackingService:
             raise ValueError(f"init_wait_s must be finite and >= 0, not {options.init_wait_s}")
         if not (math.isfinite(options.state_frame_period_s) and options.state_frame_period_s >= 0):
             raise ValueError(f"state_frame_period_s must be finite and >= 0, not {options.state_frame_period_s}")
+        if not 0 <= options.spare_workers <= options.max_sessions:
+            # more could never all be in use, and each is a process started at once (with its own Zenoh session)
+            raise ValueError(f"spare_workers must be 0 to max_sessions ({options.max_sessions}), "
+                             f"not {options.spare_workers}")
         self.options = options
         self.node = options.node
         self._session = None
@@ -151,7 +155,12 @@ def serve(options: ServiceOptions) -> int:
     import zenoh
 
     try:
-        service = TrackingService(options).open()
+        service = TrackingService(options)
+    except ValueError as exc:       # a setting out of its range (InvalidIdError is one): a usage error
+        log.error("cannot start the service: %s", exc)
+        return 2
+    try:
+        service.open()
     except zenoh.ZError as exc:     # settings Zenoh refused (a malformed endpoint, a port taken): a usage error
         log.error("cannot start the service: Zenoh%s", options.zenoh.refusal(exc))
         return 2

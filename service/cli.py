@@ -36,7 +36,8 @@ def register(subparsers) -> None:
     parser.add_argument("--init-wait", type=seconds, default=1.0, metavar="S",
                         help="how long start waits for a first frame to check the box against (default 1 s)")
     parser.add_argument("--spare-workers", type=integer(0), default=1, metavar="N",
-                        help="worker processes kept warm so that a start tracks within milliseconds (default 1)")
+                        help="worker processes kept warm so that a start tracks within milliseconds, at most "
+                             "--max-sessions (default 1)")
     parser.add_argument("--tracker-factory", default=None, metavar="MODULE:FUNCTION", help=argparse.SUPPRESS)
     parser.set_defaults(func=run, handles_stop_signals=True)   # serve() releases them (tacf.cli)
 

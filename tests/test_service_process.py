@@ -803,6 +803,18 @@ def test_serve_refuses_a_bad_setting_in_one_line(option, value, capsys):
     assert capsys.readouterr().err.splitlines()[-1].startswith(f"tacf serve: error: argument {option}: '{value}'")
 
 
+@pytest.mark.parametrize("argv", [["--spare-workers", "9"], ["--max-sessions", "2", "--spare-workers", "3"]])
+def test_serve_refuses_more_spare_workers_than_sessions_as_a_usage_error(argv):
+    """More spares than sessions could never all be used, and every one is a worker process started at once: a
+    service of 8 sessions given --spare-workers 12 started 12. Refused before anything starts."""
+    done = subprocess.run([sys.executable, "-m", "tacf.cli", "serve", "--listen", f"tcp/127.0.0.1:{free_port()}",
+                           "--node", NODE, *argv], stderr=subprocess.PIPE, text=True, timeout=60)
+    limit = argv[argv.index("--max-sessions") + 1] if "--max-sessions" in argv else "8"
+    assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
+    assert f"cannot start the service: spare_workers must be 0 to max_sessions ({limit}), not {argv[-1]}" \
+        in done.stderr, done.stderr
+
+
 def test_serve_refuses_a_listen_endpoint_workers_cannot_use_as_a_usage_error():
     """Exit 1, a failure, for a setting of the command line (a malformed --listen: see
     test_serve_refuses_bad_zenoh_settings_in_one_line)."""
