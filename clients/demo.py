@@ -143,22 +143,27 @@ class HoldingPublisher:
         with self._lock:
             return self._last_sent
 
-    def _put(self, frame: SourceFrame) -> None:
+    def _put(self, frame: SourceFrame, stamp_ns: int | None) -> None:
         # Noted before the frame goes: its box can come back before put() returns (on a busy machine it did, and
         # the demo printed that box without its IoU). A frame that fails to encode leaves its seq to the next.
         with self._lock:
             self._index_of_seq[self.publisher.next_seq] = frame.index
             while len(self._index_of_seq) > 4096:
                 self._index_of_seq.popitem(last=False)
-        sent = self.publisher.put(frame.image)
+        sent = self.publisher.put(frame.image, stamp_ns)
         with self._lock:
             self._last_sent = sent.seq
 
     def _run(self) -> None:
         try:
+            previous = None
             for frame in paced_frames(self.source, self.fps, self.stop, hold=self.hold):
+                # As publish() stamps them: a live frame when it was read (its age then counts the encoding), the
+                # rest when sent, the held first frame's repeats among them (not a frame read long ago).
+                stamp_ns = frame.stamp_ns if self.source.live and frame is not previous else None
+                previous = frame
                 try:
-                    self._put(frame)
+                    self._put(frame, stamp_ns)
                 except FrameError as exc:
                     if self.last_seq < 0:
                         raise

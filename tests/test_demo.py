@@ -149,6 +149,44 @@ def test_the_demo_keeps_up_with_a_live_camera_faster_than_its_rate():
     assert 40 <= seqs <= 75, "about 20 frames a second published"
 
 
+def test_a_live_camera_s_frames_carry_when_they_were_read_and_the_held_first_frame_when_sent_again():
+    """As `tacf publish` stamps them: the demo stamped every frame when it sent it, so the frame age the service
+    reports left out the time spent encoding it (a JPEG of a 1080p frame takes milliseconds). The first frame,
+    sent again while the session starts, is stamped anew each time: it is not a frame read that long ago."""
+    from tacf_clients.demo import HoldingPublisher
+    from tacf_schemas import Frame, decode
+
+    camera, sent = BufferedCamera(), []
+    read_at = {}                                     # index -> stamp the camera gave, 50 ms before it handed it out
+    frames = camera.frames
+
+    def early_frames(should_stop=lambda: False):
+        for frame in frames(should_stop):
+            read_at[frame.index] = frame.stamp_ns - 50_000_000
+            yield SourceFrame(frame.index, frame.image, read_at[frame.index])
+
+    camera.frames = early_frames
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        publisher = HoldingPublisher(session, camera, "test/demo/stamps", 20, "jpeg")
+        subscriber = session.declare_subscriber(
+            "test/demo/stamps", lambda sample: sent.append((decode(sample.payload.to_bytes(), Frame), time.time_ns())))
+        publisher.start()
+        try:
+            time.sleep(0.5)                                  # the first frame held while the session starts
+            publisher.hold.clear()
+            time.sleep(0.5)
+        finally:
+            publisher.close()
+            subscriber.undeclare()
+    indices = [publisher.index_of(frame.seq) for frame, _ in sent]
+    held = [(frame, arrived) for (frame, arrived), index in zip(sent, indices) if index == 0]
+    fresh = [(frame, index) for (frame, _), index in zip(sent, indices) if index not in (None, 0)]
+    assert len(held) >= 5 and len(fresh) >= 5, indices
+    assert held[0][0].stamp_ns == read_at[0]
+    assert all(0 <= arrived - frame.stamp_ns < 90_000_000 for frame, arrived in held[1:]), "repeats stamped anew"
+    assert all(frame.stamp_ns == read_at[index] for frame, index in fresh)
+
+
 def test_a_frame_s_source_index_is_known_before_it_can_be_answered():
     """The publisher noted which source frame a seq carried after put() returned; a box can come back sooner (on a
     machine where the publishing thread lost the CPU right after sending), and the demo printed such boxes
@@ -160,7 +198,7 @@ def test_a_frame_s_source_index_is_known_before_it_can_be_answered():
     with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
         publisher = HoldingPublisher(session, BufferedCamera(), "test/demo/known", 20, "bgr8")
         put = publisher.publisher.put
-        publisher.publisher.put = lambda image: (put(image), time.sleep(0.02))[0]  # a busy machine, after sending
+        publisher.publisher.put = lambda *frame: (put(*frame), time.sleep(0.02))[0]  # a busy machine, after sending
         subscriber = session.declare_subscriber(
             "test/demo/known", lambda sample: known.append(publisher.index_of(decode(sample.payload.to_bytes(),
                                                                                      Frame).seq)))
