@@ -274,6 +274,29 @@ def test_a_frame_missing_on_disk_skips_its_sequence_instead_of_shifting_the_grou
     assert "stamps" in [s.name for s in load_sequences(tmp_path)]
 
 
+def test_a_missing_first_frame_skips_its_sequence_in_the_generic_and_uavdt_layouts(tmp_path, caplog):
+    """Only the UAV123 layout noticed it (its range table gives the first frame's number): elsewhere every row of
+    the ground truth met the frame after its own."""
+    for name in ("headless", "clip"):
+        write_frames(tmp_path / "generic" / name / "img", 6)
+        (tmp_path / "generic" / name / "img" / "000001.jpg").unlink()
+    (tmp_path / "generic" / "headless" / "groundtruth.txt").write_text("1,1,5,5\n" * 6)
+    (tmp_path / "generic" / "clip" / "groundtruth.txt").write_text("1,1,5,5\n" * 5)   # a clip numbered from 2
+    write_frames(tmp_path / "generic" / "zero" / "img", 0)
+    for i in range(5):                                                        # numbered from 0: nothing missing
+        (tmp_path / "generic" / "zero" / "img" / f"{i}.jpg").write_bytes(JPG)
+    (tmp_path / "generic" / "zero" / "groundtruth.txt").write_text("1,1,5,5\n" * 6)
+    assert [s.name for s in load_sequences(tmp_path / "generic")] == ["clip", "zero"]
+    assert "headless: frame 1 missing from" in caplog.text
+    for name in ("S0101", "S0102"):
+        write_frames(tmp_path / "uavdt" / "UAV-benchmark-S" / name, 4, "img{:06d}.jpg")
+        (tmp_path / "uavdt" / "UAV-benchmark-SOT_v1.0" / "anno").mkdir(parents=True, exist_ok=True)
+        (tmp_path / "uavdt" / "UAV-benchmark-SOT_v1.0" / "anno" / f"{name}_gt.txt").write_text("1,1,5,6\n" * 4)
+    (tmp_path / "uavdt" / "UAV-benchmark-S" / "S0102" / "img000001.jpg").unlink()
+    assert [s.name for s in load_sequences(tmp_path / "uavdt")] == ["UAVDT/S0101"]
+    assert "UAVDT/S0102: frame 1 missing from" in caplog.text
+
+
 def test_a_vot_polygon_row_is_read_as_its_enclosing_box(tmp_path):
     write_frames(tmp_path / "bag", 2, "{:08d}.jpg")                 # the official VOT layout: frames beside it
     (tmp_path / "bag" / "groundtruth.txt").write_text("334.02,128.36,438.19,188.78,396.39,260.83,292.23,200.41\n"

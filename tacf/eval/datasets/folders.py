@@ -94,7 +94,10 @@ def load(root: Path) -> list[Sequence]:
         for suffix, gt_path in _gt_files(folder):
             gt = read_boxes(gt_path)
             first = OTB_FIRST_FRAME.get(own_name.lower(), 1) if len(frames) > len(gt) else 1
-            seq = make_sequence(base + suffix, frames[first - 1:], gt, attributes)
+            # Fewer frames than rows: some are missing. Before the first on disk when it is numbered past where
+            # the ground truth starts (000002.jpg first: every row would meet the frame after its own).
+            seq = make_sequence(base + suffix, frames[first - 1:], gt, attributes,
+                                first_number=first if len(frames) - (first - 1) < len(gt) else None)
             if seq is not None:
                 seqs.append(seq)
     return seqs

@@ -48,7 +48,8 @@ def load(root: Path) -> list[Sequence]:
             log.warning("UAVDT/%s: no annotation %s; skipped", seq_dir.name, gt_path)
             continue
         frames = list_frames(seq_dir, prefix="img") or list_frames(seq_dir)
-        seq = make_sequence(f"UAVDT/{seq_dir.name}", frames, read_boxes(gt_path))
+        # numbered from img000001: a missing first frame would shift every row onto the frame after its own
+        seq = make_sequence(f"UAVDT/{seq_dir.name}", frames, read_boxes(gt_path), first_number=1)
         if seq is not None:
             seqs.append(seq)
     return seqs
