@@ -306,6 +306,9 @@ def _open_source(spec: str | int | Path, loop: bool, reconnect: bool,
     if text == SCENE_SPEC or text.startswith(SCENE_SPEC + ":"):
         from tacf_clients.scene import Scene, SceneSource
 
+        if path.exists():               # the user's own `scene` folder may be what they meant
+            log.warning("%r is the generated scene; give ./%s for the %s of that name here", text, text,
+                        "folder" if path.is_dir() else "file")
         return SceneSource(Scene.from_spec(text))
     if "://" in text:
         return CaptureSource(text, loop=loop, reconnect=reconnect, should_stop=should_stop)

@@ -224,6 +224,17 @@ def test_open_source_rejects_what_does_not_exist(tmp_path):
     assert isinstance(open_source("scene"), SceneSource)
 
 
+def test_scene_with_a_folder_of_that_name_here_is_the_generated_scene_and_says_how_to_get_the_folder(
+        tmp_path, monkeypatch, caplog):
+    """A folder named `scene` in the current folder was passed over for the generated scene without a word."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scene").mkdir()
+    cv2.imwrite(str(tmp_path / "scene" / "000001.png"), np.zeros((48, 64, 3), np.uint8))
+    assert isinstance(open_source("scene"), SceneSource)
+    assert "'scene' is the generated scene; give ./scene for the folder of that name here" in caplog.text
+    assert isinstance(open_source("./scene"), ImageFolderSource)
+
+
 def test_a_folder_of_16_bit_images_is_stretched_to_8_bits(tmp_path):
     """12-bit thermal data in 16-bit PNGs: cv2.IMREAD_COLOR kept the high byte; frames of 0..4095 came out 0..15."""
     folder = tmp_path / "thermal"
