@@ -699,12 +699,47 @@ def test_bench_tracker_records_a_pair_that_fails_and_measures_the_others(tmp_pat
     assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
                  "--no-progress"]) == 1
     report = json.loads(out.read_text())
+    assert report["interrupted"] is False
     for tracker in (report, report["peers"]["opencv-csrt"]):
         assert list(tracker["sequences"]) == ["synthetic/drift"] and tracker["frames"] == 4
         assert tracker["failed"] == {"nan_first": "ValueError: nan_first: the first ground-truth box "
                                                   "[nan, nan, nan, nan] cannot start a track"}
     assert "identity on nan_first failed: ValueError" in caplog.text
     assert "2 (tracker, sequence) pairs failed" in caplog.text
+
+
+def test_ctrl_c_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C on the second sequence threw away the first one's measurement (no report at all, exit 130)."""
+    from tacf.eval import bench, runner
+
+    data = write_synthetic_dataset(tmp_path, 4)
+    shutil.copytree(data / "synthetic" / "drift", data / "synthetic" / "second")
+    made = []
+
+    class CtrlCOnItsThirdRun(trackers.IdentityTracker):   # the warm-up, the first sequence, then the second
+        def update(self, frame):
+            if len(made) == 3:
+                signal.raise_signal(signal.SIGINT)
+            return super().update(frame)
+
+    def make(name):
+        if name != "identity":
+            return trackers.make_tracker(name)
+        made.append(name)
+        return CtrlCOnItsThirdRun(name)
+
+    for module in (bench, runner):
+        monkeypatch.setattr(module, "make_tracker", make)
+    monkeypatch.setattr(runner, "_warmed_up", set())
+    out = tmp_path / "bench.json"
+    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
+                 "--no-progress"]) == 130
+    assert "tacf bench: interrupted" in capsys.readouterr().err
+    report = json.loads(out.read_text())
+    assert report["interrupted"] is True and len(made) == 3
+    for tracker in (report, report["peers"]["opencv-csrt"]):
+        assert list(tracker["sequences"]) == ["synthetic/drift"] and tracker["frames"] == 4
+    assert report["ratio_to_opencv-csrt"] > 0
 
 
 @needs_data

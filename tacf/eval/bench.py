@@ -8,6 +8,7 @@ on that sequence's first frames: what a process pays once (loading the compiled 
 lazy set-up) is not a cost per stream, and would otherwise be charged to whichever sequence comes first.
 A (tracker, sequence) pair that fails (a first box the tracker cannot start on, an image that cannot be read) is
 left out of the speeds and named, with its error, under the tracker's `failed`.
+A Ctrl-C ends the run with the report of the pairs finished so far, `interrupted` true.
 """
 from __future__ import annotations
 
@@ -53,18 +54,22 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     names = list(dict.fromkeys(list(trackers) + [PEER]))
     runs: dict[str, dict[str, TrackRun]] = {n: {} for n in names}
     failed: dict[str, dict[str, str]] = {n: {} for n in names}
-    for seq in tqdm(sequences, desc="bench", unit="seq", disable=not progress):
-        seq = replace(seq, frames=seq.frames[:max_frames], gt=seq.gt[:max_frames])
-        for name in names:
-            try:
-                warm_up(name, seq)
-                run = track_sequence(make_tracker(name), seq)
-            except Exception as exc:  # noqa: BLE001 - as in `tacf eval`, one failed pair must not stop the others
-                failed[name][seq.name] = f"{type(exc).__name__}: {exc}"
-                log.warning("%s on %s failed: %s", name, seq.name, failed[name][seq.name])
-                continue
-            runs[name][seq.name] = run
-            log.info("%s %s: %.1f fps", name, seq.name, len(run.times) / run.times.sum())
+    interrupted = False
+    try:
+        for seq in tqdm(sequences, desc="bench", unit="seq", disable=not progress):
+            seq = replace(seq, frames=seq.frames[:max_frames], gt=seq.gt[:max_frames])
+            for name in names:
+                try:
+                    warm_up(name, seq)
+                    run = track_sequence(make_tracker(name), seq)
+                except Exception as exc:  # noqa: BLE001 - as in `tacf eval`, one failed pair must not stop the others
+                    failed[name][seq.name] = f"{type(exc).__name__}: {exc}"
+                    log.warning("%s on %s failed: %s", name, seq.name, failed[name][seq.name])
+                    continue
+                runs[name][seq.name] = run
+                log.info("%s %s: %.1f fps", name, seq.name, len(run.times) / run.times.sum())
+    except KeyboardInterrupt:   # the sequences timed so far are minutes of measurement: report them
+        interrupted = True
 
     def report(name: str) -> dict:
         allt = np.concatenate([run.times for run in runs[name].values()]) if runs[name] else np.zeros(0)
@@ -77,7 +82,7 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
 
     # CSRT's own speed differs several-fold between OpenCV releases (docs/speed.md): say which one this was.
     result = {"tracker": names[0], **report(names[0]), "peers": {n: report(n) for n in names[1:]},
-              "opencv": cv2.__version__}
+              "opencv": cv2.__version__, "interrupted": interrupted}
     # the ratio compares the sequences both trackers ran: a sequence one of them failed on would weigh on one side
     both = [s for s in runs[names[0]] if s in runs[PEER]]
     subject_fps, peer_fps = (_fps([runs[name][s] for s in both]) for name in (names[0], PEER))

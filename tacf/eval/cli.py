@@ -346,4 +346,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if failed:
         log.error("%d (tracker, sequence) pairs failed (each tracker's `failed` in the report); their speeds are "
                   "left out", failed)
+    if result["interrupted"]:
+        print("tacf bench: interrupted; the report holds the pairs finished", file=sys.stderr)
+        return 130
     return 1 if failed else 0
