@@ -123,6 +123,9 @@ class SessionManager:
         self._lock = threading.RLock()
         self._sessions: dict[str, Session] = {}
         self._stopping: set[str] = set()    # ids of sessions being stopped: not free for a start until stopped
+        # Saved sessions a restore left out (beyond --max-sessions, or refused by this version's checks): written
+        # back with every table until a start takes their id, so that a restart with room for them brings them back.
+        self._not_restored: dict[str, PersistedSession] = {}
         self._closing = threading.Event()
         worker_spec = WorkerSpec(node=node, zenoh=zenoh_options, endpoints=tuple(endpoints),
                                  tracker_factory=tracker_factory, log_level=log_level)
@@ -152,12 +155,14 @@ class SessionManager:
                 validate_image_key(saved.image_key)
                 table.append((saved, checked_overrides(saved.profile, dict(saved.overrides))))
             except (InvalidKeyError, ValueError, TypeError) as exc:
-                log.warning("not restoring session %s: %s", saved.sid, exc)
+                log.warning("not restoring session %s: %s (kept in the file)", saved.sid, exc)
+                self._not_restored[saved.sid] = saved
         # counted after those left out: a session not restored takes no slot from one that would be
         if len(table) > self.max_sessions:
-            log.warning("not restoring %d session(s) of %s beyond --max-sessions %d: %s",
-                        len(table) - self.max_sessions, self._store.path, self.max_sessions,
-                        ", ".join(saved.sid for saved, _ in table[self.max_sessions:]))
+            log.warning("not restoring %d session(s) of %s beyond --max-sessions %d: %s (kept in the file: a restart "
+                        "with room for them restores them)", len(table) - self.max_sessions, self._store.path,
+                        self.max_sessions, ", ".join(saved.sid for saved, _ in table[self.max_sessions:]))
+            self._not_restored.update((saved.sid, saved) for saved, _ in table[self.max_sessions:])
         for saved, overrides in table[: self.max_sessions]:
             session = Session(sid=saved.sid, image_key=saved.image_key, profile=saved.profile,
                               overrides=overrides, box=tuple(saved.box), created_ns=saved.created_ns,
@@ -268,6 +273,9 @@ class SessionManager:
         self._release_init(session)
         with self._lock:
             session.started = True
+            replaced = self._not_restored.pop(sid, None)     # in the table a session of this id is the new one
+        if replaced is not None:
+            log.warning("session %s replaces the one of that id kept, not restored, in %s", sid, self._store.path)
         self._mark_dirty(save_now=True)
         log.info("started session %s on %s (profile %s, box %s, asked seq %s, init seq %s)", sid, image_key,
                  profile, session.box, request.drawn_on, session.init_seq)
@@ -701,6 +709,7 @@ class SessionManager:
             sessions = [s for s in self._sessions.values() if s.started]
             table = [s.persisted() for s in sessions]
             box_frames = [s.box_frame for s in sessions]
+            not_restored = list(self._not_restored.values())
             self._dirty = False
         self._saved_at = now
         failure = None
@@ -726,8 +735,8 @@ class SessionManager:
             table[i] = entry.model_copy(update={"frame_seq": session.saved_frame_seq,
                                                 "frame_box": session.saved_frame_box})
         try:
-            self._store.save(table)
-            self._store.prune_frames({s.sid for s in sessions})
+            self._store.save(table + not_restored)
+            self._store.prune_frames({s.sid for s in [*sessions, *not_restored]})
         except OSError as exc:
             failure = f"the session table to {self._store.path}: {exc}"
         if failure is not None:

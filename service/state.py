@@ -68,6 +68,9 @@ class StateStore:
         # first one's sessions and shared its file, and its first save replaced the link with a file.
         self.path = Path(os.path.realpath(path))
         self._lock_file = None
+        # The entries of the file that load() skipped (invalid, or a sid given twice): save() writes them back as
+        # they were, so that a hand edit gone wrong can be mended rather than lost at the first save.
+        self._unread: list = []
 
     def lock(self) -> None:
         """Take the state file for this service (StateError if another service holds it, or it cannot be read).
@@ -145,20 +148,26 @@ class StateStore:
                       self._set_aside(".corrupt"))
             return []
         sessions: dict[str, PersistedSession] = {}
+        self._unread = []
         for entry in entries:
             try:
                 session = PersistedSession.model_validate(entry)
             except ValidationError as exc:
-                log.warning("skipping an invalid session in %s: %s", self.path, exc.errors()[:1])
+                error = exc.errors()[0]
+                sid = entry.get("sid") if isinstance(entry, dict) else None
+                log.warning("skipping an invalid session %r in %s (kept in the file): %s: %s", sid, self.path,
+                            ".".join(map(str, error["loc"])) or "the entry", error["msg"])
+                self._unread.append(entry)
                 continue
             if session.sid in sessions:
-                log.warning("skipping a second session %s in %s", session.sid, self.path)
+                log.warning("skipping a second session %s in %s (kept in the file)", session.sid, self.path)
+                self._unread.append(entry)
                 continue
             sessions[session.sid] = session
         return list(sessions.values())
 
     def save(self, sessions: list[PersistedSession]) -> None:
-        doc = {"version": STATE_VERSION, "sessions": [s.model_dump(mode="json") for s in sessions]}
+        doc = {"version": STATE_VERSION, "sessions": [s.model_dump(mode="json") for s in sessions] + self._unread}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         _atomic_write(self.path, json.dumps(doc, indent=1).encode())
 
@@ -180,6 +189,8 @@ class StateStore:
     def prune_frames(self, keep: set[str]) -> None:
         if not self.frames_dir.is_dir():
             return
+        keep = keep | {entry["sid"] for entry in self._unread
+                       if isinstance(entry, dict) and isinstance(entry.get("sid"), str)}
         for path in self.frames_dir.glob("*.msgpack"):
             if path.stem not in keep:
                 try:
