@@ -502,6 +502,39 @@ def test_every_health_counts_every_frame_received(endpoint, client, feed):
         assert [getattr(service_final, c) for c in counters] == [getattr(worker_final, c) for c in counters]
 
 
+def test_a_stop_during_a_catch_up_drops_the_rest_of_it(endpoint, client, feed):
+    """A start hands its worker the frame the box was drawn on and up to 6 newer ones; the worker went on tracking
+    them for up to CATCH_UP_BUDGET_S whatever came meanwhile: a stop (or a newer init) waited for the rest, each
+    tracked, its box published after the stop was asked, CPU that the box's other sessions lacked. The rest is now
+    dropped, and counted so."""
+    seen: dict[int, Frame] = {}
+
+    def keep(sample):
+        frame = decode(sample.payload.to_bytes(), Frame)
+        seen[frame.seq] = frame
+
+    watcher = client.declare_subscriber(feed.key, keep)
+    try:
+        with plugin_service(endpoint, client, "brisk", "slow_tracker:brisk_tracker"), \
+                contextlib.closing(Collector(client, "brisk", "caught")) as results:
+            assert wait_until(lambda: len(seen) >= 8, 10)
+            carried = [seen[s] for s in sorted(seen)][-8:]  # 0.1 s a frame: five catch-up frames fit in the budget
+            call(client, "brisk", "start", StartRequest(sid="caught", image_key=feed.key, seq=carried[0].seq,
+                                                       box=feed.truth[carried[0].seq], frames=carried), timeout=10)
+            assert wait_until(lambda: results.results(), 10)     # the first catch-up frame's box: 0.1 s into it
+            asked_ns = time.time_ns()
+            call(client, "brisk", "stop", StopRequest(sid="caught"), timeout=10)
+            final = wait_until(lambda: next((h for h in results.health
+                                             if h.state == "stopped" and h.message != "stopped by request"), None), 5)
+            assert final, results.health
+            after_stop = [r.seq for r in results.results() if r.published_ns > asked_ns]
+            assert len(after_stop) <= 1, after_stop          # the frame being tracked as the stop came, at most
+            assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, \
+                final
+    finally:
+        watcher.undeclare()
+
+
 def test_the_worker_s_stopped_health_does_not_say_it_waits_for_frames(service, client):
     """A session stopped while its feed was silent: the worker's last Health, state stopped, said "waiting for frames:
     none for 3 s", and it may come after the service's "stopped by request" (two sessions, no order between them)."""
