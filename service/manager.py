@@ -87,8 +87,8 @@ class Session:
     started: bool = False               # its start was answered (or it was restored): only such are persisted
     restart_at: float | None = None
     crashes: deque = field(default_factory=deque)
-    # FrameHistory.arrivals of its key when its worker died: the frames that come until a new worker subscribes
-    # are in no worker's counters (_unserved_frames)
+    # FrameHistory.arrivals of its key when its worker died, or when it began to hold the key's history (a start, a
+    # restore): the frames that come until a new worker subscribes are in no worker's counters (_unserved_frames)
     unserved_since: int | None = None
 
     def info(self, node: str) -> SessionInfo:
@@ -371,9 +371,12 @@ class SessionManager:
         self._release_history(session)
 
     def _hold_history(self, session: Session) -> None:
+        """Keep the frames of the session's key (a start, a restore): from here on they are the session's, and those
+        that come before its first worker subscribes are counted as a dead worker's successor counts them."""
         self._history.acquire(session.image_key)
         with self._lock:
             session.holds_history = True
+            session.unserved_since = self._history.arrivals(session.image_key)
 
     def _release_history(self, session: Session) -> None:
         """Release the session's reference on its frame history, once: a stop and a failing start may both try."""

@@ -489,7 +489,9 @@ class Worker:
         try:
             for payload in payloads:
                 self._extra_received += 1
-                if budget_ends is not None and time.monotonic() > budget_ends:
+                out_of_budget = budget_ends is not None and time.monotonic() > budget_ends
+                # after a stop or a newer init the rest is of no use: it delayed them, on CPU other sessions lacked
+                if out_of_budget or self._stop.is_set() or self._init_arrived():
                     self._skipped += 1
                     continue
                 self._process(payload)

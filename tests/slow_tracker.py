@@ -1,7 +1,8 @@
 """A tracker factory for the service's tests (`tracker_factory="slow_tracker:slow_tracker"`): the box it was
 initialised with, every frame, after a fixed delay. It shows which init a box comes from, and keeps the worker
 busy inside a frame long enough for a control request to arrive meanwhile (SLOW_TRACKER_LOCATE_S, default 0.3 s,
-for a worker started by a `tacf serve` subprocess)."""
+for a worker started by a `tacf serve` subprocess; `brisk_tracker` takes 0.1 s, so that several catch-up frames
+fit in the worker's CATCH_UP_BUDGET_S)."""
 from __future__ import annotations
 
 import os
@@ -21,11 +22,13 @@ class Result:
 
 
 class SlowTracker:
+    locate_s = LOCATE_S
+
     def init(self, frame, box) -> None:
         self.box = tuple(float(c) for c in box)
 
     def locate(self, frame) -> Result:
-        time.sleep(LOCATE_S)
+        time.sleep(self.locate_s)
         return Result(self.box)
 
     def learn(self) -> None:
@@ -37,6 +40,12 @@ class SlowTracker:
 
 def slow_tracker(profile: str, overrides: dict) -> SlowTracker:
     return SlowTracker()
+
+
+def brisk_tracker(profile: str, overrides: dict) -> SlowTracker:
+    tracker = SlowTracker()
+    tracker.locate_s = 0.1
+    return tracker
 
 
 def refusing_tracker(profile: str, overrides: dict) -> SlowTracker:
