@@ -764,6 +764,32 @@ def test_bench_tracker_json_is_strict_json_when_a_tracker_has_no_speed(tmp_path)
     assert list(report["failed"]) == ["UAV123_10fps/wakeboard7"]
 
 
+def test_bench_tracker_reports_a_tracker_that_finished_nothing_with_the_same_keys(tmp_path, monkeypatch):
+    """A tracker with no sequence finished was reported as {"fps": null, "frames": 0} and no `ms_per_frame` nor
+    `seconds`: a script reading every tracker's p95 met a KeyError on that one."""
+    from tacf.eval import bench, runner
+
+    class CannotStart(trackers.IdentityTracker):
+        def init(self, frame, box):
+            raise ValueError("cannot start")
+
+    def make(name):
+        return CannotStart(name) if name == "identity" else trackers.make_tracker(name)
+
+    for module in (bench, runner):
+        monkeypatch.setattr(module, "make_tracker", make)
+    monkeypatch.setattr(runner, "_warmed_up", set())
+    out = tmp_path / "bench.json"
+    assert main(["bench", "tracker", str(write_synthetic_dataset(tmp_path, 4)), "--sequences", "*", "--trackers",
+                 "identity", "--json", str(out), "--no-progress"]) == 1
+    report = json.loads(out.read_text())
+    csrt = report["peers"]["opencv-csrt"]
+    assert csrt["frames"] == 4 and set(csrt) <= set(report), (set(csrt) - set(report))
+    assert report["frames"] == 0 and report["seconds"] == 0 and report["fps"] is None
+    assert report["ms_per_frame"] == {"p50": None, "p95": None, "mean": None}
+    assert list(report["failed"]) == ["synthetic/drift"] and report["sequences"] == {}
+
+
 def test_bench_tracker_decodes_a_frame_when_the_tracker_needs_it(tmp_path, monkeypatch):
     """Each sequence was decoded whole before it was timed: 2.7 MB a 720p frame, 5,000 frames in a UAV20L one.
     Here the frames alive (decoded, not yet freed) are counted at every tracker call."""

@@ -32,11 +32,12 @@ def is_uav(name: str) -> bool:
 
 
 def _stats(times: np.ndarray) -> dict:
+    """The same keys with frames or without (NaN, written as null), so that every tracker's report reads alike."""
     ms = times * 1e3
     total = float(times.sum())
+    p50, p95, mean = (np.percentile(ms, 50), np.percentile(ms, 95), ms.mean()) if len(ms) else (np.nan,) * 3
     return {"fps": len(times) / total if total > 0 else float("nan"),
-            "ms_per_frame": {"p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)),
-                             "mean": float(ms.mean())},
+            "ms_per_frame": {"p50": float(p50), "p95": float(p95), "mean": float(mean)},
             "frames": int(len(times)), "seconds": total}
 
 
@@ -73,7 +74,7 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
 
     def report(name: str) -> dict:
         allt = np.concatenate([run.times for run in runs[name].values()]) if runs[name] else np.zeros(0)
-        out = _stats(allt) if len(allt) else {"fps": float("nan"), "frames": 0}
+        out = _stats(allt)
         cpu, wall = sum(run.cpu_seconds for run in runs[name].values()), float(allt.sum())
         out["cores"] = cpu / wall if wall > 0 else float("nan")
         out["sequences"] = {s: _stats(run.times) for s, run in runs[name].items()}
