@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 import os
 import re
 import shutil
@@ -740,6 +741,51 @@ def test_ctrl_c_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_pat
     for tracker in (report, report["peers"]["opencv-csrt"]):
         assert list(tracker["sequences"]) == ["synthetic/drift"] and tracker["frames"] == 4
     assert report["ratio_to_opencv-csrt"] > 0
+
+
+def test_bench_tracker_puts_side_by_side_the_speeds_over_the_same_sequences(tmp_path, monkeypatch, caplog):
+    """A Ctrl-C during CSRT's second sequence: the subject's fps covered both sequences, CSRT's the first only, and
+    the log printed the two side by side, while the ratio divided the speeds over the first only. Here the
+    subject is slow on the second sequence, so its fps over both is not its fps over the first."""
+    from tacf.eval import bench, runner
+
+    caplog.set_level(logging.INFO)
+    data = write_synthetic_dataset(tmp_path, 4)
+    shutil.copytree(data / "synthetic" / "drift", data / "synthetic" / "second")
+    made = []
+
+    class SlowOnTheSecond(trackers.IdentityTracker):   # the warm-up, the first sequence, then the second
+        def update(self, frame):
+            time.sleep(0.02 if made.count("identity") == 3 else 0.002)
+            return super().update(frame)
+
+    class CtrlCOnTheSecond(trackers.IdentityTracker):
+        def update(self, frame):
+            if made.count("opencv-csrt") == 3:
+                signal.raise_signal(signal.SIGINT)
+            return super().update(frame)
+
+    def make(name):
+        made.append(name)
+        return (SlowOnTheSecond if name == "identity" else CtrlCOnTheSecond)(name)
+
+    for module in (bench, runner):
+        monkeypatch.setattr(module, "make_tracker", make)
+    monkeypatch.setattr(runner, "_warmed_up", set())
+    out = tmp_path / "bench.json"
+    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
+                 "--no-progress"]) == 130
+    report = json.loads(out.read_text())
+    assert list(report["sequences"]) == ["synthetic/drift", "synthetic/second"]
+    assert list(report["peers"]["opencv-csrt"]["sequences"]) == ["synthetic/drift"]
+    over = report["ratio_over"]
+    assert over["sequences"] == ["synthetic/drift"] and over["fps"] == report["sequences"]["synthetic/drift"]["fps"]
+    assert over["peer_fps"] == report["peers"]["opencv-csrt"]["fps"]
+    assert report["ratio_to_opencv-csrt"] == pytest.approx(over["fps"] / over["peer_fps"])
+    assert report["fps"] < over["fps"] / 2, "the second sequence is slower"
+    assert (f"identity: {report['fps']:.1f} fps on {report['cores']:.2f} cores over its 2 sequences; over the 1 it "
+            f"and opencv-csrt both finished, {over['fps']:.1f} against {over['peer_fps']:.1f} fps "
+            f"({report['ratio_to_opencv-csrt']:.2f}x)") in caplog.text
 
 
 @needs_data

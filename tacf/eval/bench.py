@@ -9,6 +9,7 @@ lazy set-up) is not a cost per stream, and would otherwise be charged to whichev
 A (tracker, sequence) pair that fails (a first box the tracker cannot start on, an image that cannot be read) is
 left out of the speeds and named, with its error, under the tracker's `failed`.
 A Ctrl-C ends the run with the report of the pairs finished so far, `interrupted` true.
+Each tracker's fps is over the sequences it finished; the ratio to CSRT is over those both finished (`ratio_over`).
 """
 from __future__ import annotations
 
@@ -84,8 +85,10 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     # CSRT's own speed differs several-fold between OpenCV releases (docs/speed.md): say which one this was.
     result = {"tracker": names[0], **report(names[0]), "peers": {n: report(n) for n in names[1:]},
               "opencv": cv2.__version__, "interrupted": interrupted}
-    # the ratio compares the sequences both trackers ran: a sequence one of them failed on would weigh on one side
+    # the ratio compares the sequences both trackers finished: one that only one of them finished (the other failed
+    # on it, or a Ctrl-C came first) would weigh on one side. `ratio_over` names them, with the two speeds divided.
     both = [s for s in runs[names[0]] if s in runs[PEER]]
     subject_fps, peer_fps = (_fps([runs[name][s] for s in both]) for name in (names[0], PEER))
     result["ratio_to_" + PEER] = subject_fps / peer_fps if peer_fps > 0 else float("nan")
+    result["ratio_over"] = {"sequences": both, "fps": subject_fps, "peer_fps": peer_fps}
     return result
