@@ -420,8 +420,8 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
                 break
             log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
                      reports[-1]["dropped"], reports[-1]["frames_sent"])
-    if reports:
-        text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"
+    if reports:     # the shape the command asked for, however far the runs went: a list for several counts
+        text = json.dumps(reports if len(args.feeds) > 1 else reports[0], indent=2) + "\n"
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(text)
