@@ -285,8 +285,9 @@ def _described(client, sid: str) -> str:
 
 def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, profile: str | None,
               progress: bool = True, stop: threading.Event | None = None) -> dict:
-    """One benchmark run with len(feeds) feeds; the JSON-ready report. KeyboardInterrupt once `stop` is set,
-    LocalServiceError when the service fails, TimeoutError when a session sends no box."""
+    """One benchmark run with len(feeds) feeds; the JSON-ready report. KeyboardInterrupt once `stop` is set before
+    the measured window closes (after, the report is made), LocalServiceError when the service fails, TimeoutError
+    when a session sends no box."""
     from tqdm import tqdm
 
     from tacf_clients.client import TrackingClient
@@ -357,7 +358,10 @@ def run_feeds(feeds: list[Feed], fps: float, seconds: float, warmup: float, prof
         pss = _mean(_memory_mb(pid, "smaps_rollup", "Pss:") for pid in workers)
         pss_total = round(_total_mb(_processes(service_pid), "smaps_rollup", "Pss:"), 1)
         worker_restarts = _restarts(client) - restarts_before
-        _pause(2.0, stop, service)   # let the boxes of the window's last frames arrive
+        # let the boxes of the window's last frames arrive; the window is complete, so a stop signal does not cut
+        # this short: the count's report is made, then the signal ends the runs
+        time.sleep(2.0)
+        service.check_alive()
         with lock:
             sid_index = {f"feed{i}": i for i in range(n)}
             window = [(t, b) for t, b in received
@@ -410,18 +414,20 @@ def cmd_bench_service(args: argparse.Namespace) -> int:
             try:
                 reports.append(run_feeds(feeds[:count], args.fps, args.seconds, args.warmup, args.profile,
                                          progress=not args.no_progress, stop=stop))
+                log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
+                         reports[-1]["dropped"], reports[-1]["frames_sent"])
             except KeyboardInterrupt:
-                print("tacf bench: interrupted", file=sys.stderr)
-                status = stop.exit_code
-                break
+                pass                # a stop signal before the window closed: the count is not reported
             except (LocalServiceError, TacfError, TimeoutError) as exc:    # a service's: its log's last lines too
                 log.error("%d feeds: %s", count, exc)
                 status = 1
                 break
-            log.info("%d feeds: p95 %s ms, %d of %d frames dropped", count, reports[-1]["latency_ms"]["p95"],
-                     reports[-1]["dropped"], reports[-1]["frames_sent"])
-    if reports:
-        text = json.dumps(reports[0] if len(reports) == 1 else reports, indent=2) + "\n"
+            if stop.is_set():       # after the window closed too (its report kept), or while the service stopped
+                print("tacf bench: interrupted", file=sys.stderr)
+                status = stop.exit_code
+                break
+    if reports:     # the shape the command asked for, however far the runs went: a list for several counts
+        text = json.dumps(reports if len(args.feeds) > 1 else reports[0], indent=2) + "\n"
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(text)

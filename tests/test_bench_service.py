@@ -242,7 +242,8 @@ def test_a_session_that_sends_no_box_fails_the_run_and_names_it(tmp_path, monkey
     out = tmp_path / "bench.json"
     assert main(["bench", "service", str(DATA), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup",
                  "0", "--json", str(out), "--no-progress"]) == 1
-    assert json.loads(out.read_text())["feeds"] == 1, "the report of the count run before is written"
+    [report] = json.loads(out.read_text())      # a list, as for every run of several counts
+    assert report["feeds"] == 1, "the report of the count run before is written"
     assert "2 feeds: waiting up to 8 s for the first box of every session" in caplog.text
     errors = _errors(caplog)
     assert errors == ["2 feeds: no box within 8 s from feed1 (starting)"], errors
@@ -250,7 +251,8 @@ def test_a_session_that_sends_no_box_fails_the_run_and_names_it(tmp_path, monkey
 
 @needs_data
 def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(tmp_path):
-    """Ctrl-C during the second feed count threw the report of the first away."""
+    """Ctrl-C during the second feed count threw the report of the first away. That report was then written as one
+    object, where a run of both counts writes a list of two: a script reading the file had to handle both."""
     out = tmp_path / "bench.json"
     bench_run = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(DATA), "--feeds", "1",
                                   "2", "--fps", "5", "--seconds", "1", "--warmup", "0", "--json", str(out),
@@ -266,6 +268,46 @@ def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(tmp_path):
             bench_run.kill()
             bench_run.wait()
     assert bench_run.returncode == 130 and "interrupted" in err, err[-500:]
+    assert [report["feeds"] for report in json.loads(out.read_text())] == [1]
+    assert not _serve_processes("bench"), "the service outlived the bench"
+
+
+@needs_data
+def test_a_stop_signal_after_the_window_closed_keeps_that_count_s_report(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C during the 2 s wait for the boxes of the window's last frames threw that count's report away,
+    although its window was complete. The wait now runs its course, the report is made, and the exit code is
+    130. The Ctrl-C comes 0.5 s after the window's end (when the session workers are looked up)."""
+    workers = bench._workers
+
+    def workers_then_ctrl_c(service_pid: int) -> list[int]:
+        threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+        return workers(service_pid)
+
+    monkeypatch.setattr(bench, "_workers", workers_then_ctrl_c)
+    out = tmp_path / "bench.json"
+    assert main(["bench", "service", str(DATA), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup", "0",
+                 "--json", str(out), "--no-progress"]) == 130
+    assert "tacf bench: interrupted" in capsys.readouterr().err
+    [report] = json.loads(out.read_text())      # the second count is not run
+    assert report["feeds"] == 1 and report["boxes_received"] > 0
+    assert not _serve_processes("bench"), "the service outlived the bench"
+
+
+@needs_data
+def test_a_stop_signal_while_the_last_count_stops_its_service_exits_130(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C while the last feed count shut down (the sessions stopped, the service stopping) was lost: the
+    bench exited 0 as if it had not been stopped."""
+    class CtrlCOnStop(local_service.LocalService):
+        def stop(self, *args, **kwargs):
+            if self.process is not None:
+                signal.raise_signal(signal.SIGINT)
+            return super().stop(*args, **kwargs)
+
+    monkeypatch.setattr(local_service, "LocalService", CtrlCOnStop)
+    out = tmp_path / "bench.json"
+    assert main(["bench", "service", str(DATA), "--fps", "5", "--seconds", "1", "--warmup", "0", "--json", str(out),
+                 "--no-progress"]) == 130
+    assert "tacf bench: interrupted" in capsys.readouterr().err
     assert json.loads(out.read_text())["feeds"] == 1
     assert not _serve_processes("bench"), "the service outlived the bench"
 

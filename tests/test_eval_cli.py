@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 import os
 import re
 import shutil
@@ -742,6 +743,51 @@ def test_ctrl_c_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_pat
     assert report["ratio_to_opencv-csrt"] > 0
 
 
+def test_bench_tracker_puts_side_by_side_the_speeds_over_the_same_sequences(tmp_path, monkeypatch, caplog):
+    """A Ctrl-C during CSRT's second sequence: the subject's fps covered both sequences, CSRT's the first only, and
+    the log printed the two side by side, while the ratio divided the speeds over the first only. Here the
+    subject is slow on the second sequence, so its fps over both is not its fps over the first."""
+    from tacf.eval import bench, runner
+
+    caplog.set_level(logging.INFO)
+    data = write_synthetic_dataset(tmp_path, 4)
+    shutil.copytree(data / "synthetic" / "drift", data / "synthetic" / "second")
+    made = []
+
+    class SlowOnTheSecond(trackers.IdentityTracker):   # the warm-up, the first sequence, then the second
+        def update(self, frame):
+            time.sleep(0.02 if made.count("identity") == 3 else 0.002)
+            return super().update(frame)
+
+    class CtrlCOnTheSecond(trackers.IdentityTracker):
+        def update(self, frame):
+            if made.count("opencv-csrt") == 3:
+                signal.raise_signal(signal.SIGINT)
+            return super().update(frame)
+
+    def make(name):
+        made.append(name)
+        return (SlowOnTheSecond if name == "identity" else CtrlCOnTheSecond)(name)
+
+    for module in (bench, runner):
+        monkeypatch.setattr(module, "make_tracker", make)
+    monkeypatch.setattr(runner, "_warmed_up", set())
+    out = tmp_path / "bench.json"
+    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
+                 "--no-progress"]) == 130
+    report = json.loads(out.read_text())
+    assert list(report["sequences"]) == ["synthetic/drift", "synthetic/second"]
+    assert list(report["peers"]["opencv-csrt"]["sequences"]) == ["synthetic/drift"]
+    over = report["ratio_over"]
+    assert over["sequences"] == ["synthetic/drift"] and over["fps"] == report["sequences"]["synthetic/drift"]["fps"]
+    assert over["peer_fps"] == report["peers"]["opencv-csrt"]["fps"]
+    assert report["ratio_to_opencv-csrt"] == pytest.approx(over["fps"] / over["peer_fps"])
+    assert report["fps"] < over["fps"] / 2, "the second sequence is slower"
+    assert (f"identity: {report['fps']:.1f} fps on {report['cores']:.2f} cores over its 2 sequences; over the 1 it "
+            f"and opencv-csrt both finished, {over['fps']:.1f} against {over['peer_fps']:.1f} fps "
+            f"({report['ratio_to_opencv-csrt']:.2f}x)") in caplog.text
+
+
 @needs_data
 def test_bench_tracker_json_is_strict_json_when_a_tracker_has_no_speed(tmp_path):
     """A tracker that failed on every sequence has no fps nor cores, and the ratio none either: they were written
@@ -762,6 +808,32 @@ def test_bench_tracker_json_is_strict_json_when_a_tracker_has_no_speed(tmp_path)
     report = json.loads(out.read_text(), parse_constant=refuse)
     assert report["fps"] is None and report["cores"] is None and report["ratio_to_opencv-csrt"] is None
     assert list(report["failed"]) == ["UAV123_10fps/wakeboard7"]
+
+
+def test_bench_tracker_reports_a_tracker_that_finished_nothing_with_the_same_keys(tmp_path, monkeypatch):
+    """A tracker with no sequence finished was reported as {"fps": null, "frames": 0} and no `ms_per_frame` nor
+    `seconds`: a script reading every tracker's p95 met a KeyError on that one."""
+    from tacf.eval import bench, runner
+
+    class CannotStart(trackers.IdentityTracker):
+        def init(self, frame, box):
+            raise ValueError("cannot start")
+
+    def make(name):
+        return CannotStart(name) if name == "identity" else trackers.make_tracker(name)
+
+    for module in (bench, runner):
+        monkeypatch.setattr(module, "make_tracker", make)
+    monkeypatch.setattr(runner, "_warmed_up", set())
+    out = tmp_path / "bench.json"
+    assert main(["bench", "tracker", str(write_synthetic_dataset(tmp_path, 4)), "--sequences", "*", "--trackers",
+                 "identity", "--json", str(out), "--no-progress"]) == 1
+    report = json.loads(out.read_text())
+    csrt = report["peers"]["opencv-csrt"]
+    assert csrt["frames"] == 4 and set(csrt) <= set(report), (set(csrt) - set(report))
+    assert report["frames"] == 0 and report["seconds"] == 0 and report["fps"] is None
+    assert report["ms_per_frame"] == {"p50": None, "p95": None, "mean": None}
+    assert list(report["failed"]) == ["synthetic/drift"] and report["sequences"] == {}
 
 
 def test_bench_tracker_decodes_a_frame_when_the_tracker_needs_it(tmp_path, monkeypatch):

@@ -9,6 +9,7 @@ lazy set-up) is not a cost per stream, and would otherwise be charged to whichev
 A (tracker, sequence) pair that fails (a first box the tracker cannot start on, an image that cannot be read) is
 left out of the speeds and named, with its error, under the tracker's `failed`.
 A Ctrl-C ends the run with the report of the pairs finished so far, `interrupted` true.
+Each tracker's fps is over the sequences it finished; the ratio to CSRT is over those both finished (`ratio_over`).
 """
 from __future__ import annotations
 
@@ -32,11 +33,12 @@ def is_uav(name: str) -> bool:
 
 
 def _stats(times: np.ndarray) -> dict:
+    """The same keys with frames or without (NaN, written as null), so that every tracker's report reads alike."""
     ms = times * 1e3
     total = float(times.sum())
+    p50, p95, mean = (np.percentile(ms, 50), np.percentile(ms, 95), ms.mean()) if len(ms) else (np.nan,) * 3
     return {"fps": len(times) / total if total > 0 else float("nan"),
-            "ms_per_frame": {"p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)),
-                             "mean": float(ms.mean())},
+            "ms_per_frame": {"p50": float(p50), "p95": float(p95), "mean": float(mean)},
             "frames": int(len(times)), "seconds": total}
 
 
@@ -73,7 +75,7 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
 
     def report(name: str) -> dict:
         allt = np.concatenate([run.times for run in runs[name].values()]) if runs[name] else np.zeros(0)
-        out = _stats(allt) if len(allt) else {"fps": float("nan"), "frames": 0}
+        out = _stats(allt)
         cpu, wall = sum(run.cpu_seconds for run in runs[name].values()), float(allt.sum())
         out["cores"] = cpu / wall if wall > 0 else float("nan")
         out["sequences"] = {s: _stats(run.times) for s, run in runs[name].items()}
@@ -83,8 +85,10 @@ def bench(trackers: list[str], sequences: list[Sequence], max_frames: int | None
     # CSRT's own speed differs several-fold between OpenCV releases (docs/speed.md): say which one this was.
     result = {"tracker": names[0], **report(names[0]), "peers": {n: report(n) for n in names[1:]},
               "opencv": cv2.__version__, "interrupted": interrupted}
-    # the ratio compares the sequences both trackers ran: a sequence one of them failed on would weigh on one side
+    # the ratio compares the sequences both trackers finished: one that only one of them finished (the other failed
+    # on it, or a Ctrl-C came first) would weigh on one side. `ratio_over` names them, with the two speeds divided.
     both = [s for s in runs[names[0]] if s in runs[PEER]]
     subject_fps, peer_fps = (_fps([runs[name][s] for s in both]) for name in (names[0], PEER))
     result["ratio_to_" + PEER] = subject_fps / peer_fps if peer_fps > 0 else float("nan")
+    result["ratio_over"] = {"sequences": both, "fps": subject_fps, "peer_fps": peer_fps}
     return result

@@ -337,9 +337,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text)
-        log.info("%s: %.1f fps on %.2f cores (%s %.1f fps); wrote %s", result["tracker"], result["fps"],
-                 result.get("cores", float("nan")), "opencv-csrt", result["peers"].get("opencv-csrt", result)["fps"],
-                 args.json)
+        over, peer = result["ratio_over"], result["peers"].get("opencv-csrt", result)
+        headline = f"{result['tracker']}: {result['fps']:.1f} fps on {result['cores']:.2f} cores"
+        if len(result["sequences"]) == len(over["sequences"]) == len(peer["sequences"]):
+            log.info("%s (opencv-csrt %.1f fps, %.2fx); wrote %s", headline, peer["fps"],
+                     result["ratio_to_opencv-csrt"], args.json)
+        else:   # a failed pair or a Ctrl-C: side by side, the speeds over the same sequences, the ratio's
+            log.info("%s over its %d sequences; over the %d it and opencv-csrt both finished, %.1f against %.1f fps "
+                     "(%.2fx); wrote %s", headline, len(result["sequences"]), len(over["sequences"]), over["fps"],
+                     over["peer_fps"], result["ratio_to_opencv-csrt"], args.json)
     else:
         sys.stdout.write(text)
     failed = sum(len(report["failed"]) for report in [result, *result["peers"].values()])
