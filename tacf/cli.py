@@ -2,9 +2,10 @@
 
 Each module in COMMAND_MODULES defines `register(subparsers)`, adding its subcommands with
 `set_defaults(func=...)`, and may define `register_bench(bench_subparsers)` for a `tacf bench WHAT`
-benchmark; `func(args)` returns the exit code (130 after a Ctrl-C the command does not handle itself).
-A command that handles tacf.stop_signals.STOP_SIGNALS itself says so with
-`set_defaults(handles_stop_signals=True)` and calls release_stop_signals() once its handlers are in place.
+benchmark; `func(args)` returns the exit code. A command that handles tacf.stop_signals.STOP_SIGNALS itself
+says so with `set_defaults(handles_stop_signals=True)` and calls release_stop_signals() once its handlers are in
+place; in the others every stop signal raises KeyboardInterrupt, as Ctrl-C does, and one the command does not catch
+ends it with a line and the signal's exit code (interrupted_exit_code(): 130 Ctrl-C, 143 SIGTERM, 129 SIGHUP).
 Those modules import only argparse-level things at import time, so `tacf publish` never loads the tracker
 and `tacf eval` never loads Zenoh.
 """
@@ -16,7 +17,8 @@ import logging
 import os
 import sys
 
-from tacf.stop_signals import hold_stop_signals, release_stop_signals, restore_signal_mask
+from tacf.stop_signals import (hold_stop_signals, interrupt_on_stop_signals, interrupted_exit_code,
+                               release_stop_signals, restore_handlers, restore_signal_mask)
 
 COMMAND_MODULES = (
     "tacf.eval.cli",         # eval, track, bench tracker
@@ -44,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     # Held while the command starts: its imports take up to a second on a busy box, and a Ctrl-C among them ended it
     # with a KeyboardInterrupt traceback instead of as a moment later.
     mask = hold_stop_signals()
+    handlers = {}
     try:
         try:
             parser = build_parser()
@@ -54,13 +57,15 @@ def main(argv: list[str] | None = None) -> int:
                 parser.print_help()
                 return 2
             if not getattr(args, "handles_stop_signals", False):
+                handlers = interrupt_on_stop_signals()
                 release_stop_signals()
             return int(args.func(args) or 0)
         finally:
+            restore_handlers(handlers)
             restore_signal_mask(mask)   # for a caller in this process (tests); a signal still held comes out here
     except KeyboardInterrupt:       # Ctrl-C where a command does not handle it: a line, not a traceback
         print(f"tacf {args.command}: interrupted" if args else "tacf: interrupted", file=sys.stderr)
-        return 130                  # 128 + SIGINT, as shells report it
+        return interrupted_exit_code() if handlers else 130     # 128 + the signal's number, as shells report it
     except BrokenPipeError:         # `tacf track ... | head`: the reader has all it wants, as for any Unix filter
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # Python's flush at exit would fail again
         return 141                  # 128 + SIGPIPE, as shells report a filter the pipe stopped

@@ -7,9 +7,12 @@ Windows has no signal mask: there these functions do nothing.
 from __future__ import annotations
 
 import signal
+import threading
 
 # A terminal's Ctrl-C and hangup, `kill`'s and systemd's SIGTERM.
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
+
+_interrupted_by = signal.SIGINT     # the stop signal interrupt_on_stop_signals() turned into a KeyboardInterrupt last
 
 
 def hold_stop_signals() -> set | None:
@@ -30,3 +33,31 @@ def release_stop_signals() -> None:
     is held."""
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+def interrupt_on_stop_signals() -> dict:
+    """Make every stop signal raise KeyboardInterrupt in the main thread, as Ctrl-C does by default: a command that
+    closes its files and reports its work on Ctrl-C then does so on SIGTERM (`timeout`, a supervisor) and SIGHUP (a
+    closed terminal) too, which used to end it on the spot. Returns the handlers replaced, for restore_handlers();
+    none off the main thread, where Python takes no handler (a test running `tacf.cli.main` on a thread)."""
+    global _interrupted_by
+    _interrupted_by = signal.SIGINT
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+
+    def interrupt(signal_number: int, _frame) -> None:
+        global _interrupted_by
+        _interrupted_by = signal_number
+        raise KeyboardInterrupt
+    return {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
+
+
+def restore_handlers(handlers: dict) -> None:
+    for sig, handler in handlers.items():
+        signal.signal(sig, handler)
+
+
+def interrupted_exit_code() -> int:
+    """What a shell reports for a command ended by the stop signal behind the last KeyboardInterrupt: 128 and its
+    number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
+    return 128 + _interrupted_by

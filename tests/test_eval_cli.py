@@ -1,6 +1,7 @@
 """`tacf eval`, `tacf track`, `tacf bench tracker` end to end, the tracker registry and adapters."""
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import logging
@@ -368,7 +369,11 @@ def test_eval_with_two_worker_processes(evaluated, tmp_path):
 
 
 @needs_data
-def test_ctrl_c_stops_an_eval_and_its_workers_quietly(tmp_path):
+@pytest.mark.parametrize("stop_signal, whole_group, exit_code", [
+    (signal.SIGINT, True, 130),         # Ctrl-C in a terminal: the whole foreground group
+    (signal.SIGTERM, False, 143),       # `kill PID`, a container's stop: the command alone; its workers outlived it
+])
+def test_a_stop_signal_stops_an_eval_and_its_workers_quietly(tmp_path, stop_signal, whole_group, exit_code):
     command = [sys.executable, "-m", "tacf.cli", "eval", str(SEQUENCES), "--sequences", "UAV123_10fps/*",
                "--trackers", "opencv-csrt", "--out", str(tmp_path), "--workers", "2", "--no-progress"]
     # a process group of its own, as a terminal's foreground job, with SIGINT not ignored
@@ -378,19 +383,26 @@ def test_ctrl_c_stops_an_eval_and_its_workers_quietly(tmp_path):
     def group() -> list[str]:
         return subprocess.run(["pgrep", "-g", str(proc.pid)], capture_output=True, text=True).stdout.split()
 
-    deadline = time.monotonic() + 60
-    while len(group()) < 4 and time.monotonic() < deadline:  # this process, the resource tracker, two workers
-        time.sleep(0.2)
-    time.sleep(1.0)
-    os.killpg(proc.pid, signal.SIGINT)                       # Ctrl-C
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130
-    assert "Traceback" not in err and "interrupted: the pairs finished are recorded" in err
-    deadline = time.monotonic() + 5                          # the resource tracker ends once it sees the end
-    while group() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert group() == []                                     # no worker left behind
-    assert not list(tmp_path.rglob("*.part"))
+    try:
+        deadline = time.monotonic() + 60
+        while len(group()) < 4 and time.monotonic() < deadline:  # this process, the resource tracker, two workers
+            time.sleep(0.2)
+        time.sleep(1.0)
+        if whole_group:
+            os.killpg(proc.pid, stop_signal)
+        else:
+            proc.send_signal(stop_signal)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == exit_code
+        assert "Traceback" not in err and "interrupted: the pairs finished are recorded" in err
+        deadline = time.monotonic() + 5                          # the resource tracker ends once it sees the end
+        while group() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert group() == []                                     # no worker left behind
+        assert not list(tmp_path.rglob("*.part"))
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
 
 
 def run_job_or_die(job):
@@ -634,19 +646,22 @@ def test_track_refuses_a_frame_of_another_size_and_names_it(tmp_path, caplog):
         assert len((tmp_path / "boxes.txt").read_text().splitlines()) == 3      # the header and frames 1-2
 
 
-def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
-    """Ctrl-C in a command that does not handle it itself (here `tacf track` half way through a long video): exit
-    code 130 and one line on stderr; the boxes tracked so far stay in the --out file."""
+@pytest.mark.parametrize("stop_signal, exit_code", [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+def test_a_stop_signal_ends_a_command_with_one_line_not_a_traceback(tmp_path, stop_signal, exit_code):
+    """Ctrl-C, SIGTERM (`timeout`, a supervisor) or a closed terminal's SIGHUP in a command that does not handle them
+    itself (here `tacf track` half way through a long video): exit code 128 + the signal and one line on stderr; the
+    boxes tracked so far stay in the --out file, and the --video file plays them. SIGTERM and SIGHUP used to end it
+    on the spot: the box file lost the lines still in its buffer (all of them, here) and the mp4 had no index."""
     frames, box = synthetic_frames(20)
     video = tmp_path / "long.mp4"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (160, 120))
     for i in range(3000):
         writer.write(frames[i % len(frames)])
     writer.release()
-    out = tmp_path / "boxes.txt"
+    out, annotated = tmp_path / "boxes.txt", tmp_path / "annotated.mp4"
     # SIGINT not ignored: a shell's background job (a suite run with `&`) hands its children SIGINT ignored
     process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "track", str(video), "--box",
-                                ",".join(str(v) for v in box), "--out", str(out)],
+                                ",".join(str(v) for v in box), "--out", str(out), "--video", str(annotated)],
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
@@ -654,13 +669,16 @@ def test_ctrl_c_ends_a_command_with_one_line_not_a_traceback(tmp_path):
         while time.monotonic() < deadline and process.poll() is None and \
                 (not out.exists() or out.read_text().count("\n") < 10):
             time.sleep(0.05)
-        process.send_signal(signal.SIGINT)
+        process.send_signal(stop_signal)
         _, err = process.communicate(timeout=20)
     finally:
         process.kill()
-    assert process.returncode == 130, err
+    assert process.returncode == exit_code, err
     assert "Traceback" not in err and err.splitlines()[-1] == "tacf track: interrupted"
-    assert 10 <= out.read_text().count("\n") < 3001
+    lines = out.read_text().count("\n")
+    assert 10 <= lines < 3001
+    # the header, then a line per frame drawn; the signal may fall between the last frame's line and its drawing
+    assert cv2.VideoCapture(str(annotated)).get(cv2.CAP_PROP_FRAME_COUNT) in (lines - 1, lines - 2)
 
 
 def test_the_commit_recorded_is_the_checkout_s_and_says_when_it_was_changed(tmp_path):
@@ -786,6 +804,28 @@ def test_bench_tracker_puts_side_by_side_the_speeds_over_the_same_sequences(tmp_
     assert (f"identity: {report['fps']:.1f} fps on {report['cores']:.2f} cores over its 2 sequences; over the 1 it "
             f"and opencv-csrt both finished, {over['fps']:.1f} against {over['peer_fps']:.1f} fps "
             f"({report['ratio_to_opencv-csrt']:.2f}x)") in caplog.text
+
+
+@needs_data
+def test_sigterm_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_path):
+    """`timeout 300 tacf bench tracker --json OUT`: its SIGTERM ended the command on the spot, without a report (the
+    sequences measured so far lost, as they were on Ctrl-C); now as on Ctrl-C, with exit code 143."""
+    out, log_file = tmp_path / "bench.json", tmp_path / "stderr.txt"
+    with log_file.open("w") as err:
+        process = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "tracker", str(SEQUENCES),
+                                    "--max-frames", "30", "--json", str(out), "--no-progress"], stderr=err)
+    try:
+        deadline = time.monotonic() + 120
+        while "opencv-csrt" not in log_file.read_text() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)    # until both trackers have timed the first sequence
+        process.send_signal(signal.SIGTERM)
+        process.wait(timeout=30)
+    finally:
+        process.kill()
+    assert process.returncode == 143, log_file.read_text()
+    assert "tacf bench: interrupted" in log_file.read_text()
+    report = json.loads(out.read_text())
+    assert report["interrupted"] is True and 1 <= len(report["peers"]["opencv-csrt"]["sequences"]) < 10
 
 
 @needs_data

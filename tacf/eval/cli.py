@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from tacf.argument_types import box, integer, source, take_negative_numbers
+from tacf.stop_signals import interrupted_exit_code
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +232,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         log.error("interrupted: the pairs finished are recorded in %s, and the same command goes on from there",
                   args.out)
-        return 130
+        return interrupted_exit_code()
     failed = [o for o in outcomes if o.error]
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
@@ -354,5 +355,5 @@ def cmd_bench(args: argparse.Namespace) -> int:
                   "left out", failed)
     if result["interrupted"]:
         print("tacf bench: interrupted; the report holds the pairs finished", file=sys.stderr)
-        return 130
+        return interrupted_exit_code()
     return 1 if failed else 0
