@@ -727,12 +727,24 @@ def test_bench_tracker_records_a_pair_that_fails_and_measures_the_others(tmp_pat
     assert "2 (tracker, sequence) pairs failed" in caplog.text
 
 
-def test_ctrl_c_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_path, monkeypatch, capsys):
-    """A Ctrl-C on the second sequence threw away the first one's measurement (no report at all, exit 130)."""
+def _bench_on_two_sequences(tmp_path, monkeypatch, make) -> tuple[int, dict]:
+    """`tacf bench tracker --trackers identity --json` on two synthetic sequences, each tracker (CSRT too) made by
+    `make`; its exit code and report."""
     from tacf.eval import bench, runner
 
     data = write_synthetic_dataset(tmp_path, 4)
     shutil.copytree(data / "synthetic" / "drift", data / "synthetic" / "second")
+    for module in (bench, runner):
+        monkeypatch.setattr(module, "make_tracker", make)
+    monkeypatch.setattr(runner, "_warmed_up", set())
+    out = tmp_path / "bench.json"
+    code = main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
+                 "--no-progress"])
+    return code, json.loads(out.read_text())
+
+
+def test_ctrl_c_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C on the second sequence threw away the first one's measurement (no report at all, exit 130)."""
     made = []
 
     class CtrlCOnItsThirdRun(trackers.IdentityTracker):   # the warm-up, the first sequence, then the second
@@ -747,14 +759,8 @@ def test_ctrl_c_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_pat
         made.append(name)
         return CtrlCOnItsThirdRun(name)
 
-    for module in (bench, runner):
-        monkeypatch.setattr(module, "make_tracker", make)
-    monkeypatch.setattr(runner, "_warmed_up", set())
-    out = tmp_path / "bench.json"
-    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
-                 "--no-progress"]) == 130
-    assert "tacf bench: interrupted" in capsys.readouterr().err
-    report = json.loads(out.read_text())
+    code, report = _bench_on_two_sequences(tmp_path, monkeypatch, make)
+    assert code == 130 and "tacf bench: interrupted" in capsys.readouterr().err
     assert report["interrupted"] is True and len(made) == 3
     for tracker in (report, report["peers"]["opencv-csrt"]):
         assert list(tracker["sequences"]) == ["synthetic/drift"] and tracker["frames"] == 4
@@ -765,11 +771,7 @@ def test_bench_tracker_puts_side_by_side_the_speeds_over_the_same_sequences(tmp_
     """A Ctrl-C during CSRT's second sequence: the subject's fps covered both sequences, CSRT's the first only, and
     the log printed the two side by side, while the ratio divided the speeds over the first only. Here the
     subject is slow on the second sequence, so its fps over both is not its fps over the first."""
-    from tacf.eval import bench, runner
-
     caplog.set_level(logging.INFO)
-    data = write_synthetic_dataset(tmp_path, 4)
-    shutil.copytree(data / "synthetic" / "drift", data / "synthetic" / "second")
     made = []
 
     class SlowOnTheSecond(trackers.IdentityTracker):   # the warm-up, the first sequence, then the second
@@ -787,13 +789,8 @@ def test_bench_tracker_puts_side_by_side_the_speeds_over_the_same_sequences(tmp_
         made.append(name)
         return (SlowOnTheSecond if name == "identity" else CtrlCOnTheSecond)(name)
 
-    for module in (bench, runner):
-        monkeypatch.setattr(module, "make_tracker", make)
-    monkeypatch.setattr(runner, "_warmed_up", set())
-    out = tmp_path / "bench.json"
-    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--json", str(out),
-                 "--no-progress"]) == 130
-    report = json.loads(out.read_text())
+    code, report = _bench_on_two_sequences(tmp_path, monkeypatch, make)
+    assert code == 130
     assert list(report["sequences"]) == ["synthetic/drift", "synthetic/second"]
     assert list(report["peers"]["opencv-csrt"]["sequences"]) == ["synthetic/drift"]
     over = report["ratio_over"]
