@@ -284,11 +284,15 @@ class SessionManager:
     def stop(self, sid: str) -> SessionInfo:
         with self._lock:
             self._check_open()                  # shutdown stops every worker and keeps the table for the restart
-            session = self._get(sid)
-            del self._sessions[sid]
-            self._stopping.add(sid)             # until its "stopped" is out, the id is not free for a new session
-            session.stopping = True
-            process = session.process           # _spawn attaches a worker under the lock, or not at all now
+            kept = None if sid in self._sessions else self._not_restored.pop(sid, None)
+            if kept is None:
+                session = self._get(sid)
+                del self._sessions[sid]
+                self._stopping.add(sid)         # until its "stopped" is out, the id is not free for a new session
+                session.stopping = True
+                process = session.process       # _spawn attaches a worker under the lock, or not at all now
+        if kept is not None:
+            return self._forget_kept(kept)
         try:
             self._send(session, ("stop",))
             _reap([process] if process else [], time.monotonic() + STOP_GRACE_S)
@@ -304,6 +308,14 @@ class SessionManager:
         self._mark_dirty(save_now=True)
         log.info("stopped session %s", sid)
         return session.info(self.node)
+
+    def _forget_kept(self, kept: PersistedSession) -> SessionInfo:
+        """Stop a session the restore left out: it has no worker, so stopping it takes it out of the state file."""
+        self._mark_dirty(save_now=True)
+        log.info("stopped session %s, kept, not restored, in %s: removed from the file", kept.sid, self._store.path)
+        return SessionInfo(node=self.node, sid=kept.sid, image_key=kept.image_key, profile=kept.profile,
+                           overrides=kept.overrides, state="stopped", box=kept.box, last_seq=kept.last_seq,
+                           created_ns=kept.created_ns, restarts=kept.restarts)
 
     def reinit(self, request: ReinitRequest) -> SessionInfo:
         with self._lock:

@@ -25,6 +25,7 @@ from tacf_clients.local_service import free_port
 from tacf_schemas import StartRequest, StatusRequest, StopRequest, encode, service_liveliness_key
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
+from tacf_service.errors import ServiceError
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
 from tacf_service.probe import call, list_all
 from tacf_service.scene import MovingTargetScene
@@ -639,6 +640,22 @@ def test_a_start_of_the_id_of_a_session_left_out_replaces_it_in_the_state_file(t
     table = json.loads(state.read_text())["sessions"]
     assert [(s["sid"], s["box"]) for s in table] == [("b", [1.0, 1.0, 10.0, 10.0]), ("c", [5.0, 5.0, 20.0, 20.0])]
     assert "session c replaces the one of that id kept, not restored, in " in caplog.text
+
+
+def test_a_stop_of_a_session_left_out_removes_it_from_the_state_file(tmp_path, caplog):
+    """It answered unknown_session: a session kept for a restart with room could only be dropped by editing the
+    file, or by raising --max-sessions to have it run, then stopping it."""
+    state = tmp_path / "sessions.json"
+    StateStore(state).save([SAVED.model_copy(update={"sid": sid}) for sid in ("a", "b", "c")])
+    StateStore(state).save_frame("c", b"the frame of c's box")
+    with TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                        state_file=str(state), spare_workers=0, max_sessions=2)) as service:
+        info = service.manager.stop("c")
+        assert (info.sid, info.state, info.box) == ("c", "stopped", SAVED.box)
+        assert [s.sid for s in StateStore(state).load()] == ["a", "b"]
+        with pytest.raises(ServiceError, match="no session 'c'"):
+            service.manager.stop("c")
+    assert not (tmp_path / "sessions.json.frames" / "c.msgpack").exists()
 
 
 def test_a_service_failing_to_start_after_its_restore_keeps_the_sessions_left_out(tmp_path, caplog, monkeypatch):
