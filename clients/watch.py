@@ -136,7 +136,9 @@ def watch(options: ZenohOptions | None = None, sid: str = keys.WILDCARD, node: s
         except TacfError as exc:
             print(f"(list failed: {printable(exc)}; showing live data only)", file=out)
         else:
-            if not services:    # a peer opens without anyone to talk to: say so, then wait for one
+            # a peer opens without anyone to talk to: say so, then wait for one (unless a Ctrl-C came meanwhile:
+            # the query's silence is then no news)
+            if not services and not stop.is_set():
                 print(f"(no service answered{f' as {node!r}' if node else ''}: waiting for one; is `tacf serve` "
                       "running, and reachable with these Zenoh settings?)", file=out)
             for info in (info for listing in services for info in listing.sessions):

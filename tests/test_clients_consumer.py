@@ -285,6 +285,25 @@ def test_watch_ends_on_time_and_on_stop_whatever_the_interval(net):
     assert not thread.is_alive(), "the watch ends soon after Ctrl-C"
 
 
+def test_watch_stopped_during_its_first_query_says_nothing_of_services(net):
+    """A Ctrl-C while the list query waited printed "(no service answered: waiting for one ...)" on the way out."""
+    from tacf_schemas import control_key
+
+    stop, out = threading.Event(), io.StringIO()
+
+    def interrupted(query):
+        with query:             # the Ctrl-C comes while the query waits; then it ends with no reply
+            stop.set()
+    queryable = net.service.declare_queryable(control_key("edge1", "list"), interrupted)
+    try:
+        thread = threading.Thread(target=watch, kwargs=dict(options=net.options, stop=stop, out=out))
+        thread.start()
+        thread.join(timeout=10)
+        assert not thread.is_alive() and stop.is_set() and out.getvalue() == ""
+    finally:
+        queryable.undeclare()
+
+
 def test_watch_of_one_session_follows_it_to_another_service(net):
     """`tacf watch SID` subscribed on the node the list found SID on, so a session stopped there and started
     again elsewhere (`tacf start --node auto`, a MAVLink bridge restarting it) never showed again: --node is what
