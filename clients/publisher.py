@@ -52,7 +52,9 @@ def to_channels(image: np.ndarray, encoding: str) -> np.ndarray:
     """`image` with the channel count `encoding` needs: gray for mono8, BGR for bgr8, as is for jpeg/png."""
     if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3) or (
             image.ndim == 3 and image.shape[2] != 3):
-        raise ValueError(f"expected an HxWx3 (BGR) or HxW uint8 image, got {getattr(image, 'shape', image)!r}")
+        # the dtype too: a float or 16-bit image of the right shape was refused with its shape alone, as if wrong
+        got = f"{image.dtype} {image.shape}" if isinstance(image, np.ndarray) else type(image).__name__
+        raise ValueError(f"expected an HxWx3 (BGR) or HxW uint8 image, got {got}")
     if encoding == "mono8" and image.ndim == 3:
         return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
     if encoding == "bgr8" and image.ndim == 2:

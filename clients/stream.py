@@ -116,9 +116,9 @@ class ResultStream(Generic[T]):
         return self._closed
 
     def close(self) -> None:
+        # Also after the session closed first (which only ends the stream): the items still queued are dropped and
+        # the thread joined, else the callback went on with them after close() returned.
         with self._cond:
-            if self._closed:
-                return
             self._closed = True
             self._latest.clear()
             self._fifo.clear()
@@ -126,7 +126,7 @@ class ResultStream(Generic[T]):
         try:
             self._sub.undeclare()
         except zenoh.ZError:
-            pass  # the session was closed first: the subscriber is gone already
+            pass  # the session was closed first, or this is a second close(): the subscriber is gone already
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5.0)
 

@@ -153,6 +153,31 @@ def test_a_sample_decoded_while_the_stream_closes_is_not_handed_out_after_close(
     assert stream.get(timeout=0) is None
 
 
+def test_closing_a_stream_after_its_session_stops_its_callback(net):
+    """A stream whose Zenoh session closed first (the client's `with` ended) ignored its own close(): it returned at
+    once, and the callback thread went on through every box still queued after it, as after no close at all."""
+    client = TrackingClient(net.options)
+    calls: list[int] = []
+    release = threading.Event()
+
+    def on_box(box: BoxResult) -> None:
+        calls.append(box.seq)
+        release.wait(5)                     # the first box holds the thread: the others queue up
+
+    stream = client.subscribe("cam1", on_box=on_box)
+    net.wait_matched(box_key("edge1", "cam1"))
+    for seq in range(5):
+        net.put(_box("cam1", seq))
+    assert _wait(lambda: stream.received == 5)
+    client.close()
+    assert _wait(lambda: stream.closed)
+    threading.Timer(0.3, release.set).start()   # the box in hand finishes while close() waits for the thread
+    stream.close()
+    assert not stream._thread.is_alive()
+    time.sleep(0.3)
+    assert calls == [0]
+
+
 def test_consumer_opens_its_own_session(net):
     with BoxConsumer(sid="cam9", options=net.options) as boxes:
         net.wait_matched(box_key("edge1", "cam9"))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import functools
 import http.server
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -609,6 +610,18 @@ def test_publish_refuses_frames_beyond_the_wire_limits(tmp_path, collector):
     assert done.returncode == 2, done.stderr
     assert done.stderr.splitlines()[-1] == ("tacf publish: frame size 9000x100 exceeds the limits (8192x8192, "
                                             "16777216 pixels)")
+    assert collector.wait(1, timeout=0.5) == []
+
+
+def test_an_image_of_the_right_shape_but_not_uint8_is_refused_naming_its_type(collector):
+    """FramePublisher.put() of a 16-bit or float image said only "expected an HxWx3 (BGR) or HxW uint8 image, got
+    (64, 96, 3)": the shape it named was right, and the type that was wrong went unsaid."""
+    with _publisher_session(collector.port) as session, FramePublisher(session, KEY) as publisher:
+        for image, named in ((np.zeros((64, 96, 3), np.float32), "float32 (64, 96, 3)"),
+                             (np.zeros((64, 96), np.uint16), "uint16 (64, 96)"), ([[0, 1], [2, 3]], "list")):
+            with pytest.raises(ValueError, match=rf"uint8 image, got {re.escape(named)}$"):
+                publisher.put(image)
+        assert publisher.next_seq == 0
     assert collector.wait(1, timeout=0.5) == []
 
 
