@@ -803,6 +803,31 @@ def test_bench_tracker_puts_side_by_side_the_speeds_over_the_same_sequences(tmp_
             f"({report['ratio_to_opencv-csrt']:.2f}x)") in caplog.text
 
 
+@pytest.mark.parametrize("interrupted", ["identity", "opencv-csrt"])
+def test_bench_tracker_log_gives_no_nan_speed_when_a_tracker_finished_nothing(tmp_path, monkeypatch, caplog,
+                                                                              interrupted):
+    """A Ctrl-C in the first sequence timed (a newcomer stopping a long bench early) logged "tacf: nan fps on nan
+    cores (opencv-csrt nan fps, nanx)": speeds and a ratio where nothing was measured."""
+    caplog.set_level(logging.INFO)
+    made = []
+
+    class CtrlCOnItsFirstTimedRun(trackers.IdentityTracker):   # after its warm-up run
+        def update(self, frame):
+            if made.count(interrupted) == 2:
+                signal.raise_signal(signal.SIGINT)
+            return super().update(frame)
+
+    def make(name):
+        made.append(name)
+        return CtrlCOnItsFirstTimedRun(name)
+
+    code, report = _bench_on_two_sequences(tmp_path, monkeypatch, make)
+    assert code == 130 and report["ratio_to_opencv-csrt"] is None
+    line = next(r.getMessage() for r in caplog.records if "wrote" in r.getMessage())
+    assert "nan" not in line and "no ratio to opencv-csrt" in line, line
+    assert ("identity: no sequence finished" in line) == (interrupted == "identity"), line
+
+
 @needs_data
 def test_sigterm_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_path):
     """`timeout 300 tacf bench tracker --json OUT`: its SIGTERM ended the command on the spot, without a report (the

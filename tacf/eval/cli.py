@@ -339,8 +339,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(text)
         over, peer = result["ratio_over"], result["peers"].get("opencv-csrt", result)
-        headline = f"{result['tracker']}: {result['fps']:.1f} fps on {result['cores']:.2f} cores"
-        if len(result["sequences"]) == len(over["sequences"]) == len(peer["sequences"]):
+        headline = (f"{result['tracker']}: {result['fps']:.1f} fps on {result['cores']:.2f} cores"
+                    if result["sequences"] else f"{result['tracker']}: no sequence finished")
+        if not over["sequences"]:   # a Ctrl-C in the first sequence, or every pair failed: no speed to divide
+            log.info("%s; no ratio to opencv-csrt (no sequence that both finished); wrote %s", headline, args.json)
+        elif len(result["sequences"]) == len(over["sequences"]) == len(peer["sequences"]):
             log.info("%s (opencv-csrt %.1f fps, %.2fx); wrote %s", headline, peer["fps"],
                      result["ratio_to_opencv-csrt"], args.json)
         else:   # a failed pair or a Ctrl-C: side by side, the speeds over the same sequences, the ratio's
