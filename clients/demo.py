@@ -170,6 +170,10 @@ class HoldingPublisher:
                         raise
                     # as publish() does: one odd image in a folder ended the whole demo with its error
                     log.warning("frame %d of %s skipped: %s", frame.index, self.source.name, exc)
+            if self.last_seq < 0 and not self.stop.is_set():
+                # a video that opens with no frame in it: with --box (no first frame read for a box) the demo
+                # went on to report "no boxes received", exit 1, where without --box it said this, exit 2
+                raise SourceError(f"source {self.source.name!r} has no frames")
         except (FrameError, SourceError) as exc:     # what the source gives cannot be sent: the demo says so
             self.error = exc
         except BaseException as exc:  # reported by the demo, never lost on this thread

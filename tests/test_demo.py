@@ -401,3 +401,17 @@ def test_the_boxes_of_the_last_frames_are_waited_for_when_the_source_ends(tmp_pa
     assert report.ok and "the source ended" in text, text
     newest_box = max(int(seq) for seq in re.findall(r"box +seq +(\d+)", text))
     assert last_sent and newest_box == last_sent[0], text
+
+
+def test_a_video_without_frames_is_a_usage_error_with_a_box_given_too(tmp_path):
+    """A video file that opens and holds no frame is refused ("has no frames", exit 2) when the demo reads its first
+    frame for a box; with --box it was read by the publisher only, and the demo ended with "demo failed: no boxes
+    received", exit 1, as for a service that failed."""
+    video = tmp_path / "empty.avi"
+    cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (320, 240)).release()
+    assert cv2.VideoCapture(str(video)).isOpened()
+    done = subprocess.run(_demo(str(video), "--box", "10,10,40,30", "--seconds", "2"), capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.splitlines()[-1] == f"tacf demo: source {str(video)!r} has no frames", done.stderr
+    assert "Traceback" not in done.stderr and "session" not in done.stdout, done.stdout + done.stderr
