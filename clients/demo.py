@@ -37,6 +37,7 @@ Box = tuple[float, float, float, float]
 DEMO_FPS = 20.0           # the scene's rate (and any source's without its own): real time for the tracker on one core
 FAILED_GRACE_S = 5.0      # a session reported "failed" for this long (the service restarts workers) ends the demo
 FOLLOW_IOU = 0.3          # a box "follows" the target when its IoU with the ground truth exceeds this
+LAST_BOX_WAIT_S = 2.0     # once the source ends, how long the box of its last frame is waited for
 
 
 @dataclass(frozen=True)
@@ -169,6 +170,10 @@ class HoldingPublisher:
                         raise
                     # as publish() does: one odd image in a folder ended the whole demo with its error
                     log.warning("frame %d of %s skipped: %s", frame.index, self.source.name, exc)
+            if self.last_seq < 0 and not self.stop.is_set():
+                # a video that opens with no frame in it: with --box (no first frame read for a box) the demo
+                # went on to report "no boxes received", exit 1, where without --box it said this, exit 2
+                raise SourceError(f"source {self.source.name!r} has no frames")
         except (FrameError, SourceError) as exc:     # what the source gives cannot be sent: the demo says so
             self.error = exc
         except BaseException as exc:  # reported by the demo, never lost on this thread
@@ -306,8 +311,8 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
 def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: GroundTruth | None,
             printer: Printer, report: DemoReport, stop: threading.Event) -> None:
     """Print results until the time is up, the source ends or `stop` is set."""
-    deadline = counted_from = first_counted = failed_since = None
-    seen = 0
+    deadline = counted_from = first_counted = failed_since = last_box_deadline = None
+    seen, newest_seq = 0, -1
     first_box_timeout = time.monotonic() + options.start_timeout
     while not stop.is_set():
         now = time.monotonic()
@@ -316,8 +321,12 @@ def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: G
         if deadline is None and now >= first_box_timeout:
             raise TimeoutError("no box from the session")
         if publisher.ended.is_set() and deadline is not None:
-            printer.line("the source ended")
-            break
+            # the last frames sent are still being tracked: stopping at once lost their boxes (a 12-frame folder
+            # counted 10 boxes; a slow tracker lost the last box every time)
+            last_box_deadline = last_box_deadline or now + LAST_BOX_WAIT_S
+            if newest_seq >= publisher.last_seq or now >= last_box_deadline:
+                printer.line("the source ended")
+                break
         item = results.get(timeout=0.2)
         if isinstance(item, Health) and item.sid == report.sid:
             report.last_health = item
@@ -329,6 +338,7 @@ def _follow(options: DemoOptions, publisher: HoldingPublisher, results, truth: G
             elif now - failed_since > FAILED_GRACE_S:
                 raise TimeoutError(f"the session failed: {item.message or 'no message'}")
         elif isinstance(item, BoxResult) and item.sid == report.sid:
+            newest_seq = max(newest_seq, item.seq)
             if deadline is None:             # first box: the camera starts moving
                 publisher.hold.clear()
                 counted_from = publisher.last_seq + 1

@@ -11,7 +11,9 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".p
 
 
 def is_image(path: Path) -> bool:
-    return path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
+    """An image file by its suffix; not a hidden one: a folder copied from a Mac to a FAT or exFAT drive holds
+    `._000001.jpg` (AppleDouble metadata) beside each frame, which `tacf track` failed on after the last frame."""
+    return not path.name.startswith(".") and path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES
 
 
 def read_image(path: Path) -> np.ndarray | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -366,3 +367,51 @@ def test_a_stream_url_is_opened_once():
         camera.close()
     assert report.ok, out.getvalue()
     assert camera.connections == 1, out.getvalue()
+
+
+def test_the_boxes_of_the_last_frames_are_waited_for_when_the_source_ends(tmp_path, monkeypatch):
+    """The demo stopped listening as soon as the source had sent its last frame: the boxes of the frames still
+    being tracked were lost (a 12-frame folder counted 10 boxes at 20 fps; with a tracker taking 0.3 s a frame, as
+    here, on a real service, every box after the held first frame's: "demo failed: no boxes received")."""
+    from tacf_clients import demo
+
+    env = {**os.environ, "SLOW_TRACKER_LOCATE_S": "0.3",
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).parent), os.environ.get("PYTHONPATH")]))}
+
+    class SlowService(local_service.LocalService):
+        def __init__(self, **kwargs):
+            super().__init__(extra_args=("--tracker-factory", "slow_tracker:slow_tracker"), env=env, **kwargs)
+
+    last_sent = []
+
+    class RecordingPublisher(demo.HoldingPublisher):
+        def close(self) -> None:
+            super().close()
+            last_sent.append(self.last_seq)
+
+    monkeypatch.setattr(demo, "LocalService", SlowService)
+    monkeypatch.setattr(demo, "HoldingPublisher", RecordingPublisher)
+    scene = Scene.from_spec("scene:320x240")
+    for i in range(6):
+        cv2.imwrite(str(tmp_path / f"{i + 1}.png"), scene.frame(i))
+    out = io.StringIO()
+    report = run_demo(DemoOptions(source=str(tmp_path), box=scene.box(0), seconds=30, fps=20, every=1,
+                                  node="demolast"), out=out)
+    text = out.getvalue()
+    assert report.ok and "the source ended" in text, text
+    newest_box = max(int(seq) for seq in re.findall(r"box +seq +(\d+)", text))
+    assert last_sent and newest_box == last_sent[0], text
+
+
+def test_a_video_without_frames_is_a_usage_error_with_a_box_given_too(tmp_path):
+    """A video file that opens and holds no frame is refused ("has no frames", exit 2) when the demo reads its first
+    frame for a box; with --box it was read by the publisher only, and the demo ended with "demo failed: no boxes
+    received", exit 1, as for a service that failed."""
+    video = tmp_path / "empty.avi"
+    cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (320, 240)).release()
+    assert cv2.VideoCapture(str(video)).isOpened()
+    done = subprocess.run(_demo(str(video), "--box", "10,10,40,30", "--seconds", "2"), capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2, done.stdout + done.stderr
+    assert done.stderr.splitlines()[-1] == f"tacf demo: source {str(video)!r} has no frames", done.stderr
+    assert "Traceback" not in done.stderr and "session" not in done.stdout, done.stdout + done.stderr

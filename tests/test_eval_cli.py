@@ -552,6 +552,19 @@ def test_track_reads_a_folder_of_thermal_tiffs_as_tacf_publish_does(tmp_path):
     assert read_frame(folder / "000001.tiff").max() == 255          # read with cv2.IMREAD_COLOR: under 16
 
 
+def test_track_leaves_out_the_hidden_files_a_mac_puts_beside_each_frame(tmp_path):
+    """A folder copied from a Mac to a FAT or exFAT drive holds `._000001.jpg` (AppleDouble metadata, not an image)
+    beside each frame: they were listed as frames after the real ones, and `tacf track` tracked every frame, then
+    failed on the first of them ("cannot read image"), exit 2."""
+    frames, box = synthetic_frames(10)
+    for i, frame in enumerate(frames, 1):
+        cv2.imwrite(str(tmp_path / f"{i:06d}.jpg"), frame)
+        (tmp_path / f"._{i:06d}.jpg").write_bytes(b"\x00\x05\x16\x07" + bytes(4092))
+    assert main(["track", str(tmp_path), "--box", ",".join(str(v) for v in box), "--tracker", "identity",
+                 "--out", str(tmp_path / "boxes.txt")]) == 0
+    check_boxes_file(tmp_path / "boxes.txt", 10, box)
+
+
 def test_track_read_by_head_ends_quietly(tmp_path):
     """`tacf track ... | head` logged "ERROR ... Broken pipe" and exited 2, as for a source it could not read: it
     ends as Unix filters do, silent, with the status of a filter the pipe stopped."""
