@@ -18,6 +18,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import TextIO
 
+from tacf.boxes import check_box
 from tacf.eval.datasets.base import read_boxes
 from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
@@ -170,10 +171,6 @@ class HoldingPublisher:
                         raise
                     # as publish() does: one odd image in a folder ended the whole demo with its error
                     log.warning("frame %d of %s skipped: %s", frame.index, self.source.name, exc)
-            if self.last_seq < 0 and not self.stop.is_set():
-                # a video that opens with no frame in it: with --box (no first frame read for a box) the demo
-                # went on to report "no boxes received", exit 1, where without --box it said this, exit 2
-                raise SourceError(f"source {self.source.name!r} has no frames")
         except (FrameError, SourceError) as exc:     # what the source gives cannot be sent: the demo says so
             self.error = exc
         except BaseException as exc:  # reported by the demo, never lost on this thread
@@ -217,16 +214,21 @@ class Printer:
 
 def initial_box(options: DemoOptions, source: FrameSource, truth: GroundTruth | None,
                 stop: threading.Event) -> tuple[Box, str]:
-    """(box, where it came from) for the first frame. A live source that opened and gives no frame is reopened
-    until it does, or until `stop` (Ctrl-C: it was not heard there)."""
-    if options.box is not None:
-        return options.box, "--box"
-    if truth is not None and (box := truth.box(0)) is not None:
+    """(box, where it came from) for the first frame; --box checked against it (a box the tracker cannot start on
+    was refused by the service seconds later, after its start). A live source that opened and gives no frame is
+    reopened until it does, or until `stop` (Ctrl-C: it was not heard there)."""
+    if options.box is None and truth is not None and (box := truth.box(0)) is not None:
         return box, "ground truth"
     first = next(source.frames(should_stop=stop.is_set), None)
     if first is None:
         raise ValueError(f"source {options.source!r} has no frames")
     height, width = first.image.shape[:2]
+    if options.box is not None:
+        try:
+            check_box(options.box, (height, width))
+        except ValueError as exc:
+            raise ValueError(f"cannot start a session with --box on the first frame: {exc}") from None
+        return options.box, "--box"
     w, h = max(8.0, width / 5), max(8.0, height / 5)
     return ((width - w) / 2, (height - h) / 2, w, h), "centre of the frame (pass --box x,y,w,h to choose)"
 

@@ -415,3 +415,16 @@ def test_a_video_without_frames_is_a_usage_error_with_a_box_given_too(tmp_path):
     assert done.returncode == 2, done.stdout + done.stderr
     assert done.stderr.splitlines()[-1] == f"tacf demo: source {str(video)!r} has no frames", done.stderr
     assert "Traceback" not in done.stderr and "session" not in done.stdout, done.stdout + done.stderr
+
+
+def test_a_box_the_tracker_cannot_start_on_is_a_usage_error_before_the_service_starts(tmp_path):
+    """A --box outside the first frame was refused by the service only after it had started (about 2 s in), and
+    printed twice: as the failed start's error line and again in the "demo failed" summary, exit 1."""
+    folder = tmp_path / "clip"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:04d}.jpg"), np.full((120, 160, 3), 40 * i, np.uint8))
+    done = subprocess.run(_demo(str(folder), "--box", "200,10,20,20"), capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == "", done.stdout + done.stderr
+    assert done.stderr.splitlines() == ["tacf demo: cannot start a session with --box on the first frame: "
+                                        "box (200.0, 10.0, 20.0, 20.0) lies outside the 160x120 image"], done.stderr
