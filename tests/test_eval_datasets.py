@@ -48,6 +48,18 @@ def test_read_boxes_separators_nan_and_one_based(tmp_path):
     np.testing.assert_array_equal(read_boxes(f, one_based=False)[0], [11, 21, 5, 6])
 
 
+def test_files_saved_by_windows_notepad_are_read(tmp_path):
+    """Notepad writes a byte-order mark first: the first box was "not a number" (a ground truth refused by `tacf
+    eval`, ignored by `tacf demo` with a warning), an OTB attrs.txt gained a code "\ufeffIV"."""
+    from tacf.eval.attributes import read_attribute_list
+
+    gt, attrs = tmp_path / "groundtruth_rect.txt", tmp_path / "attrs.txt"
+    gt.write_bytes("11,21,5,6\r\n12,22,5,6\r\n".encode("utf-8-sig"))
+    attrs.write_bytes("IV,SV\r\n".encode("utf-8-sig"))
+    np.testing.assert_array_equal(read_boxes(gt), [[10, 20, 5, 6], [11, 21, 5, 6]])
+    assert read_attribute_list(attrs) == {"IV", "SV"}
+
+
 def test_read_boxes_rejects_garbage(tmp_path):
     f = tmp_path / "gt.txt"
     f.write_text("1,2,3\n")

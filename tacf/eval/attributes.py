@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .datasets.base import read_text
 from .metrics import valid_mask
 
 log = logging.getLogger(__name__)
@@ -73,7 +74,7 @@ def derived_attributes(gt) -> frozenset[str]:
 
 def read_uav123_flags(path: Path) -> frozenset[str]:
     """A UAV123 att file: 12 comma-separated 0/1 flags in the order of UAV123_ATTRIBUTES."""
-    text = Path(path).read_text().strip()
+    text = read_text(path).strip()
     try:
         flags = [float(p) for p in _SEPARATORS.split(text) if p]
     except ValueError:
@@ -85,13 +86,13 @@ def read_uav123_flags(path: Path) -> frozenset[str]:
 
 def read_attribute_list(path: Path) -> frozenset[str]:
     """An OTB sequence folder's attrs.txt: the sequence's attribute codes, separated by commas or spaces."""
-    return frozenset(p for p in _SEPARATORS.split(Path(path).read_text()) if p)
+    return frozenset(p for p in _SEPARATORS.split(read_text(path)) if p)
 
 
 def read_attribute_table(path: Path) -> dict[str, frozenset[str]]:
     """`name ATTR ATTR ...` lines (spaces or commas; `#` starts a comment) -> {name: attributes}."""
     table = {}
-    for lineno, line in enumerate(Path(path).read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text(path).splitlines(), 1):
         parts = [p for p in _SEPARATORS.split(line.split("#", 1)[0]) if p]
         if not parts:
             continue

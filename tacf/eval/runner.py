@@ -32,7 +32,7 @@ import numpy as np
 
 from ..images import read_image
 from .datasets import Sequence, read_boxes, write_boxes
-from .datasets.base import parse_boxes
+from .datasets.base import parse_boxes, read_text
 from .trackers import BoxTracker, make_tracker, settings_of
 
 log = logging.getLogger(__name__)
@@ -337,7 +337,7 @@ def _read_pysot_vot(box_file: Path, first_box: np.ndarray) -> np.ndarray:
     """0-based boxes of pysot's <seq>/<seq>_001.txt. Its one-pass (long-term) results write `1` on line 1 for the
     init frame instead of a box: that frame gets the first ground-truth box, the one it was given. VOT's reset-based
     results also write `2` (a failure) and `0` (a frame skipped before the reset): not a one-pass track, refused."""
-    lines = box_file.read_text().splitlines()
+    lines = read_text(box_file).splitlines()
     for lineno, line in enumerate(lines, 1):
         if line.strip() in ("0", "2"):
             raise ValueError(f"{box_file}:{lineno}: '{line.strip()}' marks a VOT reset (2: a failure, 0: a frame "
