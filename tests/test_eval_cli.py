@@ -393,7 +393,7 @@ def test_a_stop_signal_stops_an_eval_and_its_workers_quietly(tmp_path, stop_sign
         else:
             proc.send_signal(stop_signal)
         _, err = proc.communicate(timeout=60)
-        assert proc.returncode == exit_code
+        assert proc.returncode == exit_code, err
         assert "Traceback" not in err and "interrupted: the pairs finished are recorded" in err
         deadline = time.monotonic() + 5                          # the resource tracker ends once it sees the end
         while group() and time.monotonic() < deadline:

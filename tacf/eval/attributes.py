@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .datasets.base import read_text
 from .metrics import valid_mask
+from .text_files import read_text
 
 log = logging.getLogger(__name__)
 

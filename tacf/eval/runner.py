@@ -32,7 +32,8 @@ import numpy as np
 
 from ..images import read_image
 from .datasets import Sequence, read_boxes, write_boxes
-from .datasets.base import parse_boxes, read_text
+from .datasets.base import parse_boxes
+from .text_files import read_text
 from .trackers import BoxTracker, make_tracker, settings_of
 
 log = logging.getLogger(__name__)

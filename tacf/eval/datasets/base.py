@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ...images import is_image
+from ..text_files import read_text
 
 log = logging.getLogger(__name__)
 
@@ -47,12 +48,6 @@ def read_boxes(path: Path, one_based: bool = True) -> np.ndarray:
     With `one_based` (the benchmarks' MATLAB convention) 1 is subtracted from x and y.
     """
     return parse_boxes(read_text(path).splitlines(), path, one_based)
-
-
-def read_text(path: Path) -> str:
-    """A ground-truth, attribute or result file's text: UTF-8, whatever the platform's locale, and without the
-    byte-order mark Windows Notepad puts first (it made the first line "not a number")."""
-    return Path(path).read_text(encoding="utf-8-sig")
 
 
 def parse_boxes(lines: list[str], path: Path, one_based: bool = True) -> np.ndarray:
