@@ -16,3 +16,6 @@ MAX_PAYLOAD_BYTES = MAX_FRAME_BYTES + 64 * 1024   # a Frame's data plus its msgp
 MAX_OVERRIDES = 64
 MAX_CARRIED_FRAMES = 8                  # frames a start or reinit may carry (all within MAX_PAYLOAD_BYTES)
 MAX_MESSAGE_LENGTH = 1024               # Error.message and similar free text
+# msgpack objects in one payload (a SessionList of 600 sessions with 64 overrides each has about 117,000): msgpack's
+# length limits hold per array, and an 8 MiB payload of empty arrays, a byte each, unpacked to 566 MiB
+MAX_MSGPACK_OBJECTS = 1 << 17

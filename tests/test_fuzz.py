@@ -167,6 +167,32 @@ def test_random_payloads_decode_or_raise_decode_error(name, payload):
     check_decode(payload, MODELS[name])
 
 
+def _array_of_arrays(element: bytes, size: int) -> bytes:
+    """msgpack of an array of arrays of 65535 `element`s each, about `size` bytes in all."""
+    inner = b"\xdc\xff\xff" + element * 0xFFFF
+    count = size // len(inner)
+    return b"\xdc" + count.to_bytes(2, "big") + inner * count
+
+
+@pytest.mark.parametrize("element", [b"\x90", b"\x80", b"\xa2ab", b"\xcd\x01\x00"],
+                         ids=["empty arrays", "empty maps", "2-char strings", "uint16s"])
+def test_a_payload_of_many_small_objects_is_refused_before_it_is_unpacked(element):
+    """msgpack's length limits hold per array or map: 8 MiB of empty arrays, a byte each, unpacked to 566 MiB of
+    Python objects, 70 times the payload (a control query or a frame may be 48 MiB; the service decodes queries in
+    5 threads at once, and frames of a key in its history and in each worker on it)."""
+    import tracemalloc
+    payload = _array_of_arrays(element, 2 << 20)
+    tracemalloc.start()
+    try:
+        with pytest.raises(DecodeError) as refused:
+            decode(payload, StartRequest)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 << 20, f"{peak / 2**20:.0f} MiB to refuse a payload of {len(payload) / 2**20:.0f} MiB"
+    assert refused.value.code == "too_large" and "msgpack objects" in refused.value.message
+
+
 def check_image(frame: Frame) -> None:
     """decode_frame returns the frame's pixels at its declared size, or raises a typed FrameError."""
     try:
