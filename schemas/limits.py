@@ -10,6 +10,8 @@ MAX_IMAGE_KEY_CHUNKS = 16
 MAX_FRAME_WIDTH = 8192
 MAX_FRAME_HEIGHT = 8192
 MAX_FRAME_PIXELS = 4096 * 4096          # 16.8 Mpx: a 4K UHD frame fits, a decompression bomb does not
+# Scans of a JPEG frame: each makes the decoder go over the whole image again (a progressive JPEG has 6 to 10).
+MAX_JPEG_SCANS = 64
 MAX_FRAME_BYTES = 48 * 1024 * 1024      # covers raw 4096x4096 BGR (48 MiB); encoded frames are far smaller
 MAX_PAYLOAD_BYTES = MAX_FRAME_BYTES + 64 * 1024   # a Frame's data plus its msgpack envelope
 

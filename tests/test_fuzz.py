@@ -433,6 +433,31 @@ def test_hostile_frames_into_a_running_session(service, victim, payloads):
     assert health.frames_received < 2**32          # counters stay meaningful whatever seq a payload claims
 
 
+def test_a_jpeg_of_many_scans_is_rejected_without_decoding_it(service, victim):
+    """A progressive JPEG's scans each make the decoder go over the whole image: 2,000 copies of its last scan (33
+    bytes each) in a 4096x4096 frame of 130 kB held the worker in cv2.imdecode until its watchdog killed it 15 s
+    later, and the session restarted; sent again, it kept the session down."""
+    import cv2
+    svc, client = service
+    if status(client, "victim").state not in ("tracking", "lost"):
+        seq = victim.good()
+        call(client, NODE, "reinit", ReinitRequest(sid="victim", box=SCENE.box(seq), seq=seq))
+        assert wait_until(lambda: status(client, "victim").state == "tracking", 20)
+    pid = svc.manager.worker_pids()["victim"]
+    data = cv2.imencode(".jpg", np.zeros((4096, 4096), np.uint8), [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    last_scan = data[data.rindex(b"\xff\xda"):-2]
+    data = data[:-2] + last_scan * 2000 + b"\xff\xd9"
+    victim.put(encode(Frame(seq=victim.seq + 1, stamp_ns=time.time_ns(), encoding="jpeg", width=4096, height=4096,
+                            data=data)))
+    victim.seq += 1
+    time.sleep(0.2)
+    seq = victim.good()
+    assert wait_until(lambda: victim.boxed(seq), 5), status(client, "victim")
+    assert svc.manager.worker_pids()["victim"] == pid
+    health = wait_until(lambda: _health_after(victim, seq), 5)
+    assert health is not None and health.restarts == 0 and "2006 scans" in (health.message or "")
+
+
 def _health_after(feed: HostileFeed, seq: int):
     health = feed.results.last_health()
     return health if health is not None and health.last_seq is not None and health.last_seq >= seq else None
