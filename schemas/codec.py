@@ -14,7 +14,7 @@ import msgpack
 import pydantic
 
 from .keys import is_valid_id
-from .limits import MAX_FRAME_BYTES, MAX_MESSAGE_LENGTH, MAX_PAYLOAD_BYTES
+from .limits import MAX_FRAME_BYTES, MAX_MESSAGE_LENGTH, MAX_MSGPACK_OBJECTS, MAX_PAYLOAD_BYTES
 from .models import Error, WireModel
 
 M = TypeVar("M", bound=WireModel)
@@ -73,12 +73,49 @@ def unique_keys(pairs: Iterable[tuple[object, object]]) -> dict:
 
 
 def _unpack(payload: bytes | bytearray | memoryview, name: str) -> object:
+    _count_objects(payload, name)
     try:
         return msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=True, object_pairs_hook=unique_keys,
                                max_bin_len=MAX_FRAME_BYTES, max_str_len=1 << 20,
                                max_array_len=1 << 16, max_map_len=1 << 10, max_ext_len=0)
     except Exception as exc:  # msgpack raises several unrelated types (ValueError, ExtraData, TypeError...)
         raise DecodeError("malformed", f"{name}: malformed msgpack ({type(exc).__name__}: {str(exc)[:200]})") from None
+
+
+# msgpack type bytes: the bytes a scalar takes in all, or the width of the length before a str's or bin's body
+_SCALAR_BYTES = {0xC0: 1, 0xC2: 1, 0xC3: 1, 0xCA: 5, 0xCB: 9, 0xCC: 2, 0xCD: 3, 0xCE: 5, 0xCF: 9,
+                 0xD0: 2, 0xD1: 3, 0xD2: 5, 0xD3: 9}
+_LENGTH_BYTES = {0xC4: 1, 0xC5: 2, 0xC6: 4, 0xD9: 1, 0xDA: 2, 0xDB: 4}
+
+
+def _count_objects(payload: bytes | bytearray | memoryview, name: str) -> None:
+    """Refuse a payload of over MAX_MSGPACK_OBJECTS objects before unpacking it: msgpack's length limits hold per
+    array or map, and a payload of empty arrays, a byte each, unpacked to 70 times its size in Python objects. Walks
+    the type bytes only (str and bin bodies skipped), and stops at what msgpack refuses itself (ext types, the end)."""
+    pos, end, pending, count = 0, len(payload), 1, 0
+    while pending and pos < end:
+        if count == MAX_MSGPACK_OBJECTS:
+            raise DecodeError("too_large", f"{name}: more than {MAX_MSGPACK_OBJECTS} msgpack objects")
+        count, pending = count + 1, pending - 1
+        byte = payload[pos]
+        if byte < 0x80 or byte >= 0xE0:             # fixint
+            pos += 1
+        elif byte < 0xA0:                           # fixmap, fixarray
+            pending += (byte & 0x0F) * (2 if byte < 0x90 else 1)
+            pos += 1
+        elif byte < 0xC0:                           # fixstr
+            pos += 1 + (byte & 0x1F)
+        elif byte in _SCALAR_BYTES:
+            pos += _SCALAR_BYTES[byte]
+        elif byte in _LENGTH_BYTES:
+            width = _LENGTH_BYTES[byte]
+            pos += 1 + width + int.from_bytes(payload[pos + 1:pos + 1 + width], "big")
+        elif 0xDC <= byte <= 0xDF:                  # array 16/32, map 16/32
+            width = 2 if byte in (0xDC, 0xDE) else 4
+            pending += int.from_bytes(payload[pos + 1:pos + 1 + width], "big") * (2 if byte >= 0xDE else 1)
+            pos += 1 + width
+        else:
+            return
 
 
 def decode_error_reply(payload: bytes | bytearray | memoryview) -> Error | str:

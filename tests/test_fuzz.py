@@ -167,6 +167,32 @@ def test_random_payloads_decode_or_raise_decode_error(name, payload):
     check_decode(payload, MODELS[name])
 
 
+def _array_of_arrays(element: bytes, size: int) -> bytes:
+    """msgpack of an array of arrays of 65535 `element`s each, about `size` bytes in all."""
+    inner = b"\xdc\xff\xff" + element * 0xFFFF
+    count = size // len(inner)
+    return b"\xdc" + count.to_bytes(2, "big") + inner * count
+
+
+@pytest.mark.parametrize("element", [b"\x90", b"\x80", b"\xa2ab", b"\xcd\x01\x00"],
+                         ids=["empty arrays", "empty maps", "2-char strings", "uint16s"])
+def test_a_payload_of_many_small_objects_is_refused_before_it_is_unpacked(element):
+    """msgpack's length limits hold per array or map: 8 MiB of empty arrays, a byte each, unpacked to 566 MiB of
+    Python objects, 70 times the payload (a control query or a frame may be 48 MiB; the service decodes queries in
+    5 threads at once, and frames of a key in its history and in each worker on it)."""
+    import tracemalloc
+    payload = _array_of_arrays(element, 2 << 20)
+    tracemalloc.start()
+    try:
+        with pytest.raises(DecodeError) as refused:
+            decode(payload, StartRequest)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 << 20, f"{peak / 2**20:.0f} MiB to refuse a payload of {len(payload) / 2**20:.0f} MiB"
+    assert refused.value.code == "too_large" and "msgpack objects" in refused.value.message
+
+
 def check_image(frame: Frame) -> None:
     """decode_frame returns the frame's pixels at its declared size, or raises a typed FrameError."""
     try:
@@ -405,6 +431,31 @@ def test_hostile_frames_into_a_running_session(service, victim, payloads):
     # this batch's, not the session's so far, which were above 0 from the first batch on
     assert health.frames_rejected + health.frames_dropped > before.frames_rejected + before.frames_dropped
     assert health.frames_received < 2**32          # counters stay meaningful whatever seq a payload claims
+
+
+def test_a_jpeg_of_many_scans_is_rejected_without_decoding_it(service, victim):
+    """A progressive JPEG's scans each make the decoder go over the whole image: 2,000 copies of its last scan (33
+    bytes each) in a 4096x4096 frame of 130 kB held the worker in cv2.imdecode until its watchdog killed it 15 s
+    later, and the session restarted; sent again, it kept the session down."""
+    import cv2
+    svc, client = service
+    if status(client, "victim").state not in ("tracking", "lost"):
+        seq = victim.good()
+        call(client, NODE, "reinit", ReinitRequest(sid="victim", box=SCENE.box(seq), seq=seq))
+        assert wait_until(lambda: status(client, "victim").state == "tracking", 20)
+    pid = svc.manager.worker_pids()["victim"]
+    data = cv2.imencode(".jpg", np.zeros((4096, 4096), np.uint8), [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    last_scan = data[data.rindex(b"\xff\xda"):-2]
+    data = data[:-2] + last_scan * 2000 + b"\xff\xd9"
+    victim.put(encode(Frame(seq=victim.seq + 1, stamp_ns=time.time_ns(), encoding="jpeg", width=4096, height=4096,
+                            data=data)))
+    victim.seq += 1
+    time.sleep(0.2)
+    seq = victim.good()
+    assert wait_until(lambda: victim.boxed(seq), 5), status(client, "victim")
+    assert svc.manager.worker_pids()["victim"] == pid
+    health = wait_until(lambda: _health_after(victim, seq), 5)
+    assert health is not None and health.restarts == 0 and "2006 scans" in (health.message or "")
 
 
 def _health_after(feed: HostileFeed, seq: int):
