@@ -9,7 +9,7 @@ import numpy as np
 
 
 def check_box(box, frame_shape) -> np.ndarray:
-    """The box as four float64 values (x, y, w, h); ValueError unless they are finite, w and h are positive, the
+    """The box as four float64 values (x, y, w, h); ValueError unless they are finite, w and h at least a pixel, the
     box overlaps the frame of shape (height, width, ...) and is no larger than it: the search area grows with the
     box (a 5000x5000 box on a 320x240 frame took 16 s to initialise, a 1e5 one failed allocating 120 GB)."""
     try:
@@ -26,6 +26,9 @@ def check_box(box, frame_shape) -> np.ndarray:
     x, y, w, h = values
     if w <= 0 or h <= 0:
         raise ValueError(f"box width and height must be positive, got w={w}, h={h}")
+    if w < 1 or h < 1:      # a box in normalised coordinates, most likely: it was tracked, as a box of a pixel
+        raise ValueError(f"box width and height must be at least a pixel (boxes are in pixels, not normalised), got "
+                         f"w={w}, h={h}")
     height, width = frame_shape[:2]
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
         # tolist(): plain numbers in the message, which reaches service clients (not numpy 2's np.float64(...))

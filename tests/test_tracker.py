@@ -157,6 +157,8 @@ def test_a_config_that_is_no_tracker_config_is_a_clear_error():
 @pytest.mark.parametrize("box, message", [
     ((10, 10, 0, 5), "positive"),
     ((10, 10, -3, 5), "positive"),
+    ((0.2, 0.3, 0.1, 0.1), r"at least a pixel \(boxes are in pixels, not normalised\)"),   # was tracked, "ok"
+    ((10, 10, 1e-300, 20), "at least a pixel"),
     ((10, float("nan"), 5, 5), "finite"),
     ((10, 10, 5), "four"),
     ("abcd", "four"),
