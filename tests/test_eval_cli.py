@@ -565,6 +565,24 @@ def test_track_leaves_out_the_hidden_files_a_mac_puts_beside_each_frame(tmp_path
     check_boxes_file(tmp_path / "boxes.txt", 10, box)
 
 
+def test_track_warns_of_a_video_cut_short(tmp_path, caplog):
+    """A video cut in half (a copy interrupted, a recorder's power lost) was tracked to where it broke, the box file
+    as for a whole video, without a word that frames were missing."""
+    frames, box = synthetic_frames(30)
+    whole, cut = tmp_path / "whole.avi", tmp_path / "cut.avi"
+    writer = cv2.VideoWriter(str(whole), cv2.VideoWriter_fourcc(*"MJPG"), 10, (160, 120))
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size // 2])
+    track = ["--box", ",".join(str(v) for v in box), "--tracker", "identity", "--out", str(tmp_path / "boxes.txt")]
+    assert main(["track", str(whole), *track]) == 0 and "declares" not in caplog.text
+    assert main(["track", str(cut), *track]) == 0
+    lines = (tmp_path / "boxes.txt").read_text().splitlines()[1:]
+    assert 0 < len(lines) < 30
+    assert f"cut.avi: the video ended after {len(lines)} of the 30 frames its header declares" in caplog.text
+
+
 def test_track_read_by_head_ends_quietly(tmp_path):
     """`tacf track ... | head` logged "ERROR ... Broken pipe" and exited 2, as for a source it could not read: it
     ends as Unix filters do, silent, with the status of a filter the pipe stopped."""

@@ -45,12 +45,17 @@ def open_source(source: Path) -> tuple[Iterator[tuple[str, np.ndarray]], float]:
     if not cap.isOpened():
         raise ValueError(f"{source}: OpenCV cannot open this video")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+    declared = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
 
     def frames() -> Iterator[tuple[str, np.ndarray]]:
         try:
             for number in itertools.count(1):
                 ok, frame = cap.read()
                 if not ok:
+                    # a file cut short (a copy interrupted, a recorder's power lost) reads as a shorter video
+                    if number - 1 < declared:
+                        log.warning("%s: the video ended after %d of the %d frames its header declares (cut short "
+                                    "or damaged?)", source, number - 1, declared)
                     return
                 yield f"{source} frame {number}", frame
         finally:
