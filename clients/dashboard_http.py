@@ -59,6 +59,10 @@ WRITE_TIMEOUT_S = 10.0           # a browser that does not read for this long is
 # every byte, and a client sending one every few seconds held its thread for good, before any token check.
 HEAD_TIMEOUT_S = 10.0
 MAX_CONNECTIONS = 256            # open at once, a thread each; more are closed as they come (a busy page opens 3-4)
+# A request's line and headers in all. http.client alone takes 100 header lines of 64 KiB each: a client without the
+# token held 6.2 MiB per connection by stopping short of the blank line. This page's requests carry a key and a token
+# of 256 characters at most; by default nginx refuses a header line over 8 KiB, Node a head over 16 KiB.
+MAX_HEAD = 64 * 1024
 # the fields each POST action takes (the module docstring's list)
 ACTION_FIELDS = {"/api/start": {"image_key", "box", "seq", "sid", "profile", "overrides", "node"},
                  "/api/stop": {"sid", "node"}, "/api/reinit": {"sid", "box", "seq", "node"}, "/api/watch": {"key"}}
@@ -231,7 +235,15 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self.server.expect_head(self.connection, False)
 
     def parse_request(self) -> bool:
-        parsed = super().parse_request()                    # reads the headers
+        rfile, self.rfile = self.rfile, _HeadBudget(self.rfile, MAX_HEAD - len(self.raw_requestline))
+        try:
+            parsed = super().parse_request()                # reads the headers
+        except HeadTooLarge:
+            self._error(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, "head_too_large",
+                        f"a request's line and headers may take {MAX_HEAD} bytes in all", {"Connection": "close"})
+            return False
+        finally:
+            self.rfile = rfile
         self.server.expect_head(self.connection, False)     # the head came: streams (/events, /mjpeg) run on
         if parsed and self.command != "POST" and (self.headers.get("Transfer-Encoding") is not None
                                                   or body_length(self.headers) != 0):
@@ -581,6 +593,25 @@ class DashboardHandler(BaseHTTPRequestHandler):
         self.end_headers()
         if body and self.command != "HEAD":    # a body after a HEAD reply would be read as the next reply
             self.wfile.write(body)
+
+
+class HeadTooLarge(Exception):
+    """A request's line and headers passed MAX_HEAD bytes."""
+
+
+class _HeadBudget:
+    """The connection's rfile as http.client.parse_headers reads it (line by line), up to `left` bytes: the lines
+    read are kept until the blank line ends them."""
+
+    def __init__(self, rfile, left: int):
+        self.rfile, self.left = rfile, left
+
+    def readline(self, limit: int) -> bytes:
+        line = self.rfile.readline(min(limit, self.left + 1))
+        self.left -= len(line)
+        if self.left < 0:
+            raise HeadTooLarge
+        return line
 
 
 # --- request fields ------------------------------------------------------------------------------------------------

@@ -632,6 +632,55 @@ def test_a_request_head_sent_a_byte_at_a_time_is_cut_off_and_connections_are_cap
         assert status == 200 and "tacf_dashboard_connections_refused_total 1" in body.decode()
 
 
+def _rss_mib() -> float:
+    return int(re.search(r"VmRSS:\s+(\d+) kB", Path("/proc/self/status").read_text()).group(1)) / 1024
+
+
+def test_a_request_head_over_64_kib_gets_431_and_clients_stopping_short_of_its_end_hold_no_memory():
+    """Before any token check: http.client reads up to 100 header lines of 64 KiB, so a client without the token that
+    sent 98 of them and stopped short of the blank line held 6.2 MiB of the dashboard's memory until its head timed
+    out (10 s); 20 such clients took 124 MiB, 256 (the connection cap) would take 1.6 GB. A head is read to 64 KiB
+    (request line and headers), then answered 431 and closed."""
+    token = "head-token-0123456789"
+    line = b"X-Pad: " + b"a" * (65536 - 9) + b"\r\n"          # 64 KiB: the longest header line http.client takes
+    with DashboardApp(no_service_options(), port=0, access=DashboardAccess(token)) as app:
+        address = app.server.server_address[:2]
+        under = f"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {token}\r\nConnection: close" \
+                f"\r\nX-Pad: ".encode()
+        under += b"a" * (dashboard_http.MAX_HEAD - len(under) - 4) + b"\r\n\r\n"
+        assert _raw_reply(address, under).startswith(b"HTTP/1.1 200 "), "a head of 64 KiB is served"
+        reply = _raw_reply(address, b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n" + line + b"\r\n")
+        head, _, body = reply.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 431 ") and b"\r\nConnection: close\r\n" in head, reply[:200]
+        assert json.loads(body)["error"] == "head_too_large"
+
+        before = _rss_mib()
+        clients = [socket.create_connection(address, timeout=10) for _ in range(20)]
+        try:
+            def flood(client: socket.socket) -> None:
+                with contextlib.suppress(OSError):          # cut off: the 431 came, then the connection closed
+                    client.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+                    for _ in range(98):
+                        client.sendall(line)
+            floods = [threading.Thread(target=flood, args=(client,), daemon=True) for client in clients]
+            for thread in floods:
+                thread.start()
+            for thread in floods:
+                thread.join(timeout=20)
+            peak = before
+            for _ in range(20):                  # the server reads what the kernel holds for it within a second
+                peak = max(peak, _rss_mib())
+                time.sleep(0.05)
+            assert peak - before < 8, f"{peak - before:.0f} MiB held by 20 clients"
+            for client in clients:
+                with contextlib.suppress(ConnectionResetError):
+                    assert client.recv(65536).startswith(b"HTTP/1.1 431 ")
+        finally:
+            for client in clients:
+                client.close()
+        assert _wait(lambda: app.server.connections == 0)
+
+
 def test_a_post_body_sent_a_byte_at_a_time_is_cut_off():
     """The head's deadline ended with the head: a POST whose body came a byte every 0.3 s (or one over the limit,
     drained before its 413) kept its thread for good, the socket timeout restarting on every byte."""
