@@ -3,7 +3,8 @@
 Covers start/list/status/stop, boxes following a moving target, init on the frame the box was drawn on,
 several sessions on one feed, a box sent with its frame, reinit, latest-only under a fast publisher, every bad
 control input, bad frames counted in Health without harming other sessions, a worker SIGKILL and its recovery,
-the workers' fork server and its SIGKILL, too many sessions.
+the workers' fork server and its SIGKILL, too many sessions; and the boxes of a real sequence, equal to the
+library's.
 """
 from __future__ import annotations
 
@@ -860,6 +861,71 @@ def test_a_box_whose_frame_left_the_history_is_followed_from_the_nearest_frame_a
         assert [f.seq for f in history.frames_from(key, 40)] == [29]                     # none after it: newest
     finally:
         history.release(key)
+
+
+PERSON12_1 = Path(__file__).resolve().parents[2] / "shared" / "data" / "sequences" / "UAV123_10fps" / "person12_1"
+
+
+@pytest.mark.data
+def test_the_service_tracks_as_the_library_does_on_lossless_frames(service, client):
+    """Frames sent one at a time as PNG, none dropped: each box, PME and ok flag equals, to the float, what the
+    library's Tracker gives on the same frames (`tacf track`'s); so after a reinit at frame 15 (the library's tracker
+    re-initialised there) and after the worker's SIGKILL at frame 29 (a tracker started afresh on frame 29 with its
+    box, which is what a restart is: the model learnt before is lost)."""
+    from tacf import Tracker
+    from tacf.images import read_image
+
+    if not PERSON12_1.is_dir():
+        pytest.skip(f"{PERSON12_1} is absent")
+    frames = [read_image(path) for path in sorted((PERSON12_1 / "img").glob("*.jpg"))[:45]]
+    truth = np.loadtxt(PERSON12_1 / "groundtruth.txt", delimiter=",")[:45]
+    truth[:, :2] -= 1                                   # the benchmark's boxes are 1-based
+    truth = [tuple(box) for box in truth.tolist()]
+    reinit_at, killed_at = 15, 29
+
+    library, expected = Tracker(), {}
+    library.init(frames[0], truth[0])
+    for seq in range(1, len(frames)):
+        result = library.update(frames[seq])
+        expected[seq] = (tuple(map(float, result.box)), float(result.pme), bool(result.ok))
+        if seq == reinit_at:
+            library.init(frames[seq], truth[seq])
+        elif seq == killed_at:
+            library = Tracker()
+            library.init(frames[seq], result.box)
+
+    key, sid = "test/cam/person12_1", "parity"
+    payloads = [encode(encode_frame(frame, seq, "png")) for seq, frame in enumerate(frames)]
+    publisher = client.declare_publisher(key)
+    results = Collector(client, NODE, sid)
+
+    def status():
+        return call(client, NODE, "status", StatusRequest(sid=sid))
+    try:
+        start(client, service, image_key=key, box=truth[0], seq=0, frames=[decode(payloads[0], Frame)], sid=sid,
+              profile=None)                             # the service's default profile, as Tracker() takes its own
+        assert wait_until(lambda: status().state == "tracking", 30)
+        for seq in range(1, len(frames)):
+            publisher.put(payloads[seq])
+            assert wait_until(lambda: results.results() and results.results()[-1].seq == seq, 20), seq
+            if seq == reinit_at:
+                call(client, NODE, "reinit", ReinitRequest(sid=sid, box=truth[seq], seq=seq))
+                assert wait_until(lambda: status().init_seq == seq and status().state == "tracking", 20)
+            elif seq == killed_at:
+                assert wait_until(lambda: status().last_seq == seq, 5)     # the box the restart starts from
+                pid = service.manager.worker_pids()[sid]
+                os.kill(pid, signal.SIGKILL)
+                assert wait_until(lambda: service.manager.worker_pids().get(sid) not in (None, pid), 10)
+                assert wait_until(lambda: (info := status()).restarts == 1 and info.state == "tracking", 20)
+        health = wait_until(lambda: (h := results.last_health()) and h.last_seq == len(frames) - 1 and h, 5)
+        assert (health.frames_dropped, health.frames_rejected) == (0, 0), health
+        got = {r.seq: (r.box, r.pme, r.ok) for r in results.results()}
+        assert len(results.results()) == len(got) == len(expected)             # no frame skipped or repeated
+        assert got == expected
+    finally:
+        results.close()
+        publisher.undeclare()
+        call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 # ---------------------------------------------------------------------------------------------- faults
