@@ -17,7 +17,7 @@ import logging
 import os
 import sys
 
-from tacf.stop_signals import (hold_stop_signals, interrupt_on_stop_signals, interrupted_exit_code,
+from tacf.stop_signals import (hold_stop_signals, interrupt_on_stop_signals, interrupted_exit_code, stop_signal_came,
                                release_stop_signals, restore_handlers, restore_signal_mask)
 
 COMMAND_MODULES = (
@@ -63,7 +63,11 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             restore_handlers(handlers)
             restore_signal_mask(mask)   # for a caller in this process (tests); a signal still held comes out here
-    except KeyboardInterrupt:       # Ctrl-C where a command does not handle it: a line, not a traceback
+    except (KeyboardInterrupt, RuntimeError) as exc:   # Ctrl-C a command does not handle: a line, not a traceback
+        # A Ctrl-C during numba's first compile after an install (5-8 s) lands in llvmlite's ctypes callback, which
+        # drops the KeyboardInterrupt; numba then fails with "RuntimeError: no compiled object yet for ...".
+        if isinstance(exc, RuntimeError) and not (handlers and stop_signal_came()):
+            raise
         print(f"tacf {args.command}: interrupted" if args else "tacf: interrupted", file=sys.stderr)
         return interrupted_exit_code() if handlers else 130     # 128 + the signal's number, as shells report it
     except BrokenPipeError:         # `tacf track ... | head`: the reader has all it wants, as for any Unix filter

@@ -13,6 +13,7 @@ import threading
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 
 _interrupted_by = signal.SIGINT     # the stop signal interrupt_on_stop_signals() turned into a KeyboardInterrupt last
+_stop_signal_came = False           # since interrupt_on_stop_signals(), its KeyboardInterrupt raised or lost
 
 
 def hold_stop_signals() -> set | None:
@@ -40,16 +41,22 @@ def interrupt_on_stop_signals() -> dict:
     closes its files and reports its work on Ctrl-C then does so on SIGTERM (`timeout`, a supervisor) and SIGHUP (a
     closed terminal) too, which used to end it on the spot. Returns the handlers replaced, for restore_handlers();
     none off the main thread, where Python takes no handler (a test running `tacf.cli.main` on a thread)."""
-    global _interrupted_by
-    _interrupted_by = signal.SIGINT
+    global _interrupted_by, _stop_signal_came
+    _interrupted_by, _stop_signal_came = signal.SIGINT, False
     if threading.current_thread() is not threading.main_thread():
         return {}
 
     def interrupt(signal_number: int, _frame) -> None:
-        global _interrupted_by
-        _interrupted_by = signal_number
+        global _interrupted_by, _stop_signal_came
+        _interrupted_by, _stop_signal_came = signal_number, True
         raise KeyboardInterrupt
     return {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
+
+
+def stop_signal_came() -> bool:
+    """Whether a stop signal reached the handlers of interrupt_on_stop_signals(), even one whose KeyboardInterrupt
+    was lost: raised inside a ctypes callback (llvmlite's, while numba compiles), it is printed and dropped there."""
+    return _stop_signal_came
 
 
 def restore_handlers(handlers: dict) -> None:

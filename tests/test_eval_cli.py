@@ -1523,3 +1523,31 @@ def test_eval_videos_draw_every_track_and_the_ground_truth(tmp_path):
     assert (picture[47, 62] > 190).all()                      # the ground truth's top edge, white
     assert np.abs(picture[240, 240] - orange).max() < 60      # the imported track's top edge
     assert last[:band, 200:].max() < 60 and last[:band, :200].max() > 200   # the band: text on black, left
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")     # ctypes's report of the drop
+@pytest.mark.parametrize("interrupted", [True, False])
+def test_a_ctrl_c_that_a_ctypes_callback_drops_still_ends_the_command_as_interrupted(monkeypatch, capsys, interrupted):
+    """A Ctrl-C during numba's first compile after an install lands in llvmlite's ctypes callback, which prints the
+    KeyboardInterrupt and drops it; numba then fails with "RuntimeError: no compiled object yet": the command ended
+    with that traceback, exit 1. Here the callback is libc's qsort's; a RuntimeError without a signal stays one."""
+    import ctypes
+
+    from tacf.eval import cli as eval_cli
+
+    def compile_in_a_callback(args):
+        def compare(a, b):
+            if interrupted:
+                signal.raise_signal(signal.SIGINT)      # its KeyboardInterrupt is raised in the callback, and lost
+            return 0
+        values = (ctypes.c_int * 2)(2, 1)
+        compare_type = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p)
+        ctypes.CDLL(None).qsort(values, 2, ctypes.sizeof(ctypes.c_int), compare_type(compare))
+        raise RuntimeError("no compiled object yet for <Library '_fhog_images'>")
+    monkeypatch.setattr(eval_cli, "cmd_track", compile_in_a_callback)
+    if interrupted:
+        assert main(["track", "clip.mp4", "--box", "1,2,3,4"]) == 130
+        assert capsys.readouterr().err.endswith("tacf track: interrupted\n")
+    else:
+        with pytest.raises(RuntimeError, match="no compiled object yet"):
+            main(["track", "clip.mp4", "--box", "1,2,3,4"])
