@@ -412,11 +412,7 @@ def test_hostile_frames_into_a_running_session(service, victim, payloads):
     """Each batch of hostile frames is counted (rejected, or dropped when superseded), the worker survives it
     (same process, no restart), and the next good frame is tracked."""
     svc, client = service
-    if status(client, "victim").state not in ("tracking", "lost"):
-        seq = victim.good()
-        call(client, NODE, "reinit", ReinitRequest(sid="victim", box=SCENE.box(seq), seq=seq))
-        assert wait_until(lambda: status(client, "victim").state == "tracking", 20)
-    pid = svc.manager.worker_pids()["victim"]
+    pid = _victim_tracking(svc, client, victim)
     seq = victim.good()                 # the counts before this batch: the Health after a good frame
     assert wait_until(lambda: victim.boxed(seq), 20), status(client, "victim")
     before = wait_until(lambda: _health_after(victim, seq), 5)
@@ -439,11 +435,7 @@ def test_a_jpeg_of_many_scans_is_rejected_without_decoding_it(service, victim):
     later, and the session restarted; sent again, it kept the session down."""
     import cv2
     svc, client = service
-    if status(client, "victim").state not in ("tracking", "lost"):
-        seq = victim.good()
-        call(client, NODE, "reinit", ReinitRequest(sid="victim", box=SCENE.box(seq), seq=seq))
-        assert wait_until(lambda: status(client, "victim").state == "tracking", 20)
-    pid = svc.manager.worker_pids()["victim"]
+    pid = _victim_tracking(svc, client, victim)
     data = cv2.imencode(".jpg", np.zeros((4096, 4096), np.uint8), [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
     last_scan = data[data.rindex(b"\xff\xda"):-2]
     data = data[:-2] + last_scan * 2000 + b"\xff\xd9"
@@ -456,6 +448,15 @@ def test_a_jpeg_of_many_scans_is_rejected_without_decoding_it(service, victim):
     assert svc.manager.worker_pids()["victim"] == pid
     health = wait_until(lambda: _health_after(victim, seq), 5)
     assert health is not None and health.restarts == 0 and "2006 scans" in (health.message or "")
+
+
+def _victim_tracking(svc, client, victim: HostileFeed) -> int:
+    """The victim session's worker pid, once it tracks: re-initialised if an earlier batch left it failed."""
+    if status(client, "victim").state not in ("tracking", "lost"):
+        seq = victim.good()
+        call(client, NODE, "reinit", ReinitRequest(sid="victim", box=SCENE.box(seq), seq=seq))
+        assert wait_until(lambda: status(client, "victim").state == "tracking", 20)
+    return svc.manager.worker_pids()["victim"]
 
 
 def _health_after(feed: HostileFeed, seq: int):
