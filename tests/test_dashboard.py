@@ -1584,8 +1584,9 @@ def test_the_page_follows_services_coming_and_going(browser):
                 return browser.execute_script("const b = document.querySelector(`tr[data-sid=\"${arguments[0]}\"]"
                                               " .badge`); return b ? b.textContent.trim() : '';", sid)
             assert _wait(lambda: badge() in ("tracking", "lost"), timeout=30), badge()
+            # the badge can come from a box before the session's first health (about a second): wait for that
+            health = _wait(lambda: app.dashboard.client.status("goes").health)
             # one health, then silence, from a service whose token never goes: the dashboard keeps its session
-            health = app.dashboard.client.status("goes").health
             app.dashboard.session.put(health_key("silent", "quiet"), encode(health.model_copy(
                 update={"node": "silent", "sid": "quiet", "stamp_ns": time.time_ns()})))
             stale = _wait(lambda: re.fullmatch(r"no news for \d+ s", badge("quiet")), timeout=15)
