@@ -12,8 +12,8 @@ import threading
 # A terminal's Ctrl-C and hangup, `kill`'s and systemd's SIGTERM.
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGINT", "SIGHUP") if hasattr(signal, name))
 
-_interrupted_by = signal.SIGINT     # the stop signal interrupt_on_stop_signals() turned into a KeyboardInterrupt last
-_stop_signal_came = False           # since interrupt_on_stop_signals(), its KeyboardInterrupt raised or lost
+# The stop signal interrupt_on_stop_signals() turned into a KeyboardInterrupt last (raised or lost), None before one
+_interrupted_by: int | None = None
 
 
 def hold_stop_signals() -> set | None:
@@ -41,14 +41,14 @@ def interrupt_on_stop_signals() -> dict:
     closes its files and reports its work on Ctrl-C then does so on SIGTERM (`timeout`, a supervisor) and SIGHUP (a
     closed terminal) too, which used to end it on the spot. Returns the handlers replaced, for restore_handlers();
     none off the main thread, where Python takes no handler (a test running `tacf.cli.main` on a thread)."""
-    global _interrupted_by, _stop_signal_came
-    _interrupted_by, _stop_signal_came = signal.SIGINT, False
+    global _interrupted_by
+    _interrupted_by = None
     if threading.current_thread() is not threading.main_thread():
         return {}
 
     def interrupt(signal_number: int, _frame) -> None:
-        global _interrupted_by, _stop_signal_came
-        _interrupted_by, _stop_signal_came = signal_number, True
+        global _interrupted_by
+        _interrupted_by = signal_number
         raise KeyboardInterrupt
     return {sig: signal.signal(sig, interrupt) for sig in STOP_SIGNALS}
 
@@ -56,7 +56,7 @@ def interrupt_on_stop_signals() -> dict:
 def stop_signal_came() -> bool:
     """Whether a stop signal reached the handlers of interrupt_on_stop_signals(), even one whose KeyboardInterrupt
     was lost: raised inside a ctypes callback (llvmlite's, while numba compiles), it is printed and dropped there."""
-    return _stop_signal_came
+    return _interrupted_by is not None
 
 
 def restore_handlers(handlers: dict) -> None:
@@ -67,4 +67,4 @@ def restore_handlers(handlers: dict) -> None:
 def interrupted_exit_code() -> int:
     """What a shell reports for a command ended by the stop signal behind the last KeyboardInterrupt: 128 and its
     number (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)."""
-    return 128 + _interrupted_by
+    return 128 + (_interrupted_by or signal.SIGINT)
