@@ -1551,3 +1551,13 @@ def test_a_ctrl_c_that_a_ctypes_callback_drops_still_ends_the_command_as_interru
     else:
         with pytest.raises(RuntimeError, match="no compiled object yet"):
             main(["track", "clip.mp4", "--box", "1,2,3,4"])
+
+
+def test_a_count_of_one_sequence_is_singular(tmp_path, caplog):
+    """The logs said "1 sequences"."""
+    caplog.set_level("INFO", logger="tacf.eval.cli")
+    data = write_synthetic_dataset(tmp_path, 4)
+    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--no-progress",
+                 "--json", str(tmp_path / "bench.json")]) == 0
+    assert "generic layout, 1 sequence matching '*'" in caplog.text
+    assert "1 sequences" not in caplog.text

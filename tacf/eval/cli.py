@@ -133,6 +133,7 @@ def register_bench(bench_subparsers) -> None:
 
 def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frames: int | None = None):
     from .datasets import detect_layout, load_sequences
+    from .report import counted
 
     layout = detect_layout(root)
     if ranges is not None and layout != "uav123":
@@ -145,7 +146,8 @@ def _load(root: Path, pattern: str | None, ranges: Path | None = None, max_frame
         raise ValueError(f"no sequences in {root} matching {pattern!r}; it has {listed or 'none'}")
     if max_frames is not None:
         seqs = [replace(s, frames=s.frames[:max_frames], gt=s.gt[:max_frames]) for s in seqs]
-    log.info("%s: %s layout, %d sequences%s", root, layout, len(seqs), f" matching {pattern!r}" if pattern else "")
+    log.info("%s: %s layout, %s%s", root, layout, counted(len(seqs), "sequence"),
+             f" matching {pattern!r}" if pattern else "")
     return seqs
 
 
@@ -307,7 +309,7 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import UAV_PREFIXES, bench, is_uav
     from .provenance import provenance
-    from .report import strict_json
+    from .report import counted, strict_json
 
     root = args.root
     if root is None:
@@ -328,8 +330,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
                       "--sequences chooses others, '*' all of them", len(seqs), root, "*, ".join(UAV_PREFIXES))
             return 2
         seqs = uav
-        log.info("timing the %d UAV sequences among them (%s*; --sequences chooses others)", len(seqs),
-                 "*, ".join(UAV_PREFIXES))
+        log.info("timing the %s among them (%s*; --sequences chooses others)",
+                 counted(len(seqs), "UAV sequence"), "*, ".join(UAV_PREFIXES))
     if not seqs:
         log.error("no sequences to benchmark in %s", root)
         return 2
@@ -347,9 +349,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
             log.info("%s (opencv-csrt %.1f fps, %.2fx); wrote %s", headline, peer["fps"],
                      result["ratio_to_opencv-csrt"], args.json)
         else:   # a failed pair or a Ctrl-C: side by side, the speeds over the same sequences, the ratio's
-            log.info("%s over its %d sequences; over the %d it and opencv-csrt both finished, %.1f against %.1f fps "
-                     "(%.2fx); wrote %s", headline, len(result["sequences"]), len(over["sequences"]), over["fps"],
-                     over["peer_fps"], result["ratio_to_opencv-csrt"], args.json)
+            log.info("%s over its %s; over the %d it and opencv-csrt both finished, %.1f against %.1f fps "
+                     "(%.2fx); wrote %s", headline, counted(len(result["sequences"]), "sequence"),
+                     len(over["sequences"]), over["fps"], over["peer_fps"], result["ratio_to_opencv-csrt"], args.json)
     else:
         sys.stdout.write(text)
     failed = sum(len(report["failed"]) for report in [result, *result["peers"].values()])

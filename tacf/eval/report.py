@@ -38,6 +38,11 @@ TRACKER_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c56
                    "#bcbd22", "#17becf")
 
 
+def counted(count: int, noun: str) -> str:
+    """'1 sequence', '2 sequences' (the logs and titles said "1 sequences")."""
+    return f"{count} {noun}" + ("" if count == 1 else "s")
+
+
 def tracker_colour(index: int) -> str:
     return TRACKER_COLOURS[index % len(TRACKER_COLOURS)]
 
@@ -256,7 +261,8 @@ def plot_attributes(reports: list[TrackerReport], result: dict, out_dir: Path) -
                 curves.append((float(np.mean(success)), i, r.name, success))
         for auc, i, name, success in sorted(curves, key=lambda c: -c[0]):
             ax.plot(xs, success, label=f"{name} [{auc:.3f}]", linewidth=1.5, **_line_style(i))
-        ax.set(title=f"{a['name']} ({attribute}, {len(a['sequences'])} sequences)", xlabel="Overlap threshold",
+        ax.set(title=f"{a['name']} ({attribute}, {counted(len(a['sequences']), 'sequence')})",
+               xlabel="Overlap threshold",
                ylabel="Success rate", xlim=(xs[0], xs[-1]), ylim=(0, 1.01))
         ax.grid(alpha=0.3)
         if curves:
@@ -433,7 +439,7 @@ def robustness_table(result: dict) -> str:
     else:
         title = f"Robustness: first box moved by (dx,dy) = {starts} pixels"
     pooled = all("otb_pooled" in t for t in trackers.values())
-    lines = [f"{title}; {result['sequences']} sequences:", "",
+    lines = [f"{title}; {counted(result['sequences'], 'sequence')}:", "",
              f"| tracker | AUC, one pass | mean over the starts | min - max | difference to {first} "
              "(95 % interval over sequences) |" + (" OTB's TRE, pooled: AUC / precision@20 |" if pooled else ""),
              "|---|---|---|---|---|" + ("---|" if pooled else "")]
@@ -586,7 +592,7 @@ def plot_robustness(result: dict, out_dir: Path) -> Path:
         ax.hlines(t["mean"], x - 0.3, x + 0.3, color="black", linewidth=2)
     ax.set_xticks(range(len(trackers)), list(trackers), rotation=20)
     starts = "starting frames" if result["protocol"] == "tre" else "starting boxes"
-    ax.set(title=f"Mean AUC from {len(result['starts'])} {starts} ({result['sequences']} sequences)",
+    ax.set(title=f"Mean AUC from {len(result['starts'])} {starts} ({counted(result['sequences'], 'sequence')})",
            ylabel="Success AUC", xlabel="dots: one start each (ringed: the one-pass start); bar: their mean")
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
