@@ -63,6 +63,7 @@ MAX_CONNECTIONS = 256            # open at once, a thread each; more are closed 
 # token held 6.2 MiB per connection by stopping short of the blank line. This page's requests carry a key and a token
 # of 256 characters at most; by default nginx refuses a header line over 8 KiB, Node a head over 16 KiB.
 MAX_HEAD = 64 * 1024
+HEAD_TOO_LARGE = f"a request's line and headers may take {MAX_HEAD} bytes in all"
 # the fields each POST action takes (the module docstring's list)
 ACTION_FIELDS = {"/api/start": {"image_key", "box", "seq", "sid", "profile", "overrides", "node"},
                  "/api/stop": {"sid", "node"}, "/api/reinit": {"sid", "box", "seq", "node"}, "/api/watch": {"key"}}
@@ -81,6 +82,10 @@ _ERROR_STATUS = (                # most specific first
     (RequestTimeout, HTTPStatus.GATEWAY_TIMEOUT),
     (TacfError, HTTPStatus.BAD_GATEWAY),
 )
+
+# the error codes of http.server's own refusals (send_error), as the dashboard names its own
+_STDLIB_ERRORS = {HTTPStatus.BAD_REQUEST: "invalid_request", HTTPStatus.REQUEST_URI_TOO_LONG: "head_too_large",
+                  HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE: "head_too_large"}
 
 
 def tls_context(certfile: str, keyfile: str | None = None) -> ssl.SSLContext:
@@ -239,8 +244,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
         try:
             parsed = super().parse_request()                # reads the headers
         except HeadTooLarge:
-            self._error(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, "head_too_large",
-                        f"a request's line and headers may take {MAX_HEAD} bytes in all", {"Connection": "close"})
+            self._error(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, "head_too_large", HEAD_TOO_LARGE,
+                        {"Connection": "close"})
             return False
         finally:
             self.rfile = rfile
@@ -251,6 +256,15 @@ class DashboardHandler(BaseHTTPRequestHandler):
             # (behind a proxy that reuses its connections, a request smuggled past the proxy's own checks)
             self.close_connection = True
         return parsed
+
+    def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+        """The refusals http.server makes itself (a request line over 64 KiB, over 100 header lines, a malformed
+        request line, a method with no do_ method) in JSON like the dashboard's own: they came as an HTML page."""
+        status = HTTPStatus(code)
+        if status == HTTPStatus.REQUEST_URI_TOO_LONG:      # the stdlib's limit on the line alone: MAX_HEAD's 64 KiB
+            message = HEAD_TOO_LARGE
+        self._error(status, _STDLIB_ERRORS.get(status, status.name.lower()), message or status.description,
+                    {"Connection": "close"})
 
     # --- routing --------------------------------------------------------------------------------------------
     def do_GET(self) -> None:

@@ -820,6 +820,24 @@ def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
         assert app.dashboard.image_keys() == []
 
 
+def test_requests_the_standard_library_refuses_get_json_too():
+    """The refusals http.server makes itself came as its HTML page, where every other error of the dashboard is JSON:
+    a request line over 64 KiB (414), over 100 header lines (431), a method with no handler (501), a malformed
+    request line (400). A program reading the API's errors got HTML it could not parse."""
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        for request, status, error in (
+                (b"GET /" + b"a" * 65536 + b" HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 414, "head_too_large"),
+                (b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n" + b"X-A: b\r\n" * 101 + b"\r\n", 431, "head_too_large"),
+                (b"TRACE / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 501, "not_implemented"),
+                (b"GET / junk HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 400, "invalid_request")):
+            head, _, body = _raw_reply(address, request).partition(b"\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 %d " % status) and b"\r\nConnection: close\r\n" in head, head
+            assert b"\r\nContent-Type: application/json\r\n" in head, head
+            reply = json.loads(body)
+            assert reply["error"] == error and reply["message"], reply
+
+
 def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
     """Only a POST's body is read: the body of a GET or HEAD was left on the connection and answered as a request
     of its own (a POST hidden in a GET's body watched its key), which behind a proxy that reuses its connections
