@@ -8,8 +8,8 @@
 
 Every call is one Zenoh query on tacf/<node>/control/<op> (a wildcard node when none is given) with a timeout;
 error replies raise the exception class of their code (tacf_clients.errors), a silent service raises
-RequestTimeout, no service at all raises NoService, a bad id InvalidId, and a session that cannot open (a Zenoh
-client with no node reachable) ZenohUnavailable.
+RequestTimeout, no service at all raises NoService, a bad id InvalidId, a session that cannot open (a Zenoh
+client with no node reachable) ZenohUnavailable, and a call after close() ClientClosed.
 
 Several services (edge boxes) on one network: `start(..., node=LEAST_LOADED)` picks one (see `least_loaded`),
 and `watch_nodes()` reports services appearing and disappearing through their liveliness tokens.
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import pydantic
 import zenoh
 
-from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest,
-                                 NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions, UnknownSession,
-                                 as_invalid_id, error_from_wire)
+from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, ClientClosed, InvalidBox, InvalidId, InvalidKey,
+                                 InvalidRequest, NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions,
+                                 UnknownSession, as_invalid_id, error_from_wire)
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -87,6 +87,14 @@ class TrackingClient:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+    def _open_session(self) -> zenoh.Session:
+        """The Zenoh session, to make a call on. Once closed, Zenoh raised its own ZError ("session closed"), which
+        callers catching TacfError did not expect."""
+        if self.session.is_closed():
+            raise ClientClosed("client is closed" if self._own_session else
+                               "client is closed: the Zenoh session it was given is closed")
+        return self.session
 
     # --- control ops --------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: BoxLike, seq: int | None = None, profile: str | None = None, *,
@@ -166,13 +174,14 @@ class TrackingClient:
 
     def alive_nodes(self) -> list[str]:
         """Ids of the services whose liveliness token is up, whether or not they answer queries."""
-        replies = self.session.liveliness().get(keys.service_liveliness_key(keys.WILDCARD), timeout=self.timeout)
+        replies = self._open_session().liveliness().get(keys.service_liveliness_key(keys.WILDCARD),
+                                                        timeout=self.timeout)
         return sorted({node for r in replies if r.ok is not None and (node := _node_of_token(r.ok.key_expr))})
 
     def watch_nodes(self, on_change: Callable[[str, bool], None] | None = None) -> "NodeWatch":
         """Follow services appearing (on_change(node, True)) and disappearing (on_change(node, False)), starting
         with those up now. Close the returned watch (or use `with`) to stop."""
-        return NodeWatch(self.session, on_change)
+        return NodeWatch(self._open_session(), on_change)
 
     # --- results ------------------------------------------------------------------------------------------------
     def subscribe(self, sid: str = keys.WILDCARD, on_box: Callable[[BoxResult], None] | None = None,
@@ -212,7 +221,7 @@ class TrackingClient:
         node = node or self.node or (self._nodes_of_sid.get(sid) if sid != keys.WILDCARD else None)
         with as_invalid_id():
             key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
-        return ResultStream(self.session, key_expr, _ResultDecoder(), latest_only=latest_only,
+        return ResultStream(self._open_session(), key_expr, _ResultDecoder(), latest_only=latest_only,
                             slot_of=lambda item: (item.node, item.sid, type(item).__name__),
                             callback=callback, name=f"tacf-subscribe-{sid}")
 
@@ -294,9 +303,9 @@ class TrackingClient:
         if remaining <= 0:                       # the queries before this one took the call's whole timeout
             raise RequestTimeout(f"no time left for {key}: the queries before it took the call's {self.timeout:g} s")
         log.debug("query %s %s", key, request)
-        handler = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
-                                   target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                                   timeout=remaining)
+        handler = self._open_session().get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
+                                           target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                                           timeout=remaining)
         if not settle:
             return [_parse_reply(reply, reply_model, key, self.timeout) for reply in handler]
         settle_at, replies = now + remaining / 2, []

@@ -398,6 +398,29 @@ def test_closing_the_client_ends_its_streams():
     assert wait_until(lambda: not stream._thread.is_alive(), 5)
 
 
+def test_calls_on_a_closed_client_raise_client_closed():
+    """Every call after close() raised zenoh's own ZError ("session closed"), which a caller catching TacfError, as
+    the client's docs say to, did not catch."""
+    from tacf_clients.errors import ClientClosed, TacfError
+
+    client = TrackingClient(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)), timeout=1.0)
+    client.close()
+    calls = {"start": lambda: client.start("cam/a", (1, 2, 3, 4), node="edge"), "stop": lambda: client.stop("abc"),
+             "status": lambda: client.status("abc"), "reinit": lambda: client.reinit("abc", (1, 2, 3, 4)),
+             "list": client.list, "nodes": client.nodes, "alive_nodes": client.alive_nodes,
+             "watch_nodes": client.watch_nodes, "subscribe": lambda: client.subscribe("abc"),
+             "results": client.results, "iter_boxes": lambda: next(client.iter_boxes("abc"))}
+    for name, call in calls.items():
+        with pytest.raises(TacfError) as exc:
+            call()
+        assert isinstance(exc.value, ClientClosed) and str(exc.value) == "client is closed", (name, exc.value)
+    client.close()                                      # a second close is no error
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        given = TrackingClient(session=session, timeout=1.0)
+    with pytest.raises(ClientClosed, match="the Zenoh session it was given is closed"):
+        given.list()
+
+
 def test_command_line_bad_image_keys_are_usage_errors(capsys):
     from tacf.cli import main
 
