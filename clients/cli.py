@@ -233,7 +233,9 @@ def _common(p: argparse.ArgumentParser, add_zenoh_arguments,
             node_help: str = "service (node id) to address; default: whichever holds the session",
             mode_default: str = ONE_SHOT_MODE) -> None:
     p.add_argument("--node", help=node_help)
-    p.add_argument("--timeout", type=positive_number, default=5.0, help="reply timeout in seconds (default 5)")
+    p.add_argument("--timeout", type=positive_number,
+                   help="reply timeout in seconds (default 5; 30 for start: a service's first start waits for its "
+                        "workers to load the tracker)")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     add_zenoh_arguments(p, mode_default)
 

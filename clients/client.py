@@ -8,8 +8,8 @@
 
 Every call is one Zenoh query on tacf/<node>/control/<op> (a wildcard node when none is given) with a timeout;
 error replies raise the exception class of their code (tacf_clients.errors), a silent service raises
-RequestTimeout, no service at all raises NoService, a bad id InvalidId, and a session that cannot open (a Zenoh
-client with no node reachable) ZenohUnavailable.
+RequestTimeout, no service at all raises NoService, a bad id InvalidId, a session that cannot open (a Zenoh
+client with no node reachable) ZenohUnavailable, and a call after close() ClientClosed.
 
 Several services (edge boxes) on one network: `start(..., node=LEAST_LOADED)` picks one (see `least_loaded`),
 and `watch_nodes()` reports services appearing and disappearing through their liveliness tokens.
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 import pydantic
 import zenoh
 
-from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, InvalidBox, InvalidId, InvalidKey, InvalidRequest,
-                                 NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions, UnknownSession,
-                                 as_invalid_id, error_from_wire)
+from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, ClientClosed, InvalidBox, InvalidId, InvalidKey,
+                                 InvalidRequest, NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions,
+                                 UnknownSession, as_invalid_id, error_from_wire)
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -39,6 +39,10 @@ from tacf_schemas.models import (BoxResult, Error, Frame, Health, ListRequest, R
 log = logging.getLogger(__name__)
 
 DEFAULT_TIMEOUT = 5.0
+# A start is answered once its worker process is forked, and the service's first start waits for the fork server
+# that forks them to load the tracker: 5.7 s with numba's cache empty (a fresh install; 2-core VM, 2026-12-07), and
+# more on a busier machine. With DEFAULT_TIMEOUT it failed there, while the session was created all the same.
+START_TIMEOUT = 30.0
 SETTLE_POLL_S = 0.005   # how often a lookup that may end early looks for replies
 BoxLike = Sequence[float]
 #: `start(..., node=LEAST_LOADED)` runs the session on the least-loaded service ("auto", an id no service takes).
@@ -62,16 +66,18 @@ class TrackingClient:
     node: the service to address by default; None = whichever service holds the session (and, for `start`,
     the only service on the network). LEAST_LOADED is refused here: it is a choice for `start` only.
     timeout: seconds each call may take, however many queries it makes (a start with no node lists the services
-    first; a session whose service is not known yet is looked for first).
+    first; a session whose service is not known yet is looked for first). None: DEFAULT_TIMEOUT, and START_TIMEOUT
+    for a start.
     """
 
     def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
-                 node: str | None = None, timeout: float = DEFAULT_TIMEOUT):
+                 node: str | None = None, timeout: float | None = None):
         if node == LEAST_LOADED:
             raise ValueError(f"node={LEAST_LOADED!r} is for start(); leave the client's node unset")
         with as_invalid_id():
             self.node = keys.validate_id(node, "node id") if node is not None else None
-        self.timeout = timeout
+        self.timeout = DEFAULT_TIMEOUT if timeout is None else timeout
+        self.start_timeout = START_TIMEOUT if timeout is None else timeout
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         self._nodes_of_sid: dict[str, str] = {}
@@ -88,6 +94,14 @@ class TrackingClient:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _open_session(self) -> zenoh.Session:
+        """The Zenoh session, to make a call on. Once closed, Zenoh raised its own ZError ("session closed"), which
+        callers catching TacfError did not expect."""
+        if self.session.is_closed():
+            raise ClientClosed("client is closed" if self._own_session else
+                               "client is closed: the Zenoh session it was given is closed")
+        return self.session
+
     # --- control ops --------------------------------------------------------------------------------------------
     def start(self, image_key: str, box: BoxLike, seq: int | None = None, profile: str | None = None, *,
               sid: str | None = None, overrides: dict[str, bool | int | float] | None = None,
@@ -103,14 +117,18 @@ class TrackingClient:
         """
         request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, frames=list(frames),
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
-        deadline, target = self._deadline(), node or self.node
+        deadline, target = self._deadline(self.start_timeout), node or self.node
         if target == LEAST_LOADED:                                       # every service, even with self.node set
             listings = self._services(None, deadline, settle=True)
             target = least_loaded(listings)
             _refuse_twins([listing.node for listing in listings if listing.node == target])
         elif target is None:
             target = self._single_node(deadline)
-        info = self._call_one(target, "start", request, SessionInfo, deadline)
+        # The service goes on with a start it answers too late: a retry then met duplicate_session, or, without a sid,
+        # started a second session on the same target.
+        late = (f"; service {target!r} may still start the session: check with status"
+                f"{f' {sid!r}' if sid else ''} or list before starting it again")
+        info = self._call_one(target, "start", request, SessionInfo, deadline, late)
         self._remember(info)
         return info
 
@@ -166,13 +184,14 @@ class TrackingClient:
 
     def alive_nodes(self) -> list[str]:
         """Ids of the services whose liveliness token is up, whether or not they answer queries."""
-        replies = self.session.liveliness().get(keys.service_liveliness_key(keys.WILDCARD), timeout=self.timeout)
+        replies = self._open_session().liveliness().get(keys.service_liveliness_key(keys.WILDCARD),
+                                                        timeout=self.timeout)
         return sorted({node for r in replies if r.ok is not None and (node := _node_of_token(r.ok.key_expr))})
 
     def watch_nodes(self, on_change: Callable[[str, bool], None] | None = None) -> "NodeWatch":
         """Follow services appearing (on_change(node, True)) and disappearing (on_change(node, False)), starting
         with those up now. Close the returned watch (or use `with`) to stop."""
-        return NodeWatch(self.session, on_change)
+        return NodeWatch(self._open_session(), on_change)
 
     # --- results ------------------------------------------------------------------------------------------------
     def subscribe(self, sid: str = keys.WILDCARD, on_box: Callable[[BoxResult], None] | None = None,
@@ -212,7 +231,7 @@ class TrackingClient:
         node = node or self.node or (self._nodes_of_sid.get(sid) if sid != keys.WILDCARD else None)
         with as_invalid_id():
             key_expr = f"{keys.session_key(node or keys.WILDCARD, sid)}/{leaf}"
-        return ResultStream(self.session, key_expr, _ResultDecoder(), latest_only=latest_only,
+        return ResultStream(self._open_session(), key_expr, _ResultDecoder(), latest_only=latest_only,
                             slot_of=lambda item: (item.node, item.sid, type(item).__name__),
                             callback=callback, name=f"tacf-subscribe-{sid}")
 
@@ -224,9 +243,9 @@ class TrackingClient:
         with self._lock:
             self._nodes_of_sid[sid] = node
 
-    def _deadline(self) -> float:
-        """When the call starting now must end: every query it makes shares its `timeout`."""
-        return time.monotonic() + self.timeout
+    def _deadline(self, timeout: float | None = None) -> float:
+        """When the call starting now must end: every query it makes shares its timeout (`self.timeout` if None)."""
+        return time.monotonic() + (self.timeout if timeout is None else timeout)
 
     def _single_node(self, deadline: float) -> str:
         nodes = [listing.node for listing in self._services(None, deadline)]
@@ -269,11 +288,13 @@ class TrackingClient:
                         key=lambda e: isinstance(e, UnknownSession))
         raise errors[0] if errors else UnknownSession(f"unknown session {sid!r}")
 
-    def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float):
-        """`op` on one service: `node` is an id, never "*" (a start or stop on every service at once)."""
+    def _call_one(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float,
+                  late: str = ""):
+        """`op` on one service: `node` is an id, never "*" (a start or stop on every service at once). `late` is
+        added to the message of a RequestTimeout for a query sent and not answered in time."""
         with as_invalid_id():
             keys.validate_id(node, "node id")
-        replies = self._query(node, op, request, reply_model, deadline)
+        replies = self._query(node, op, request, reply_model, deadline, late=late)
         if not replies:
             raise NoService(f"no tracking service {node!r} answered on {keys.control_key(node, op)}")
         for reply in replies:
@@ -282,7 +303,7 @@ class TrackingClient:
         raise replies[0].error
 
     def _query(self, node: str, op: str, request: WireModel, reply_model: type[WireModel], deadline: float,
-               settle: bool = False) -> list[_Reply]:
+               settle: bool = False, late: str = "") -> list[_Reply]:
         """The replies to `op` on `node` (a wildcard asks every service) until `deadline`. A lookup before the
         call itself (which service, where a session is) passes `settle`: once half the time is gone and a service
         has answered, it waits no longer for one that does not answer (hung, or going out of reach until its lease
@@ -292,13 +313,14 @@ class TrackingClient:
         now = time.monotonic()
         remaining = deadline - now
         if remaining <= 0:                       # the queries before this one took the call's whole timeout
-            raise RequestTimeout(f"no time left for {key}: the queries before it took the call's {self.timeout:g} s")
+            raise RequestTimeout(f"no time left for {key}: the queries before it took the call's whole timeout")
         log.debug("query %s %s", key, request)
-        handler = self.session.get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
-                                   target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-                                   timeout=remaining)
+        handler = self._open_session().get(key, payload=encode(request), encoding=zenoh.Encoding(MSGPACK_ENCODING),
+                                           target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
+                                           timeout=remaining)
+        late_message = f"no reply on {key} within {remaining:.3g} s{late}"
         if not settle:
-            return [_parse_reply(reply, reply_model, key, self.timeout) for reply in handler]
+            return [_parse_reply(reply, reply_model, key, late_message) for reply in handler]
         settle_at, replies = now + remaining / 2, []
         while True:
             try:
@@ -306,7 +328,7 @@ class TrackingClient:
             except zenoh.ZError:                 # every service answered, or the deadline passed
                 return replies
             if reply is not None:
-                replies.append(_parse_reply(reply, reply_model, key, self.timeout))
+                replies.append(_parse_reply(reply, reply_model, key, late_message))
             elif time.monotonic() >= deadline or (time.monotonic() >= settle_at
                                                   and any(r.model is not None for r in replies)):
                 return replies      # at the deadline too: with zenoh 1.5, try_recv() never raised after the replies
@@ -394,7 +416,8 @@ def _node_of_token(key_expr) -> str | None:
         return None
 
 
-def _parse_reply(reply: zenoh.Reply, reply_model: type[WireModel], key: str, timeout: float) -> _Reply:
+def _parse_reply(reply: zenoh.Reply, reply_model: type[WireModel], key: str, late: str) -> _Reply:
+    """The reply decoded, or the error it stands for; `late` is the message of a RequestTimeout."""
     if reply.ok is not None:
         sample = reply.ok
         node = _node_from_key(str(sample.key_expr))
@@ -406,7 +429,7 @@ def _parse_reply(reply: zenoh.Reply, reply_model: type[WireModel], key: str, tim
     if isinstance(error, Error):
         return _Reply(error.node, None, error_from_wire(error.code, error.message, error.node))
     if is_deadline_reply(error):
-        return _Reply(None, None, RequestTimeout(f"no reply on {key} within {timeout:g} s"))
+        return _Reply(None, None, RequestTimeout(late))
     return _Reply(None, None, ProtocolError(f"undecodable error reply on {key}: {error[:200]!r}"))
 
 

@@ -119,6 +119,12 @@ class ZenohSettingsError(ZenohUnavailable):
     code = "zenoh_settings"
 
 
+class ClientClosed(TacfError):
+    """A call on a TrackingClient after its close() (or after the Zenoh session it was given closed)."""
+
+    code = "closed"
+
+
 class AmbiguousNode(TacfError):
     """Several services are on the network and the call does not say which one: pass node=... (--node)."""
 

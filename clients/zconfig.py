@@ -16,7 +16,7 @@ import dataclasses
 import json
 from typing import TYPE_CHECKING
 
-from tacf.argument_types import config_file
+from tacf.argument_types import config_file, endpoint
 from tacf.zenoh_options import ZenohOptions, base_config, unreadable_file, zenoh_error_text
 from tacf_clients.errors import ZenohSettingsError, ZenohUnavailable
 
@@ -83,9 +83,9 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, mode_default: str = "pe
     """Add --connect, --listen, --zenoh-config (the same names as `tacf serve`) and --mode; `mode_default` says
     in the help which mode the command opens without --mode or a config file."""
     group = parser.add_argument_group("zenoh")
-    group.add_argument("--connect", "-e", action="append", default=[], metavar="ENDPOINT",
+    group.add_argument("--connect", "-e", action="append", default=[], type=endpoint, metavar="ENDPOINT",
                        help=f"endpoint to connect to, repeatable (default {DEFAULT_CONNECT})")
-    group.add_argument("--listen", "-l", action="append", default=[], metavar="ENDPOINT",
+    group.add_argument("--listen", "-l", action="append", default=[], type=endpoint, metavar="ENDPOINT",
                        help=f"endpoint to listen on, repeatable (default {LOOPBACK_LISTEN} when connecting on "
                             "loopback)")
     group.add_argument("--zenoh-config", type=config_file, metavar="FILE",

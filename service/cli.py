@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import logging
 
-from tacf.argument_types import config_file, integer, not_empty, seconds
+from tacf.argument_types import config_file, endpoint, integer, not_empty, seconds
 
 
 def register(subparsers) -> None:
@@ -12,10 +12,10 @@ def register(subparsers) -> None:
         "serve", help="run the Zenoh tracking service",
         description="Run the TACF tracking service: a Zenoh peer (loopback only by default) answering "
                     "tacf/<node>/control/<op> and running one worker process per session.")
-    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+    parser.add_argument("--listen", action="append", default=[], type=endpoint, metavar="ENDPOINT",
                         help="Zenoh listen endpoint (repeatable; default tcp/127.0.0.1:7447 when neither "
                              "--connect nor --zenoh-config is given)")
-    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+    parser.add_argument("--connect", action="append", default=[], type=endpoint, metavar="ENDPOINT",
                         help="Zenoh endpoint to connect to, e.g. a router (repeatable)")
     parser.add_argument("--zenoh-config", type=config_file, metavar="FILE",
                         help="Zenoh JSON5 config file (TLS, access control...); --listen/--connect override its "

@@ -121,6 +121,16 @@ source = not_empty("a source to read frames from")          # file, folder, came
 config_file = not_empty("a Zenoh JSON5 config file")
 
 
+def endpoint(text: str) -> str:
+    """A Zenoh endpoint for --connect or --listen: one that names no port, or no number for one, is refused here
+    (tacf.zenoh_options.endpoint_problem)."""
+    from tacf.zenoh_options import endpoint_problem
+
+    if problem := endpoint_problem(text):
+        raise argparse.ArgumentTypeError(problem)
+    return text
+
+
 def take_negative_numbers(parser: argparse.ArgumentParser) -> None:
     """Let `parser`'s option values start with a negative number, "-5,20,40,30" as "-5" (argparse's own test)."""
     parser._negative_number_matcher = NEGATIVE_NUMBER

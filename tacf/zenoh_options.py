@@ -31,6 +31,24 @@ _FILE_MESSAGE = re.compile(r'JSON error: Message \{ msg: "(?P<msg>(?:[^"\\]|\\.)
 FILE_SETTINGS = ("transport/link/tls/root_ca_certificate", "transport/link/tls/connect_certificate",
                  "transport/link/tls/connect_private_key", "transport/link/tls/listen_certificate",
                  "transport/link/tls/listen_private_key", "transport/auth/usrpwd/dictionary_file")
+# Protocols whose address is HOST:PORT, which Zenoh resolves as Rust's ToSocketAddrs does: split at the last ':', the
+# port a number 0-65535, the host a name or an address (IPv6 in brackets). Zenoh checks only <protocol>/<address> when
+# a session opens: a peer given "tcp/nonsense" opened without a word and never connected, and `tacf serve` started.
+HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_PORT = re.compile(r"\+?\d{1,5}")
+
+
+def endpoint_problem(endpoint: str) -> str | None:
+    """Why `endpoint` can never be reached or listened on, naming it and the expected form; None if it may be (the
+    other protocols, unixsock-stream/PATH among them, and an endpoint without a protocol are left to Zenoh)."""
+    protocol, _, address = endpoint.partition("/")
+    if protocol not in HOST_PORT_PROTOCOLS:
+        return None
+    host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
+    if host and _PORT.fullmatch(port) and int(port) <= 65535:
+        return None
+    return (f"bad Zenoh endpoint {endpoint!r}: expected {protocol}/HOST:PORT, e.g. {protocol}/192.168.1.10:7447, "
+            f"{protocol}/[::1]:7447 or {protocol}/edge.local:7447")
 
 
 @dataclass(frozen=True)
@@ -38,7 +56,8 @@ class ZenohOptions:
     """What the command line says about Zenoh; what it leaves unsaid, each side decides. Pickled into the
     service's worker processes.
 
-    connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the side's default, () = none.
+    connect: endpoints such as ``tcp/10.0.0.5:7447``; None = the side's default, () = none. A host:port endpoint
+        whose port is missing or not a number is refused (ValueError, see endpoint_problem).
     listen: endpoints to listen on; empty = the side's default. One endpoint may be given as a string, here and above.
     config_file: a Zenoh JSON5 configuration (router, TLS, access control); the other fields override it. None = no
         file; "" is refused (ValueError).
@@ -61,6 +80,9 @@ class ZenohOptions:
         # unset, and it meant Zenoh's defaults without a word (for a client: listening on every interface).
         if self.config_file == "":
             raise ValueError("config_file is empty: give a Zenoh JSON5 file, or None for the defaults")
+        for endpoint in (*(self.connect or ()), *self.listen):
+            if problem := endpoint_problem(endpoint):
+                raise ValueError(problem)
 
     def refusal(self, exc: BaseException) -> str:
         """Why Zenoh refused these settings, naming the config file when there is one: ' (FILE): reason'."""

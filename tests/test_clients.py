@@ -398,6 +398,29 @@ def test_closing_the_client_ends_its_streams():
     assert wait_until(lambda: not stream._thread.is_alive(), 5)
 
 
+def test_calls_on_a_closed_client_raise_client_closed():
+    """Every call after close() raised zenoh's own ZError ("session closed"), which a caller catching TacfError, as
+    the client's docs say to, did not catch."""
+    from tacf_clients.errors import ClientClosed, TacfError
+
+    client = TrackingClient(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)), timeout=1.0)
+    client.close()
+    calls = {"start": lambda: client.start("cam/a", (1, 2, 3, 4), node="edge"), "stop": lambda: client.stop("abc"),
+             "status": lambda: client.status("abc"), "reinit": lambda: client.reinit("abc", (1, 2, 3, 4)),
+             "list": client.list, "nodes": client.nodes, "alive_nodes": client.alive_nodes,
+             "watch_nodes": client.watch_nodes, "subscribe": lambda: client.subscribe("abc"),
+             "results": client.results, "iter_boxes": lambda: next(client.iter_boxes("abc"))}
+    for name, call in calls.items():
+        with pytest.raises(TacfError) as exc:
+            call()
+        assert isinstance(exc.value, ClientClosed) and str(exc.value) == "client is closed", (name, exc.value)
+    client.close()                                      # a second close is no error
+    with zenoh.open(make_config(ZenohOptions(connect=(), listen=(f"tcp/127.0.0.1:{free_port()}",)))) as session:
+        given = TrackingClient(session=session, timeout=1.0)
+    with pytest.raises(ClientClosed, match="the Zenoh session it was given is closed"):
+        given.list()
+
+
 def test_command_line_bad_image_keys_are_usage_errors(capsys):
     from tacf.cli import main
 
@@ -586,6 +609,35 @@ def test_command_line_bad_zenoh_settings_are_one_line_usage_errors(capsys, tmp_p
             assert exc.value.code == 2 and len(err.splitlines()) == 1, err
             assert err.startswith(f"tacf {argv[0]}: {reason}"), err
             assert "Json5Err" not in err and "Message {" not in err and ".rs:" not in err, err
+
+
+def test_a_host_port_endpoint_without_a_port_is_refused_when_given(capsys):
+    """ZenohOptions(connect="tcp/nonsense") opened a peer session without a word, which then never connected, and
+    `tacf serve --connect tcp/nonsense` started ("workers connect to tcp/nonsense"): Zenoh checks only the
+    <protocol>/<address> shape. Refused at once now, naming the endpoint and the form; every form Zenoh connects
+    with is still taken (IPv6 with or without brackets, a host name, metadata and config after the address)."""
+    from tacf.cli import main
+
+    for bad in ("tcp/nonsense", "tcp/127.0.0.1", "tcp/127.0.0.1:abc", "tcp/:7447", "udp/10.0.0.5:70000",
+                "tcp/127.0.0.1:7447 "):
+        for options in ({"connect": bad}, {"listen": (bad,)}):
+            with pytest.raises(ValueError, match=f"bad Zenoh endpoint {bad!r}: expected {bad.split('/')[0]}/HOST:PORT"):
+                ZenohOptions(**options)
+    for argv in (["list", "--connect", "tcp/nonsense"], ["watch", "--listen", "tcp/127.0.0.1"],
+                 ["serve", "--connect", "tcp/nonsense"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        err = capsys.readouterr().err
+        assert exc.value.code == 2 and f"argument {argv[-2]}" in err and f"bad Zenoh endpoint '{argv[-1]}'" in err, err
+    port = free_port()
+    for good in ("tcp/[::1]:7447", "tcp/::1:7447", "tcp/edge.local:7447", "tcp/127.0.0.1:7447?prio=1-7#iface=lo",
+                 "udp/224.0.0.224:7447#iface=eth0", "tls/localhost:7447", "quic/10.0.0.5:7447", "ws/10.0.0.5:7447",
+                 "unixsock-stream//run/tacf.sock", "tcp/[::]:0"):
+        assert ZenohOptions(connect=good, listen=good).connect == (good,)
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/[::1]:{port}"))):
+        for endpoint in (f"tcp/[::1]:{port}", f"tcp/::1:{port}"):   # a Zenoh client opens only once connected
+            with TrackingClient(ZenohOptions(connect=endpoint, mode="client"), timeout=1.0) as client:
+                assert client.nodes() == []
 
 
 def test_list_across_two_services(service, client, camera):

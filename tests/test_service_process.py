@@ -12,6 +12,7 @@ import signal
 import statistics
 import subprocess
 import sys
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -21,6 +22,8 @@ import pytest
 zenoh = pytest.importorskip("zenoh")
 
 from tacf.eval.metrics import box_iou
+from tacf_clients.client import TrackingClient
+from tacf_clients.errors import RequestTimeout
 from tacf_clients.local_service import free_port
 from tacf_schemas import StartRequest, StatusRequest, StopRequest, encode, service_liveliness_key
 from tacf_service.app import ServiceOptions, TrackingService
@@ -409,6 +412,38 @@ def test_a_frozen_fork_server_does_not_keep_the_service_from_exiting(tmp_path, e
         assert code == 0 and took < 5.0, (code, took, serve.log()[-2000:])
         assert wait_until(lambda: not alive(family), 10), cmdlines(alive(family))
     finally:
+        serve.cleanup()
+
+
+def test_a_start_waits_for_a_cold_fork_server_and_one_answered_too_late_says_the_session_may_start(tmp_path, endpoint,
+                                                                                                   client):
+    """A start is answered once its worker is forked, and a cold service's first start waits seconds for the fork
+    server (5.7 s with numba's cache empty): past the client's default 5 s, the start raised a bare RequestTimeout
+    while the session was created all the same, and the retry met duplicate_session. A start now has 30 s by
+    default, and one still answered too late says that the session may start. The fork server is stopped here for
+    6 s, as slow as a cold one."""
+    serve = Serve(tmp_path, endpoint, "--spare-workers", "0")
+    server = None
+    try:
+        assert wait_until(lambda: service_alive(client), 30), serve.log()
+        tracking = TrackingClient(session=client, node=NODE)
+        tracking.start("proc/cold", (10, 10, 40, 40), sid="first")         # starts the fork server
+        tracking.stop("first")
+        assert wait_until(lambda: all("resource_tracker" in line or "forkserver" in line
+                                      for line in cmdlines(descendants(serve.proc.pid)).values()), 10)
+        [server] = [pid for pid, line in cmdlines(descendants(serve.proc.pid)).items() if "forkserver" in line]
+        os.kill(server, signal.SIGSTOP)
+        with pytest.raises(RequestTimeout, match="; service '.*' may still start the session: check with status "
+                                                 "'late' or list before starting it again"):
+            TrackingClient(session=client, node=NODE, timeout=1.0).start("proc/cold", (10, 10, 40, 40), sid="late")
+        threading.Timer(6.0, os.kill, (server, signal.SIGCONT)).start()
+        started = time.monotonic()
+        assert tracking.start("proc/cold", (10, 10, 40, 40), sid="patient").sid == "patient"
+        assert time.monotonic() - started > 5.5
+        assert tracking.status("late").sid == "late"        # the start that timed out did create its session
+    finally:
+        if server is not None:
+            os.kill(server, signal.SIGCONT)
         serve.cleanup()
 
 
