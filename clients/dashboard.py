@@ -280,11 +280,13 @@ class Dashboard:
     image_keys: keys to watch from the start, for good (the key of a session is watched while a session uses it).
     node: only this service (None: every service that answers).
     history_s: how many seconds of chart points each session keeps.
+    timeout: of each call to a service, as TrackingClient's (None: 5 s, 30 s for a start, which a cold service's
+    first takes seconds to answer).
     """
 
     def __init__(self, options: ZenohOptions | None = None, *, session: zenoh.Session | None = None,
                  image_keys: Iterable[str] = (), node: str | None = None, history_s: float = 300.0,
-                 max_frame_fps: float = 30.0, timeout: float = 5.0):
+                 max_frame_fps: float = 30.0, timeout: float | None = None):
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         self.node = node

@@ -150,13 +150,14 @@ class MavlinkCamera:
     link: a pymavlink connection string (`udpout:HOST:PORT` towards a ground station, `udpin:0.0.0.0:PORT`,
     `tcp:HOST:PORT`, or a serial device `/dev/ttyUSB0` with `baud`). session: a zenoh.Session to use (not
     closed here), else one is opened from `options`. signing_key: 32 bytes (signing_key_from_passphrase) to sign
-    what it sends and to accept only commands signed with the same key.
+    what it sends and to accept only commands signed with the same key. timeout: of each call to the service, as
+    TrackingClient's (None: 5 s, 30 s for a start, which a cold service's first takes seconds to answer).
     """
 
     def __init__(self, link: str, image_key: str, *, options: ZenohOptions | None = None,
                  session: zenoh.Session | None = None, sid: str | None = None, node: str | None = None,
                  profile: str | None = None, system: int = 1, component: int = mav.MAV_COMP_ID_CAMERA,
-                 baud: int = 57600, signing_key: bytes | None = None, timeout: float = 5.0):
+                 baud: int = 57600, signing_key: bytes | None = None, timeout: float | None = None):
         self.image_key = keys.validate_image_key(image_key)
         self.sid = keys.validate_id(default_sid(image_key) if sid is None else sid, "session id")
         check_link(link)

@@ -31,7 +31,7 @@ import zenoh
 
 from tacf.eval.metrics import box_iou
 from tacf_clients import dashboard, dashboard_http, dashboard_metrics
-from tacf_clients.client import TrackingClient
+from tacf_clients.client import DEFAULT_TIMEOUT, START_TIMEOUT, TrackingClient
 from tacf_clients.dashboard_access import COOKIE, DashboardAccess
 from tacf_clients.dashboard_http import DashboardApp, static_dir, tls_context
 from tacf_clients.local_service import free_port
@@ -818,6 +818,13 @@ def test_malformed_requests_get_a_4xx_in_json_never_a_dropped_connection():
                     b"Content-Length: 100\r\n\r\n{\"key\": \"test/dashboard/half\"}"
         assert _raw_reply(address, truncated, half_close=True) == b""
         assert app.dashboard.image_keys() == []
+
+
+def test_a_start_from_the_page_waits_as_long_as_the_clients():
+    """The dashboard gave every call 5 s, a start too, which a cold service's first start can take longer to answer
+    (5.7 s with numba's cache empty): the page said the start failed while the session started."""
+    with dashboard.Dashboard(no_service_options()) as board:
+        assert board.client.start_timeout == START_TIMEOUT and board.client.timeout == DEFAULT_TIMEOUT
 
 
 def test_requests_the_standard_library_refuses_get_json_too():

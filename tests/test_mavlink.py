@@ -13,7 +13,7 @@ from contextlib import contextmanager
 import pytest
 
 from tacf.eval.metrics import box_iou
-from tacf_clients.client import TrackingClient
+from tacf_clients.client import DEFAULT_TIMEOUT, START_TIMEOUT, TrackingClient
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene
 from tacf_service.loopback import wait_until
@@ -132,6 +132,13 @@ def test_announces_a_camera_that_tracks_rectangles_and_points(rig):
         assert info.flags & mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
         assert (info.resolution_h, info.resolution_v) == (SCENE.width, SCENE.height)
         assert bytes(info.model_name).rstrip(b"\0") == b"TACF tracker"
+
+
+def test_a_start_waits_as_long_as_the_clients(rig):
+    """The component gave every call 5 s, a start too, which a cold service's first start can take longer to
+    answer (5.7 s with numba's cache empty): the operator's first TRACK failed while the session started."""
+    _, _, _, component = rig
+    assert component.client.start_timeout == START_TIMEOUT and component.client.timeout == DEFAULT_TIMEOUT
 
 
 def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):

@@ -423,7 +423,7 @@ def test_a_start_waits_for_a_cold_fork_server_and_one_answered_too_late_says_the
     default, and one still answered too late says that the session may start. The fork server is stopped here for
     6 s, as slow as a cold one."""
     serve = Serve(tmp_path, endpoint, "--spare-workers", "0")
-    server = None
+    server, resume = None, None
     try:
         assert wait_until(lambda: service_alive(client), 30), serve.log()
         tracking = TrackingClient(session=client, node=NODE)
@@ -436,12 +436,15 @@ def test_a_start_waits_for_a_cold_fork_server_and_one_answered_too_late_says_the
         with pytest.raises(RequestTimeout, match="; service '.*' may still start the session: check with status "
                                                  "'late' or list before starting it again"):
             TrackingClient(session=client, node=NODE, timeout=1.0).start("proc/cold", (10, 10, 40, 40), sid="late")
-        threading.Timer(6.0, os.kill, (server, signal.SIGCONT)).start()
+        resume = threading.Timer(6.0, os.kill, (server, signal.SIGCONT))
+        resume.start()
         started = time.monotonic()
         assert tracking.start("proc/cold", (10, 10, 40, 40), sid="patient").sid == "patient"
         assert time.monotonic() - started > 5.5
         assert tracking.status("late").sid == "late"        # the start that timed out did create its session
     finally:
+        if resume is not None:
+            resume.cancel()         # a failure before the 6 s: SIGCONT now, not to a process gone by then
         if server is not None:
             os.kill(server, signal.SIGCONT)
         serve.cleanup()
