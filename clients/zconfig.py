@@ -17,7 +17,8 @@ import json
 from typing import TYPE_CHECKING
 
 from tacf.argument_types import config_file, endpoint
-from tacf.zenoh_options import ZenohOptions, base_config, unreadable_file, zenoh_error_text
+from tacf.zenoh_options import ZenohOptions, base_config, endpoint_host_port, unreadable_file, zenoh_error_text
+from tacf_clients.dashboard_access import is_loopback
 from tacf_clients.errors import ZenohSettingsError, ZenohUnavailable
 
 if TYPE_CHECKING:
@@ -76,7 +77,9 @@ def viewer_options(options: ZenohOptions) -> ZenohOptions:
 
 
 def _is_loopback(endpoint: str) -> bool:
-    return "/127.0.0.1:" in endpoint or "/[::1]:" in endpoint or endpoint.startswith("unixsock-stream/")
+    """Whether the endpoint is on this host: a Unix socket, localhost, 127.x.y.z or ::1 (localhost was taken for
+    another machine's name: a dashboard connecting to tcp/localhost:7447 ran as a Zenoh client)."""
+    return endpoint.startswith("unixsock-stream/") or is_loopback(endpoint_host_port(endpoint)[0])
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, mode_default: str = "peer") -> None:

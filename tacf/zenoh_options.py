@@ -38,13 +38,20 @@ HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 _PORT = re.compile(r"\+?\d{1,5}")
 
 
+def endpoint_host_port(endpoint: str) -> tuple[str, str]:
+    """(host, port) of a PROTOCOL/HOST:PORT[?metadata][#config] endpoint, split as Zenoh splits them; an IPv6 host
+    keeps its brackets."""
+    host, _, port = re.split(r"[?#]", endpoint.partition("/")[2], maxsplit=1)[0].rpartition(":")
+    return host, port
+
+
 def endpoint_problem(endpoint: str) -> str | None:
     """Why `endpoint` can never be reached or listened on, naming it and the expected form; None if it may be (the
     other protocols, unixsock-stream/PATH among them, and an endpoint without a protocol are left to Zenoh)."""
-    protocol, _, address = endpoint.partition("/")
+    protocol = endpoint.partition("/")[0]
     if protocol not in HOST_PORT_PROTOCOLS:
         return None
-    host, _, port = re.split(r"[?#]", address, maxsplit=1)[0].rpartition(":")
+    host, port = endpoint_host_port(endpoint)
     if host and _PORT.fullmatch(port) and int(port) <= 65535:
         return None
     return (f"bad Zenoh endpoint {endpoint!r}: expected {protocol}/HOST:PORT, e.g. {protocol}/192.168.1.10:7447, "

@@ -403,6 +403,8 @@ def test_a_viewer_on_another_machine_runs_as_a_zenoh_client():
     remote = ZenohOptions(connect=("tcp/10.0.0.5:7447",))
     assert viewer_options(remote) == dataclasses.replace(remote, mode="client")
     for kept in (ZenohOptions(), ZenohOptions(connect=("tcp/127.0.0.1:7447",)),
+                 ZenohOptions(connect=("tcp/localhost:7447",)), ZenohOptions(connect=("tcp/[::1]:7447?prio=1-7",)),
+                 ZenohOptions(connect=("tcp/127.0.0.2:7447",)),
                  ZenohOptions(connect=("tcp/10.0.0.5:7447",), mode="peer"),
                  ZenohOptions(connect=("tcp/10.0.0.5:7447",), listen=("tcp/10.0.0.9:7447",)),
                  ZenohOptions(connect=("tcp/10.0.0.5:7447",), config_file="ground.json5"),
