@@ -839,6 +839,46 @@ def test_a_stop_reaches_the_state_file_when_a_frame_cannot_be_stored(tmp_path):
         client.close()
         service.close()
 
+
+def test_a_table_that_cannot_be_saved_is_logged_while_a_frame_fails_too(tmp_path, caplog):
+    """A disk filling up fails a session's frame first (a megabyte), then the table (a kilobyte): the frame's error
+    stood for both, so a session started then, and lost at the next restart, was never said to be unsaved, not even
+    at shutdown (seen with `tacf serve --state` on a full 64 KiB tmpfs)."""
+    state, endpoint = tmp_path / "sessions.json", f"tcp/127.0.0.1:{free_port()}"
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(endpoint,)), state_file=str(state),
+                                             spare_workers=0, state_frame_period_s=0)).open()
+    client = zenoh.open(peer_config(connect=[endpoint]))
+    try:
+        with caplog.at_level("INFO", logger="tacf_service.manager"), \
+                FramePublisher(client, "test/cam/moving", MovingTargetScene(320, 240, speed=3.0), fps=10) as feed:
+            assert wait_until(lambda: feed.seq >= 3, 10)
+            frames = StateStore(state).frames_dir
+            frames.mkdir()
+            (frames / "kept.msgpack").mkdir()
+            (frames / "kept.msgpack" / "blocker").write_text("")     # no frame can replace a non-empty directory
+            call(client, NODE, "start", StartRequest(sid="kept", image_key=feed.key, box=feed.truth[feed.seq],
+                                                     seq=feed.seq, profile="kcc"), timeout=30)
+            assert "cannot save the box frame of session kept" in caplog.text
+            state.unlink()
+            state.mkdir()
+            (state / "blocker").write_text("")          # nor the table
+            call(client, NODE, "start", StartRequest(sid="new", image_key=feed.key, box=feed.truth[feed.seq],
+                                                     seq=feed.seq, profile="kcc"), timeout=30)
+            assert f"cannot save the session table to {state}: " in caplog.text
+            shutil.rmtree(state)
+            assert wait_until(lambda: "session table saved to" in caplog.text, 5)
+            assert sorted(s.sid for s in StateStore(state).load()) == ["kept", "new"]
+            assert caplog.text.count("cannot save the box frame of session kept") == 1     # not once a second
+            state.unlink()
+            state.mkdir()
+            (state / "blocker").write_text("")
+            assert wait_until(lambda: caplog.text.count("cannot save the session table to") == 2, 5)
+    finally:
+        client.close()
+        service.close()
+    assert f"cannot save the session table to {state}: [Errno 21] Is a directory: " in caplog.text
+    assert caplog.text.count("cannot save the session table to") == 3 and "shutting down, not retried" in caplog.text
+
 def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     port = free_port()
     path = tmp_path / "zenoh.json5"
