@@ -269,7 +269,10 @@ class SessionManager:
             if frames:
                 _check_box_in_frame(session.box, frames[0])
             self._queue_init(session, session.box, request.drawn_on, released=False, frames=frames)
-            self._spawn(session)
+            try:
+                self._spawn(session)
+            except OSError as exc:      # no process or descriptors to be had (a small edge box): try later
+                raise ServiceError("unavailable", f"cannot start a worker process: {exc}") from None
         except BaseException:
             self._discard(session)
             raise
