@@ -19,6 +19,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from tacf_schemas import (MSGPACK_ENCODING, DecodeError, Frame, Health, ReinitRequest, SessionInfo, SessionList,
                           StartRequest, catch_up_subset, decode, encode, health_key)
@@ -132,7 +133,9 @@ class SessionManager:
         self.pool = WorkerPool(worker_context(), worker_spec, spare_workers, lock=self._lock, closing=self._closing,
                                deliver=self._on_message)
         self._dirty = False
-        self._save_failing = False          # the last save failed (logged once until one works again)
+        # The files the last save could not write (the table, sessions' frames), each logged once while it fails:
+        # a frame failing hid the table's failure after it (a full disk), and a session started then was lost unsaid.
+        self._save_failures: set[Path] = set()
         # Held from a save's snapshot to its rename: saves from the control threads and the supervisor would
         # otherwise land in any order, an older table last (a stopped session back after a restart).
         self._save_lock = threading.Lock()
@@ -266,7 +269,10 @@ class SessionManager:
             if frames:
                 _check_box_in_frame(session.box, frames[0])
             self._queue_init(session, session.box, request.drawn_on, released=False, frames=frames)
-            self._spawn(session)
+            try:
+                self._spawn(session)
+            except OSError as exc:      # no process or descriptors to be had (a small edge box): try later
+                raise ServiceError("unavailable", f"cannot start a worker process: {exc}") from None
         except BaseException:
             self._discard(session)
             raise
@@ -713,9 +719,9 @@ class SessionManager:
             if self._saves_closed:
                 return
             self._saves_closed = last
-            self._write_table(force)
+            self._write_table(force, last)
 
-    def _write_table(self, force: bool) -> None:
+    def _write_table(self, force: bool, last: bool = False) -> None:
         now = time.monotonic()
         if not force and now - getattr(self, "_saved_at", 0.0) < SAVE_PERIOD_S:
             return
@@ -727,7 +733,8 @@ class SessionManager:
             not_restored = list(self._not_restored.values())
             self._dirty = False
         self._saved_at = now
-        failure = None
+        failures: dict[Path, str] = {}
+        written: set[Path] = set()
         for i, (session, entry, box_frame) in enumerate(zip(sessions, table, box_frames)):
             due = force or now - session.frame_saved_at >= self._frame_save_period_s
             # the box too: a reinit drawn on the frame already stored changes the box, not the seq
@@ -743,8 +750,10 @@ class SessionManager:
                         # The table goes on without it: a disk with no room for a frame (a megabyte) may still
                         # have it for the table (a kilobyte), and a stop must reach the file. The entry keeps the
                         # frame stored before, and its box.
-                        failure = f"the box frame of session {session.sid} in {self._store.frames_dir}: {exc}"
+                        failures[self._store.frame_path(session.sid)] = \
+                            f"the box frame of session {session.sid} in {self._store.frames_dir}: {exc}"
                     else:
+                        written.add(self._store.frame_path(session.sid))
                         session.saved_frame_seq, session.saved_frame_box = entry.last_seq, entry.box
                         session.frame_saved_at = now
             table[i] = entry.model_copy(update={"frame_seq": session.saved_frame_seq,
@@ -752,19 +761,23 @@ class SessionManager:
         try:
             self._store.save(table + not_restored)
             self._store.prune_frames({s.sid for s in [*sessions, *not_restored]})
+            written.add(self._store.path)
         except OSError as exc:
-            failure = f"the session table to {self._store.path}: {exc}"
-        if failure is not None:
+            failures[self._store.path] = f"the session table to {self._store.path}: {exc}"
+        if failures:
             # Saved again every SAVE_PERIOD_S until it works (disk full, say): a stop must reach the file even
             # when nothing else changes after it.
             self._dirty = True
-            if not self._save_failing:
+        for path, failure in failures.items():
+            if last:        # the file keeps the table saved before: what changed since is lost, so say it again
+                log.error("cannot save %s; shutting down, not retried", failure)
+            elif path not in self._save_failures:
                 log.error("cannot save %s; retrying every %.0f s", failure, SAVE_PERIOD_S)
-            self._save_failing = True
-            return
-        if self._save_failing:
+        if self._store.path in self._save_failures and self._store.path not in failures:
             log.info("session table saved to %s again", self._store.path)
-            self._save_failing = False
+        # a frame not tried this time (no new box) fails still; one of a session gone is forgotten
+        files = {self._store.path, *(self._store.frame_path(s.sid) for s in sessions)}
+        self._save_failures = ((self._save_failures - written) | failures.keys()) & files
 
 
 def _zenoh_key(key: str) -> None:

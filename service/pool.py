@@ -13,9 +13,11 @@ so no worker outlives a stopped session or a shutdown.
 """
 from __future__ import annotations
 
+import errno
 import logging
 import multiprocessing
 import multiprocessing.connection
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -35,6 +37,9 @@ WORKER_SILENCE_S = 15.0        # a worker silent this long (no health; no "ready
 SPARE_SILENCE_S = 5.0          # a warm spare repeats "idle" every second (worker.IDLE_HEARTBEAT_S): silent this
                                # long, it is hung: handed no session, killed and replaced
 WRITER_JOIN_S = 1.0            # closing a worker's pipe waits this long for a write in progress (the worker is gone)
+# Descriptors a worker's start leaves free: Zenoh takes one for each client's link (a query to this service), and a
+# start that ran out of them half-way ended the fork server, whose every worker the service then took for dead.
+FD_RESERVE = 16
 
 Deliver = Callable[["Session", tuple], None]
 
@@ -106,6 +111,7 @@ class WorkerPool:
 
     def new_worker(self) -> WorkerHandle:
         """Start a worker process (not a spare: the caller owns it)."""
+        _check_fd_headroom()
         parent_conn, child_conn = self._mp.Pipe(duplex=True)
         process = self._mp.Process(target=run_worker, args=(self._spec, child_conn), name="tacf-worker",
                                    daemon=True)
@@ -215,3 +221,18 @@ def _quiet_close(conn) -> None:
         conn.close()
     except OSError:
         pass
+
+
+def _check_fd_headroom() -> None:
+    """OSError(EMFILE) when fewer than FD_RESERVE descriptors would be left to this process (checked where /proc
+    lists them: Linux)."""
+    try:
+        used = len(os.listdir("/proc/self/fd"))     # EMFILE too when none is left
+    except FileNotFoundError:
+        return
+    import resource
+
+    limit = resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    if limit != resource.RLIM_INFINITY and used + FD_RESERVE > limit:
+        raise OSError(errno.EMFILE, f"too many open files: {used} of the {limit} allowed (ulimit -n) are open, and "
+                                    f"{FD_RESERVE} are kept free")

@@ -175,14 +175,17 @@ class StateStore:
     def frames_dir(self) -> Path:
         return self.path.with_name(self.path.name + ".frames")
 
+    def frame_path(self, sid: str) -> Path:
+        return self.frames_dir / f"{sid}.msgpack"
+
     def save_frame(self, sid: str, payload: bytes) -> None:
         """Atomically store the Frame (msgpack bytes) a session's last box belongs to."""
         self.frames_dir.mkdir(parents=True, exist_ok=True)
-        _atomic_write(self.frames_dir / f"{sid}.msgpack", payload)
+        _atomic_write(self.frame_path(sid), payload)
 
     def load_frame(self, sid: str) -> bytes | None:
         try:
-            return (self.frames_dir / f"{sid}.msgpack").read_bytes()
+            return self.frame_path(sid).read_bytes()
         except OSError:
             return None
 

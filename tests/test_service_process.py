@@ -25,12 +25,12 @@ from tacf.eval.metrics import box_iou
 from tacf_clients.client import TrackingClient
 from tacf_clients.errors import RequestTimeout
 from tacf_clients.local_service import free_port
-from tacf_schemas import StartRequest, StatusRequest, StopRequest, encode, service_liveliness_key
+from tacf_schemas import ListRequest, StartRequest, StatusRequest, StopRequest, encode, service_liveliness_key
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.errors import ServiceError
 from tacf_service.loopback import FramePublisher, SessionResults as Collector, peer_config, wait_until
-from tacf_service.probe import call, list_all
+from tacf_service.probe import ControlError, call, list_all
 from tacf_service.scene import MovingTargetScene
 from tacf_service.state import PersistedSession, StateError, StateStore
 
@@ -84,16 +84,24 @@ def alive(pids: set[int]) -> set[int]:
     return still
 
 
+def _limit_fds(limit: int) -> None:
+    import resource
+    resource.setrlimit(resource.RLIMIT_NOFILE, (limit, limit))
+
+
 class Serve:
     """A `tacf serve` subprocess with its log in a file."""
 
-    def __init__(self, tmp_path: Path, endpoint: str, *extra: str, own_group: bool = False) -> None:
+    def __init__(self, tmp_path: Path, endpoint: str, *extra: str, own_group: bool = False,
+                 fd_limit: int | None = None) -> None:
         """own_group: in a process group of its own (as a shell runs it), which a test can signal as a terminal
-        does."""
+        does; fd_limit: its `ulimit -n`."""
         self.log_path = tmp_path / f"serve-{time.monotonic_ns()}.log"
         self._log = open(self.log_path, "w")
         cmd = [sys.executable, "-m", "tacf.cli", "serve", "--listen", endpoint, "--node", NODE, *extra]
-        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=own_group)
+        limit = None if fd_limit is None else functools.partial(_limit_fds, fd_limit)
+        self.proc = subprocess.Popen(cmd, stdout=self._log, stderr=subprocess.STDOUT, start_new_session=own_group,
+                                     preexec_fn=limit)
 
     def log(self) -> str:
         return self.log_path.read_text()
@@ -876,6 +884,88 @@ def test_a_stop_reaches_the_state_file_when_a_frame_cannot_be_stored(tmp_path):
     finally:
         client.close()
         service.close()
+
+
+def test_a_table_that_cannot_be_saved_is_logged_while_a_frame_fails_too(tmp_path, caplog):
+    """A disk filling up fails a session's frame first (a megabyte), then the table (a kilobyte): the frame's error
+    stood for both, so a session started then, and lost at the next restart, was never said to be unsaved, not even
+    at shutdown (seen with `tacf serve --state` on a full 64 KiB tmpfs)."""
+    state, endpoint = tmp_path / "sessions.json", f"tcp/127.0.0.1:{free_port()}"
+    service = TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(endpoint,)), state_file=str(state),
+                                             spare_workers=0, state_frame_period_s=0)).open()
+    client = zenoh.open(peer_config(connect=[endpoint]))
+    try:
+        with caplog.at_level("INFO", logger="tacf_service.manager"), \
+                FramePublisher(client, "test/cam/moving", MovingTargetScene(320, 240, speed=3.0), fps=10) as feed:
+            assert wait_until(lambda: feed.seq >= 3, 10)
+            frames = StateStore(state).frames_dir
+            frames.mkdir()
+            (frames / "kept.msgpack").mkdir()
+            (frames / "kept.msgpack" / "blocker").write_text("")     # no frame can replace a non-empty directory
+            call(client, NODE, "start", StartRequest(sid="kept", image_key=feed.key, box=feed.truth[feed.seq],
+                                                     seq=feed.seq, profile="kcc"), timeout=30)
+            assert "cannot save the box frame of session kept" in caplog.text
+            state.unlink()
+            state.mkdir()
+            (state / "blocker").write_text("")          # nor the table
+            call(client, NODE, "start", StartRequest(sid="new", image_key=feed.key, box=feed.truth[feed.seq],
+                                                     seq=feed.seq, profile="kcc"), timeout=30)
+            assert f"cannot save the session table to {state}: " in caplog.text
+            shutil.rmtree(state)
+            assert wait_until(lambda: "session table saved to" in caplog.text, 5)
+            assert sorted(s.sid for s in StateStore(state).load()) == ["kept", "new"]
+            assert caplog.text.count("cannot save the box frame of session kept") == 1     # not once a second
+            state.unlink()
+            state.mkdir()
+            (state / "blocker").write_text("")
+            assert wait_until(lambda: caplog.text.count("cannot save the session table to") == 2, 5)
+    finally:
+        client.close()
+        service.close()
+    assert f"cannot save the session table to {state}: [Errno 21] Is a directory: " in caplog.text
+    assert caplog.text.count("cannot save the session table to") == 3 and "shutting down, not retried" in caplog.text
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="the service counts its descriptors in /proc (Linux)")
+def test_a_start_beyond_the_descriptor_limit_is_refused_and_the_others_track_on(tmp_path, endpoint, client):
+    """Under `ulimit -n 64` the start that ran out of descriptors was answered `internal`, with a traceback in the
+    log, and the fork server its half-made request ended took every session's worker with it; the service, its
+    descriptors all taken by the restarts, then accepted no client at all until it was stopped."""
+    serve = Serve(tmp_path, endpoint, "--spare-workers", "0", "--max-sessions", "20", fd_limit=64)
+
+    def fd_count() -> int:
+        return len(os.listdir(f"/proc/{serve.proc.pid}/fd"))
+    try:
+        with FramePublisher(client, "test/cam/moving", MovingTargetScene(320, 240, speed=3.0), fps=10) as feed:
+            assert wait_until(lambda: service_alive(client), 30), serve.log()
+
+            def start(sid: str):
+                return call(client, NODE, "start", StartRequest(sid=sid, image_key=feed.key, box=feed.truth[feed.seq],
+                                                                seq=feed.seq, profile="kcc"), timeout=30)
+            started = []
+            with pytest.raises(ControlError) as refused:
+                for n in range(12):
+                    started.append(start(f"s{n}").sid)
+            assert refused.value.code == "unavailable", (refused.value, serve.log())
+            assert "cannot start a worker process: [Errno 24] too many open files: " in str(refused.value)
+            assert started, serve.log()
+
+            def all_track_on() -> bool:                 # on the workers they had
+                seqs = {sid: call(client, NODE, "status", _status(sid)).last_seq for sid in started}
+                return all(wait_until(lambda: call(client, NODE, "status", _status(sid)).last_seq != seq, 10)
+                           and call(client, NODE, "status", _status(sid)).restarts == 0 for sid, seq in seqs.items())
+            assert all_track_on()                       # and their workers have all connected
+            fds = fd_count()
+            for _ in range(3):
+                with pytest.raises(ControlError, match="too many open files"):
+                    start("again")
+            assert wait_until(lambda: fd_count() <= fds, 5), (fd_count(), fds)     # the refused starts kept none
+            assert all_track_on()
+            with zenoh.open(peer_config(connect=[endpoint])) as newcomer:      # a new client is still accepted
+                assert call(newcomer, NODE, "list", ListRequest()).sessions
+    finally:
+        serve.cleanup()
+    assert "Traceback" not in serve.log(), serve.log()
+
 
 def test_zenoh_config_file_endpoints_reach_the_workers(tmp_path):
     port = free_port()
