@@ -925,6 +925,7 @@ def test_a_table_that_cannot_be_saved_is_logged_while_a_frame_fails_too(tmp_path
     assert f"cannot save the session table to {state}: [Errno 21] Is a directory: " in caplog.text
     assert caplog.text.count("cannot save the session table to") == 3 and "shutting down, not retried" in caplog.text
 
+
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="the service counts its descriptors in /proc (Linux)")
 def test_a_start_beyond_the_descriptor_limit_is_refused_and_the_others_track_on(tmp_path, endpoint, client):
     """Under `ulimit -n 64` the start that ran out of descriptors was answered `internal`, with a traceback in the
