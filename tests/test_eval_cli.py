@@ -674,6 +674,28 @@ def test_track_that_cannot_start_leaves_an_existing_box_file_alone(tmp_path):
     check_boxes_file(out, 5, box)
 
 
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full, whose writes fail as on a full disk")
+def test_track_names_the_box_file_it_has_no_room_for(tmp_path, caplog):
+    """`tacf track --out` on a full disk said only "[Errno 28] No space left on device"."""
+    sequence = write_synthetic_dataset(tmp_path, 4) / "synthetic" / "drift"
+    assert main(["track", str(sequence), "--box", "31,41,24,24", "--tracker", "identity", "--out", "/dev/full"]) == 2
+    assert "cannot write /dev/full: No space left on device" in caplog.text
+
+
+def test_track_fails_when_its_video_could_not_be_written_whole(tmp_path):
+    """A disk that filled up under `tacf track --video` ended it with exit 0 and "video in OUT.mp4", an mp4 without
+    its index that no player opens: OpenCV's writer printed "Failed to write frame" at most."""
+    sequence = write_synthetic_dataset(tmp_path, 20) / "synthetic" / "drift"
+    boxes, video = tmp_path / "boxes.txt", tmp_path / "tracked.mp4"
+    done = run_with_file_size_limit(["track", str(sequence), "--box", "31,41,24,24", "--tracker", "identity",
+                                     "--out", str(boxes), "--video", str(video)],
+                                    4000)           # the boxes fit, not the video (10 KB)
+    assert done.returncode == 2, done.stderr
+    assert f"ERROR tacf.eval.cli: cannot write {video}: OpenCV's video writer failed (a full disk?): it does not " \
+           "open" in done.stderr and "video in" not in done.stderr
+    check_boxes_file(boxes, 20, (31, 41, 24, 24))    # written all the same
+
+
 @pytest.mark.parametrize("text", ["-5,40,24,24", "-.5,-3.5,24,24", "-1e1,40,24,24"])
 def test_track_takes_a_box_across_the_left_or_top_border_as_written(tmp_path, text):
     """`--box -5,40,24,24`, a target half out of view: argparse before Python 3.14 took the value for an option,
