@@ -492,6 +492,56 @@ def test_eval_refuses_an_out_folder_it_cannot_make_before_running(tmp_path, capl
         assert f"--out {out}: cannot make this folder" in caplog.text and "failed" not in caplog.text
 
 
+def run_with_file_size_limit(args: list[str], limit: int) -> subprocess.CompletedProcess:
+    """`tacf ARGS` in a process that may write files of `limit` bytes at most, as on a disk that fills up: a write
+    past it fails with EFBIG (SIGXFSZ ignored), as one fails with ENOSPC on a full disk."""
+    import resource
+
+    def limit_file_size() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return subprocess.run([sys.executable, "-m", "tacf.cli", *args], capture_output=True, text=True, timeout=120,
+                          preexec_fn=limit_file_size)
+
+
+def test_eval_names_a_report_it_has_no_room_for_and_keeps_the_earlier_one(tmp_path):
+    """A disk that filled up as `tacf eval` wrote its reports ended it with an OSError traceback that named no file,
+    and left summary.json cut (0 bytes on a full tmpfs). One line now names the file and the reason, exit 1, and
+    the earlier run's summary.json is left whole."""
+    data, out = write_synthetic_dataset(tmp_path, 6), tmp_path / "out"
+    args = ["eval", str(data), "--trackers", "identity", "--out", str(out), "--no-progress"]
+    assert main(args) == 0
+    earlier = (out / "summary.json").read_bytes()
+    assert len(earlier) > 1000                          # the result files fit in 1000 bytes, summary.json not
+    done = run_with_file_size_limit(args + ["--force"], 1000)
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr
+    assert f"ERROR tacf.eval.cli: cannot write {out / 'summary.json'}: File too large; the results of the pairs " \
+           f"are recorded in {out}" in done.stderr
+    assert (out / "summary.json").read_bytes() == earlier and not list(out.rglob("*.part"))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_eval_stops_at_the_first_result_it_has_no_room_for(tmp_path, workers):
+    """On a full disk `tacf eval` tracked every pair and failed to record each in turn (minutes each on a real
+    dataset), each with a traceback that named no file. It now stops at the first, with one line naming the file
+    and the reason, exit 1, and leaves no .part file."""
+    data, out = write_synthetic_dataset(tmp_path, 6), tmp_path / "out"
+    done = run_with_file_size_limit(["eval", str(data), "--trackers", "identity,opencv-mosse,opencv-kcf,opencv-csrt",
+                                     "--out", str(out), "--workers", str(workers), "--no-progress"],
+                                    100)            # the confidence file's header alone is longer
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr
+    errors = [line for line in done.stderr.splitlines() if " ERROR " in line]
+    assert len(errors) == 1, done.stderr
+    assert re.search(rf"ERROR tacf.eval.cli: (\S+) on synthetic/drift failed: cannot write {re.escape(str(out))}/\1/"
+                     r"confidence/synthetic/drift.txt: File too large; stopped, with \d of the 4 pairs not done",
+                     errors[0]), errors[0]
+    if workers == 1:
+        assert "with 3 of the 4 pairs not done" in errors[0] and [p.name for p in out.iterdir()] == ["identity"]
+    assert not list(out.rglob("*.part")) and not (out / "summary.json").exists()
+
+
 # --- tacf track ---------------------------------------------------------------------------------------------
 def check_boxes_file(path: Path, n: int, box) -> np.ndarray:
     lines = path.read_text().splitlines()
@@ -622,6 +672,28 @@ def test_track_that_cannot_start_leaves_an_existing_box_file_alone(tmp_path):
         assert out.read_text() == "the boxes of an earlier run\n" and not video.exists()
     assert main(["track", str(folder), "--box", "30,40,24,24", "--tracker", "opencv-kcf", "--out", str(out)]) == 0
     check_boxes_file(out, 5, box)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full, whose writes fail as on a full disk")
+def test_track_names_the_box_file_it_has_no_room_for(tmp_path, caplog):
+    """`tacf track --out` on a full disk said only "[Errno 28] No space left on device"."""
+    sequence = write_synthetic_dataset(tmp_path, 4) / "synthetic" / "drift"
+    assert main(["track", str(sequence), "--box", "31,41,24,24", "--tracker", "identity", "--out", "/dev/full"]) == 2
+    assert "cannot write /dev/full: No space left on device" in caplog.text
+
+
+def test_track_fails_when_its_video_could_not_be_written_whole(tmp_path):
+    """A disk that filled up under `tacf track --video` ended it with exit 0 and "video in OUT.mp4", an mp4 without
+    its index that no player opens: OpenCV's writer printed "Failed to write frame" at most."""
+    sequence = write_synthetic_dataset(tmp_path, 20) / "synthetic" / "drift"
+    boxes, video = tmp_path / "boxes.txt", tmp_path / "tracked.mp4"
+    done = run_with_file_size_limit(["track", str(sequence), "--box", "31,41,24,24", "--tracker", "identity",
+                                     "--out", str(boxes), "--video", str(video)],
+                                    4000)           # the boxes fit, not the video (10 KB)
+    assert done.returncode == 2, done.stderr
+    assert f"ERROR tacf.eval.cli: cannot write {video}: OpenCV's video writer failed (a full disk?): it does not " \
+           "open" in done.stderr and "video in" not in done.stderr
+    check_boxes_file(boxes, 20, (31, 41, 24, 24))    # written all the same
 
 
 @pytest.mark.parametrize("text", ["-5,40,24,24", "-.5,-3.5,24,24", "-1e1,40,24,24"])

@@ -191,7 +191,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from . import metrics, report
     from .attributes import attributes_of, read_attribute_table
     from .provenance import provenance
-    from .runner import Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
+    from .runner import OutOfRoom, Start, pending_jobs, run_jobs, shifted_starts, temporal_starts
+    from .text_files import CannotWrite, write_atomically
     from .trackers import ABLATION
 
     if args.ablation and args.trackers:
@@ -235,6 +236,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
         log.error("interrupted: the pairs finished are recorded in %s, and the same command goes on from there",
                   args.out)
         return interrupted_exit_code()
+    except OutOfRoom as stop:
+        log.error("%s on %s failed: %s; stopped, with %d of the %d pairs not done (each would fail alike): the pairs "
+                  "finished are recorded in %s, and the same command goes on from there", stop.outcome.tracker,
+                  stop.outcome.seq_name, stop.outcome.error, stop.not_done, len(jobs), args.out)
+        return 1
     failed = [o for o in outcomes if o.error]
     for o in failed:
         log.error("%s on %s failed: %s", o.tracker, o.seq_name, o.error)
@@ -256,13 +262,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
     source, attributes = attributes_of(seqs, attribute_table)
     summary["attributes"] = report.attribute_scores(summary, attributes, source)
     summary["run"] = {**provenance(args), "pairs_run": len(jobs), "pairs_recorded_before": skipped}
-    paths = report.write_reports(args.out, summary, reports, seqs)
-    if args.videos:
-        paths["videos"] = _write_videos(args.out / "videos", seqs, reports, progress=not args.no_progress)
-    table = report.markdown_table(summary)
-    if args.ablation:
-        table = report.ablation_table(summary)
-        (Path(args.out) / "ablation.md").write_text(table)
+    try:
+        paths = report.write_reports(args.out, summary, reports, seqs)
+        if args.videos:
+            paths["videos"] = _write_videos(args.out / "videos", seqs, reports, progress=not args.no_progress)
+        table = report.markdown_table(summary)
+        if args.ablation:
+            table = report.ablation_table(summary)
+            write_atomically(Path(args.out) / "ablation.md", table)
+    except CannotWrite as exc:
+        log.error("%s; the results of the pairs are recorded in %s, and the same command writes the reports from "
+                  "them", exc, args.out)
+        return 1
     table += report.analysis_tables(summary)
     sys.stdout.write(table)
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))

@@ -13,6 +13,7 @@ per sequence attribute (see `attribute_scores`). "protocol" says how the frames 
 """
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -25,6 +26,7 @@ from . import metrics
 from .attributes import ATTRIBUTE_NAMES
 from .datasets import Sequence
 from .runner import read_confidence, read_run, result_path, rows_fit
+from .text_files import write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +52,16 @@ def tracker_colour(index: int) -> str:
 def _line_style(index: int) -> dict:
     """The i-th tracker's colour, and past ten trackers a dash style that tells repeated colours apart."""
     return {"color": tracker_colour(index), "linestyle": ("-", "--", ":")[index // len(TRACKER_COLOURS) % 3]}
+
+
+def _save_figure(fig, path: Path) -> None:
+    """`fig` as a PNG at `path`, written whole or not at all (write_atomically), and closed."""
+    import matplotlib.pyplot as plt
+
+    png = io.BytesIO()
+    fig.savefig(png, format="png")
+    plt.close(fig)
+    write_atomically(path, png.getvalue())
 
 
 @dataclass
@@ -272,8 +284,7 @@ def plot_attributes(reports: list[TrackerReport], result: dict, out_dir: Path) -
     fig.suptitle(f"Success plots of OPE per attribute ({ATTRIBUTE_SOURCES[result['source']]})")
     fig.tight_layout()
     path = Path(out_dir) / "attributes_plot.png"
-    fig.savefig(path)
-    plt.close(fig)
+    _save_figure(fig, path)
     return path
 
 
@@ -485,8 +496,7 @@ def plot_curves(reports: list[TrackerReport], out_dir: Path) -> list[Path]:
             ax.legend(loc="upper right" if which == 0 else "lower right", fontsize=8)
         fig.tight_layout()
         path = Path(out_dir) / fname
-        fig.savefig(path)
-        plt.close(fig)
+        _save_figure(fig, path)
         paths.append(path)
     return paths
 
@@ -517,9 +527,7 @@ def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_d
         ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
         fig.tight_layout()
         path = Path(out_dir) / "overlap" / f"{seq.name}.png"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path)
-        plt.close(fig)
+        _save_figure(fig, path)
         paths.append(path)
     return paths
 
@@ -556,8 +564,7 @@ def plot_lost_flags(reports: list[TrackerReport], lost_flag: dict, out_dir: Path
     ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
     path = Path(out_dir) / "lost_flag_plot.png"
-    fig.savefig(path)
-    plt.close(fig)
+    _save_figure(fig, path)
     return path
 
 
@@ -597,8 +604,7 @@ def plot_robustness(result: dict, out_dir: Path) -> Path:
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     path = Path(out_dir) / f"{ROBUSTNESS_KEYS[result['protocol']]}_plot.png"
-    fig.savefig(path)
-    plt.close(fig)
+    _save_figure(fig, path)
     return path
 
 
@@ -626,9 +632,9 @@ def write_reports(out_dir: Path, summary: dict, reports: list[TrackerReport],
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {}
     js = out_dir / "summary.json"
-    js.write_text(strict_json(summary))
+    write_atomically(js, strict_json(summary))
     md = out_dir / "summary.md"
-    md.write_text(markdown_table(summary) + analysis_tables(summary))
+    write_atomically(md, markdown_table(summary) + analysis_tables(summary))
     success, precision = plot_curves(reports, out_dir)
     plot_overlaps(reports, sequences, out_dir)
     if summary.get("lost_flag", {}).get("trackers"):

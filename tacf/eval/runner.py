@@ -15,6 +15,7 @@ Result folders written by other toolkits (`tacf eval --results NAME=DIR`) are re
 """
 from __future__ import annotations
 
+import errno
 import io
 import itertools
 import logging
@@ -33,7 +34,7 @@ import numpy as np
 from ..images import read_image
 from .datasets import Sequence, read_boxes, write_boxes
 from .datasets.base import parse_boxes
-from .text_files import read_text
+from .text_files import CannotWrite, read_text, write_atomically
 from .trackers import BoxTracker, make_tracker, settings_of
 
 log = logging.getLogger(__name__)
@@ -206,11 +207,10 @@ def confidence_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
     return Path(out_dir) / tracker / "confidence" / f"{seq_name}.txt"
 
 
-def _write_atomically(path: Path, rows: np.ndarray, fmt: str, header: str = "") -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    np.savetxt(tmp, rows, fmt=fmt, delimiter=",", header=header)
-    tmp.replace(path)
+def _write_rows(path: Path, rows: np.ndarray, fmt: str, header: str = "") -> None:
+    text = io.StringIO()
+    np.savetxt(text, rows, fmt=fmt, delimiter=",", header=header)
+    write_atomically(path, text.getvalue())
 
 
 SETTINGS = "settings "        # in the confidence file's header: settings_of() the tracker that made the result
@@ -218,10 +218,10 @@ SETTINGS = "settings "        # in the confidence file's header: settings_of() t
 
 def write_run(out_dir: Path, tracker: str, seq_name: str, run: TrackRun) -> None:
     """Times and confidence first, boxes last: the box file's presence marks a complete, resumable result."""
-    _write_atomically(times_path(out_dir, tracker, seq_name), run.times, "%.9g")
-    _write_atomically(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]), "%.3f,%d",
-                      "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame\n"
-                      f"{SETTINGS}{settings_of(tracker)}")
+    _write_rows(times_path(out_dir, tracker, seq_name), run.times, "%.9g")
+    _write_rows(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]), "%.3f,%d",
+                "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame\n"
+                f"{SETTINGS}{settings_of(tracker)}")
     write_boxes(result_path(out_dir, tracker, seq_name), run.boxes, one_based=True)
 
 
@@ -403,6 +403,21 @@ class JobOutcome:
     frames: int
     seconds: float
     error: str | None = None
+    no_room: bool = False       # its result could not be written for want of room (NO_ROOM): run_jobs stops
+
+
+# A result that cannot be written for these (a full disk or quota, a file-size limit, a read-only disk) stops the
+# run: every pair after it would track its sequence for minutes and fail alike.
+NO_ROOM = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS})
+
+
+class OutOfRoom(Exception):
+    """run_jobs stopped at `outcome`, a pair whose result could not be written (JobOutcome.no_room), with
+    `not_done` pairs not done (not run, or ended running)."""
+
+    def __init__(self, outcome: JobOutcome, not_done: int):
+        super().__init__(outcome.error)
+        self.outcome, self.not_done = outcome, not_done
 
 
 def failed_outcome(job: Job, error: str) -> JobOutcome:
@@ -425,6 +440,11 @@ def run_job(job: Job) -> JobOutcome:
         run = track_sequence(make_tracker(job.tracker), job.seq, job.start.shift)
         write_run(job.out_dir, job.tracker, job.seq.name, run)
         return JobOutcome(job.tracker, job.seq.name, len(run.boxes), float(run.times.sum()))
+    except CannotWrite as exc:  # the file and the reason say it all: no traceback
+        outcome = replace(failed_outcome(job, str(exc)), no_room=exc.errno in NO_ROOM)
+        if not outcome.no_room:     # one that stops the run is told as it stops it
+            log.error("%s on %s failed: %s", job.tracker, job.seq.name, outcome.error)
+        return outcome
     except Exception as exc:  # noqa: BLE001 - one failed pair must not stop the others
         outcome = failed_outcome(job, f"{type(exc).__name__}: {exc}")
         log.exception("%s on %s failed: %s", job.tracker, job.seq.name, outcome.error)
@@ -484,7 +504,8 @@ WORKER_DIED = ("a worker process died (killed, say by the out-of-memory killer, 
 def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[JobOutcome]:
     """Run jobs in this process (workers <= 1) or in a pool of spawned processes, with a tqdm progress bar; the
     outcomes come in the order the jobs end. When a worker dies, the pairs it left undone run again, and only the
-    pair that was running in it when it died fails (`WORKER_DIED`)."""
+    pair that was running in it when it died fails (`WORKER_DIED`). OutOfRoom when a result could not be written
+    for want of room: the pairs running are ended, the others not run."""
     from tqdm import tqdm
 
     outcomes = []
@@ -494,6 +515,8 @@ def run_jobs(jobs: list[Job], workers: int = 1, progress: bool = True) -> list[J
         bar.set_postfix_str(f"{outcome.tracker} {outcome.seq_name}")
         outcomes.append(outcome)
         bar.update()
+        if outcome.no_room:
+            raise OutOfRoom(outcome, len(jobs) - len(outcomes))
     try:
         if workers <= 1 or len(jobs) <= 1:
             for job in jobs:
@@ -537,7 +560,7 @@ def _run_pool(jobs: list[Job], workers: int, done) -> list[Job]:
                     done(future.result())
                 except BrokenProcessPool:
                     undone.add(future)
-        except BaseException:   # Ctrl-C: leaving the pool would wait for the jobs running
+        except BaseException:   # Ctrl-C, OutOfRoom: leaving the pool would wait for the jobs running
             _terminate_workers(pool)
             raise
     return [job for job, future in zip(jobs, futures) if future in undone]

@@ -1,6 +1,7 @@
-"""Reading the text files of the benchmarks and of other tools' results."""
+"""Reading the text files of the benchmarks and of other tools' results; writing the result and report files."""
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 
@@ -8,3 +9,32 @@ def read_text(path: Path) -> str:
     """A ground-truth, attribute or result file's text: UTF-8, whatever the platform's locale, and without the
     byte-order mark Windows Notepad puts first (it made the first line "not a number")."""
     return Path(path).read_text(encoding="utf-8-sig")
+
+
+class CannotWrite(OSError):
+    """An output file that could not be written: 'cannot write PATH: REASON' (a full disk's OSError named no
+    file)."""
+
+    @classmethod
+    def naming(cls, exc: OSError, path: Path) -> CannotWrite:
+        """`exc`, raised while writing `path`, naming it."""
+        return cls(exc.errno, exc.strerror or str(exc), str(path))
+
+    def __str__(self) -> str:
+        return f"cannot write {self.filename}: {self.strerror}"
+
+
+def write_atomically(path: Path, data: str | bytes) -> None:
+    """Write `path` (its folders made) whole or not at all: `data` (str: UTF-8) goes to PATH.part, which then
+    replaces it, so that a full disk leaves the file of an earlier run, or none, never a cut one. CannotWrite
+    when it fails, PATH.part removed."""
+    path = Path(path)
+    part = path.with_name(path.name + ".part")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part.write_bytes(data.encode() if isinstance(data, str) else data)
+        part.replace(path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            part.unlink(missing_ok=True)
+        raise CannotWrite.naming(exc, path) from None

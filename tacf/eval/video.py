@@ -18,6 +18,7 @@ from . import metrics
 from .datasets import Sequence
 from .datasets.folders import frames_of
 from .runner import read_frame
+from .text_files import CannotWrite
 from .trackers import BoxTracker
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,15 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out: Path | None 
     frames, fps = open_source(source)
     lines = writer = None
     n = 0
+
+    def write_line(text: str) -> None:
+        try:
+            lines.write(text)
+        except OSError as exc:
+            if boxes_out is None:   # standard output's as they are: a reader gone (BrokenPipeError) is no error
+                raise
+            raise CannotWrite.naming(exc, boxes_out) from None
+
     try:
         for name, frame in frames:
             if n > 0 and frame.shape[:2] != first_hw:
@@ -105,11 +115,11 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out: Path | None 
                 if video_out is not None:
                     writer = _open_video(Path(video_out), fps, frame.shape[1::-1])
                 lines = _open_boxes(boxes_out)
-                lines.write(BOXES_HEADER + "\n")
+                write_line(BOXES_HEADER + "\n")
             else:
                 cur = tracker.update(frame)
                 ok, pme = bool(tracker.ok), float(tracker.pme)
-            lines.write(",".join(f"{v:.3f}" for v in cur) + f",{pme:.3f},{int(ok)}\n")
+            write_line(",".join(f"{v:.3f}" for v in cur) + f",{pme:.3f},{int(ok)}\n")
             if writer is not None:
                 writer.write(draw(frame, cur, ok, pme, n))
             n += 1
@@ -117,9 +127,14 @@ def track_source(tracker: BoxTracker, source: Path, box, boxes_out: Path | None 
         if writer is not None:
             writer.release()
         if lines is not None and lines is not sys.stdout:
-            lines.close()
+            try:
+                lines.close()       # writes what its buffer holds: a full disk fails here
+            except OSError as exc:
+                raise CannotWrite.naming(exc, boxes_out) from None
     if n == 0:
         raise ValueError(f"{source}: no frames")
+    if writer is not None:
+        _check_video(Path(video_out), n)
     log.info("tracked %d frames of %s", n, source)
     return n
 
@@ -173,6 +188,7 @@ def write_comparison_video(seq: Sequence, tracks: list[tuple[str, str, np.ndarra
     finally:
         if writer is not None:
             writer.release()
+    _check_video(path, len(seq.frames))
 
 
 def _open_video(path: Path, fps: float, width_height: tuple[int, int]):
@@ -184,6 +200,20 @@ def _open_video(path: Path, fps: float, width_height: tuple[int, int]):
     if not writer.isOpened():
         raise OSError(f"cannot write video {path}")
     return writer
+
+
+def _check_video(path: Path, frames: int) -> None:
+    """CannotWrite unless the video at `path` opens with its `frames` frames: OpenCV's writer only prints "Failed to
+    write frame" when the disk is full, and leaves a file no player opens (its index, the moov atom, missing)."""
+    import cv2
+
+    video = cv2.VideoCapture(str(path))
+    opened = video.isOpened()
+    written = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if opened else 0
+    video.release()
+    if written != frames:
+        found = f"it holds {written} of the {frames} frames" if opened else "it does not open"
+        raise CannotWrite(None, f"OpenCV's video writer failed (a full disk?): {found}", str(path))
 
 
 def _rectangle(frame: np.ndarray, box, colour) -> None:

@@ -1,6 +1,7 @@
 """The Sequence record and the helpers every loader shares (box files, frame listing)."""
 from __future__ import annotations
 
+import io
 import logging
 import re
 from dataclasses import dataclass, field
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ...images import is_image
-from ..text_files import read_text
+from ..text_files import read_text, write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -83,11 +84,9 @@ def write_boxes(path: Path, boxes: np.ndarray, one_based: bool = True) -> None:
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4).copy()
     if one_based:
         boxes[:, :2] += 1.0
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    np.savetxt(tmp, boxes, fmt="%.3f", delimiter=",")
-    tmp.replace(path)
+    text = io.StringIO()
+    np.savetxt(text, boxes, fmt="%.3f", delimiter=",")
+    write_atomically(path, text.getvalue())
 
 
 def natural_key(path: Path) -> list:
