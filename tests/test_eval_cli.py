@@ -542,6 +542,33 @@ def test_eval_stops_at_the_first_result_it_has_no_room_for(tmp_path, workers):
     assert not list(out.rglob("*.part")) and not (out / "summary.json").exists()
 
 
+def test_bench_puts_a_report_it_has_no_room_for_on_standard_output(tmp_path):
+    """`tacf bench tracker --json` on a full disk ended minutes of timing with an OSError traceback, the report
+    lost."""
+    data, report = write_synthetic_dataset(tmp_path, 4), tmp_path / "bench.json"
+    done = run_with_file_size_limit(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity",
+                                     "--no-progress", "--json", str(report)], 1000)
+    assert done.returncode == 1, done.stderr
+    assert f"cannot write {report}: File too large; the report follows on standard output" in done.stderr
+    assert json.loads(done.stdout)["tracker"] == "identity" and not report.exists()
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes")
+def test_a_report_to_a_pipe_or_device_is_written_to_it_not_replaced(tmp_path):
+    """Written whole by a rename, `--json /dev/stdout` (a pipe) was replaced by a file, as root /dev/stdout itself."""
+    from tacf.eval.text_files import write_atomically
+
+    pipe = tmp_path / "pipe"
+    os.mkfifo(pipe)
+    reader = os.open(pipe, os.O_RDONLY | os.O_NONBLOCK)     # a reader there, so that the writer does not wait
+    try:
+        write_atomically(pipe, '{"fps": 1}')
+        assert pipe.is_fifo() and not list(tmp_path.glob("*.part"))
+        assert os.read(reader, 100) == b'{"fps": 1}'
+    finally:
+        os.close(reader)
+
+
 # --- tacf track ---------------------------------------------------------------------------------------------
 def check_boxes_file(path: Path, n: int, box) -> np.ndarray:
     lines = path.read_text().splitlines()

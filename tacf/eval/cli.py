@@ -321,6 +321,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import UAV_PREFIXES, bench, is_uav
     from .provenance import provenance
     from .report import counted, strict_json
+    from .text_files import CannotWrite, write_atomically
 
     root = args.root
     if root is None:
@@ -349,8 +350,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     result = {**bench(trackers, seqs, progress=not args.no_progress), "run": provenance(args)}
     text = strict_json(result)      # no speed (a tracker that failed on every sequence) is null, as in summary.json
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(text)
+        try:
+            write_atomically(args.json, text)
+        except CannotWrite as exc:      # minutes of timing are not lost for a full disk: the report goes to stdout
+            log.error("%s; the report follows on standard output", exc)
+            sys.stdout.write(text)
+            return 1
         over, peer = result["ratio_over"], result["peers"].get("opencv-csrt", result)
         headline = (f"{result['tracker']}: {result['fps']:.1f} fps on {result['cores']:.2f} cores"
                     if result["sequences"] else f"{result['tracker']}: no sequence finished")

@@ -27,12 +27,16 @@ class CannotWrite(OSError):
 def write_atomically(path: Path, data: str | bytes) -> None:
     """Write `path` (its folders made) whole or not at all: `data` (str: UTF-8) goes to PATH.part, which then
     replaces it, so that a full disk leaves the file of an earlier run, or none, never a cut one. CannotWrite
-    when it fails, PATH.part removed."""
-    path = Path(path)
+    when it fails, PATH.part removed. A path that is there and not a regular file is written to in place."""
+    path, data = Path(path), data.encode() if isinstance(data, str) else data
     part = path.with_name(path.name + ".part")
     try:
+        if path.exists() and not path.is_file():
+            # a device, a pipe (`--json /dev/stdout`): written to, never replaced (as root, a rename in /dev would)
+            path.write_bytes(data)
+            return
         path.parent.mkdir(parents=True, exist_ok=True)
-        part.write_bytes(data.encode() if isinstance(data, str) else data)
+        part.write_bytes(data)
         part.replace(path)
     except OSError as exc:
         with contextlib.suppress(OSError):
