@@ -54,8 +54,10 @@ def source_commit(root: Path = SOURCE_ROOT) -> str | None:
 
 
 def _git(root: Path, *command: str) -> str:
-    return subprocess.run(["git", "-C", str(root), *command], capture_output=True, text=True, timeout=10,
-                          check=True).stdout.strip()
+    # --no-optional-locks: `status` refreshes the index under .git/index.lock otherwise, which made a `git commit`
+    # run meanwhile fail, and which a git that could not write (a full disk) left behind
+    return subprocess.run(["git", "--no-optional-locks", "-C", str(root), *command], capture_output=True, text=True,
+                          timeout=10, check=True).stdout.strip()
 
 
 def cpu_model() -> str:
