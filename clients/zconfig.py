@@ -123,7 +123,7 @@ def _check_protocols(conf) -> None:
     endpoints = json.loads(conf.get_json("connect/endpoints"))
     if not protocols or not isinstance(endpoints, list):      # a per-mode {peer: [...], ...} list: Zenoh's to pick
         return
-    for endpoint in endpoints:
-        if endpoint.split("/", 1)[0] not in protocols:
-            raise ZenohSettingsError(f"cannot connect to {endpoint}: transport/link/protocols allows only "
+    for given in endpoints:
+        if given.split("/", 1)[0] not in protocols:
+            raise ZenohSettingsError(f"cannot connect to {given}: transport/link/protocols allows only "
                                      f"{', '.join(protocols)}")
