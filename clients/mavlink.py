@@ -66,6 +66,15 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 log = logging.getLogger(__name__)
 
+
+def _pymavlink_print(*args, **_) -> None:
+    log.debug("pymavlink: %s", " ".join(map(str, args)))
+
+
+# pymavlink tells each attempt to reconnect a TCP ground station, or a serial device, with print() on stdout: 1.5
+# lines a second while the ground station is away, for hours. Debug lines instead; the loop below says it once.
+mavutil.print = _pymavlink_print
+
 DEFAULT_STATUS_HZ = 10.0
 HEARTBEAT_S = 1.0
 SESSION_CHECK_S = 2.0       # how often a running session is asked whether it still runs
@@ -204,6 +213,7 @@ class MavlinkCamera:
     def serve(self, stop: threading.Event) -> None:
         next_heartbeat = next_check = 0.0
         last_status = -math.inf
+        link_down = False
         while not stop.is_set():
             try:
                 now = time.monotonic()
@@ -231,9 +241,15 @@ class MavlinkCamera:
                     last_status = now
                 for message in self._receive_commands(timeout=0.02):
                     self._command(message)
+                if link_down:
+                    log.info("MAVLink link %s is up again", self.mav.address)
+                    link_down = False
             except OSError as exc:
-                # a TCP ground station went away, met by a send or a receive: pymavlink connects again on the next
-                log.warning("MAVLink link %s is down: %s; reconnecting", self.mav.address, exc)
+                # a TCP ground station went away, met by a send or a receive: pymavlink connects again on the next.
+                # Said once: a ground station switched off for hours failed here every few seconds.
+                if not link_down:
+                    log.warning("MAVLink link %s is down: %s; reconnecting", self.mav.address, exc)
+                    link_down = True
                 stop.wait(LINK_RETRY_S)
 
     def _receive_commands(self, timeout: float) -> list[mav.MAVLink_message]:

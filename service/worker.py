@@ -73,6 +73,8 @@ MAX_SEQ_GAP = 1000          # a larger seq jump is a publisher restart or a bogu
 BOX_PRIORITY, HEALTH_PRIORITY = "INTERACTIVE_HIGH", "DATA_HIGH"
 CATCH_UP_BUDGET_S = 0.5     # after the init frame, catch-up frames are used only within this much time
 RESIZE_ASPECT_TOLERANCE = 0.02   # a new frame size within this of the old aspect ratio shows the same view
+REJECT_LOG_PERIOD_S = 60.0  # rejected frames are logged once in this long at most, with the count of those left out:
+                            # a camera sending bad frames for days wrote a line every 100 of them to the edge's card
 COMMAND_POLL_S = 0.1
 # A SIGTERM the service did not send (it had not asked to stop) ends a worker or the fork server this much later, unless
 # the service asks them to stop first, as it does within its shutdown after a signal to the whole process group.
@@ -291,6 +293,8 @@ class Worker:
         self._message: str | None = None         # why the session failed
         self._notice: str | None = None          # the last rejected frame's reason, or a re-initialisation's
         self._notice_until = 0.0                 # monotonic time it leaves health (NOTICE_HOLD_S)
+        self._reject_logged_at = -math.inf       # monotonic time of the last rejected frame logged
+        self._rejects_unlogged = 0               # rejected frames since, not logged (REJECT_LOG_PERIOD_S)
         self._stats = None
         self._pump: threading.Thread | None = None
         self.job: Assignment | None = None
@@ -628,8 +632,14 @@ class Worker:
     def _reject(self, reason: str) -> None:
         self._stats.rejected()
         self._note(reason)
-        if self._stats.frames_rejected <= 3 or self._stats.frames_rejected % 100 == 0:
-            log.warning("rejected frame (%d so far): %s", self._stats.frames_rejected, reason)
+        now = time.monotonic()
+        if now - self._reject_logged_at < REJECT_LOG_PERIOD_S:
+            self._rejects_unlogged += 1
+            return
+        more = (f" ({self._rejects_unlogged} more in the last {now - self._reject_logged_at:.0f} s)"
+                if self._rejects_unlogged else "")
+        log.warning("rejected frame (%d so far): %s%s", self._stats.frames_rejected, reason, more)
+        self._reject_logged_at, self._rejects_unlogged = now, 0
 
     def _note(self, notice: str) -> None:
         self._notice, self._notice_until = notice, time.monotonic() + NOTICE_HOLD_S

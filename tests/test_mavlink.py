@@ -737,6 +737,40 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
         component.close()
 
 
+def test_a_tcp_ground_station_away_for_long_is_logged_once_down_and_once_up_again(caplog, capsys):
+    """A ground station switched off for hours: the component wrote 1.5 lines a second, pymavlink's prints of each
+    reconnection attempt on stdout and a warning of ours every few seconds. Now a warning when the link goes down,
+    a line when it is up again, and nothing in between."""
+    port = free_port()
+
+    def ground_station():
+        return mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                          source_component=GCS_COMPONENT, dialect="common")
+    caplog.set_level("INFO", logger="tacf_clients.mavlink")
+    gcs = ground_station()
+    stop = threading.Event()
+    component = MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp-away", options=no_service_options())
+    loop = threading.Thread(target=component.serve, args=(stop,))
+    loop.start()
+    try:
+        assert _receive(gcs, "HEARTBEAT") is not None
+        capsys.readouterr()
+        gcs.close()
+        time.sleep(9.0)
+        gcs = ground_station()
+        assert _receive(gcs, "HEARTBEAT", timeout=15) is not None, "announces itself again"
+        assert _receive(gcs, "HEARTBEAT", timeout=5) is not None
+    finally:
+        stop.set()
+        loop.join(timeout=15)
+        component.close()
+        gcs.close()
+    assert capsys.readouterr().out.splitlines() == []
+    link_lines = [r.getMessage() for r in caplog.records if "MAVLink link" in r.getMessage()]
+    assert len(link_lines) == 2, link_lines
+    assert "is down" in link_lines[0] and link_lines[1].endswith("is up again")
+
+
 def test_a_component_listening_on_tcp_lets_go_of_its_port_when_closed():
     """With --link tcpin:HOST:PORT the component listens for the ground station. close() left the listening socket
     open (pymavlink's close() of that link closes only the connection), so a component opened on the port again in

@@ -178,6 +178,28 @@ def test_frames_with_the_target_lost_are_counted_in_health(service, client, feed
         call(client, NODE, "stop", StopRequest(sid="doubtful"))
 
 
+def test_a_camera_sending_bad_frames_for_long_is_logged_once_a_period_with_the_count_left_out(caplog, monkeypatch):
+    """A camera that sends a malformed frame every frame, for days: the worker logged its first 3 and then every
+    100th (18 lines a minute at 30 fps, for ever); now the first, then one a REJECT_LOG_PERIOD_S with the count."""
+    from tacf_service import worker as worker_module
+    from tacf_service.health import HealthStats
+
+    worker = worker_module.Worker(worker_module.WorkerSpec(node=NODE), None)
+    worker._stats, worker._image_shape = HealthStats(), (240, 320, 3)     # tracking a 320x240 feed
+    caplog.set_level("WARNING", logger=worker_module.__name__)
+    for _ in range(500):
+        worker._process(b"\xc1garbage")
+    assert worker._stats.frames_rejected == 500
+    assert len(caplog.records) == 1, [r.getMessage() for r in caplog.records]
+    assert caplog.records[0].getMessage().startswith("rejected frame (1 so far): Frame: malformed msgpack")
+    monkeypatch.setattr(worker_module, "REJECT_LOG_PERIOD_S", 0.2)
+    time.sleep(0.3)
+    worker._process(b"\xc1garbage")
+    assert len(caplog.records) == 2
+    assert caplog.records[1].getMessage().startswith("rejected frame (501 so far): Frame: malformed msgpack")
+    assert caplog.records[1].getMessage().endswith("(499 more in the last 0 s)")
+
+
 def test_health_counters_add_up(service, client):
     """Every frame a worker received is processed (the one it was initialised on included), dropped or rejected."""
     key = "test/cam/counted"
