@@ -37,6 +37,9 @@ SCENE_SPEC = "scene"
 OPEN_TIMEOUT_MS, READ_TIMEOUT_MS = 10_000, 5_000
 # Pauses before each attempt to reopen a failed live source: doubling from the first, capped at the last.
 RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.5, 5.0
+# Once they reach the cap, the failed attempts are logged once in this long, with their count: a camera switched
+# off for hours wrote a line every 5 s.
+REOPEN_LOG_PERIOD_S = 60.0
 
 
 def never_stop() -> bool:
@@ -247,13 +250,20 @@ class CaptureSource(FrameSource):
     def _reopen(self, should_stop: Callable[[], bool]) -> bool:
         """Reopen a failed live source, pausing longer after each failed attempt; False once stopped."""
         self._cap.release()
-        pause = RECONNECT_FIRST_S
+        pause, logged_at, unlogged = RECONNECT_FIRST_S, None, 0
         while not sleep_unless(pause, should_stop):
             try:
                 cap = call_unless_stopped(self._open, should_stop)
             except ValueError:
+                now = time.monotonic()
+                if pause == RECONNECT_MAX_S and logged_at is not None and now - logged_at < REOPEN_LOG_PERIOD_S:
+                    unlogged += 1
+                    continue
                 pause = min(2 * pause, RECONNECT_MAX_S)
-                log.warning("cannot reopen %s, next attempt in %.1f s", self.name, pause)
+                more = f" ({unlogged + 1} failed attempts since the last line)" if unlogged else ""
+                log.warning("cannot reopen %s, next attempt in %.1f s%s", self.name, pause, more)
+                if pause == RECONNECT_MAX_S:
+                    logged_at, unlogged = now, 0
                 continue
             if cap is STOPPED:                  # the capture, if it ever opens, is released when collected
                 break

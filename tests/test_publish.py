@@ -734,6 +734,25 @@ def test_a_camera_that_goes_away_is_retried_until_it_is_back(camera, monkeypatch
     assert source.reconnects == 1
 
 
+def test_a_camera_away_for_long_is_logged_once_a_period_once_the_pauses_are_capped(camera, monkeypatch, caplog):
+    """Every failed reopen was logged: a camera switched off for hours wrote a line every 5 s. The doubling pauses
+    are still told one by one; at the cap, once in REOPEN_LOG_PERIOD_S, with the count of the attempts since."""
+    monkeypatch.setattr(sources, "RECONNECT_FIRST_S", 0.05)
+    monkeypatch.setattr(sources, "RECONNECT_MAX_S", 0.2)
+    monkeypatch.setattr(sources, "REOPEN_LOG_PERIOD_S", 1.0)
+    cam = camera(frames_per_connection=3)
+    with caplog.at_level("WARNING", logger="tacf_clients.sources"), open_source(cam.url) as source:
+        frames = source.frames()
+        assert len([next(frames) for _ in range(3)]) == 3
+        cam.down()
+        threading.Timer(3.0, cam.up).start()
+        next(frames)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("cannot reopen")]
+    assert [line.split("next attempt in ")[1][:3] for line in lines[:3]] == ["0.1", "0.2", "0.2"], lines
+    assert re.search(r"\((\d+) failed attempts since the last line\)$", lines[2]), lines
+    assert 3 <= len(lines) <= 5, lines      # not one for each of the 10 or more attempts of 3 s
+
+
 def test_stopping_ends_a_reconnecting_source_promptly(camera):
     cam = camera(frames_per_connection=3)  # FFmpeg reads two or three frames to open a stream
     stop = threading.Event()
