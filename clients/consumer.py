@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import zenoh
 
-from tacf_clients.errors import as_invalid_id
+from tacf_clients.errors import ClientClosed, as_invalid_id
 from tacf_clients.stream import ResultStream
 from tacf_clients.zconfig import ZenohOptions, open_session
 from tacf_schemas import keys
@@ -95,6 +95,8 @@ class BoxConsumer:
                  options: ZenohOptions | None = None, queue_size: int = 64):
         with as_invalid_id():                   # a TacfError, as TrackingClient raises it
             key_expr = keys.box_key(node, sid)
+        if session is not None and session.is_closed():     # zenoh's own ZError, which a TacfError handler missed
+            raise ClientClosed("the Zenoh session given to the consumer is closed")
         self._own_session = session is None
         self.session = session if session is not None else open_session(options)
         try:

@@ -120,7 +120,8 @@ class ZenohSettingsError(ZenohUnavailable):
 
 
 class ClientClosed(TacfError):
-    """A call on a TrackingClient after its close() (or after the Zenoh session it was given closed)."""
+    """A call on a TrackingClient after its close() (or after the Zenoh session it was given closed), a BoxConsumer
+    given a closed session."""
 
     code = "closed"
 

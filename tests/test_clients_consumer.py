@@ -85,6 +85,16 @@ def test_normalised_boxes_for_gimbal_and_mavlink():
     assert edge.corners_normalised == pytest.approx((0.0, 230 / 240, 30 / 320, 1.0))
 
 
+def test_a_consumer_on_a_closed_session_raises_client_closed():
+    """It raised zenoh's own ZError ("session closed"), which a caller catching TacfError did not catch."""
+    from tacf_clients.errors import ClientClosed
+
+    session = zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{free_port()}")))
+    session.close()
+    with pytest.raises(ClientClosed, match="the Zenoh session given to the consumer is closed"):
+        BoxConsumer(session)
+
+
 def test_iterator_one_session_in_order(net):
     with BoxConsumer(net.vehicle, sid="cam1") as boxes:
         net.wait_matched(box_key("edge1", "cam1"))
