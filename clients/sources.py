@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from tacf.eval.datasets.folders import frames_of
-from tacf.images import IMAGE_SUFFIXES, read_image
+from tacf.images import IMAGE_SUFFIXES, opencv_path, read_image
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -199,7 +199,7 @@ class CaptureSource(FrameSource):
             cap = cv2.VideoCapture(self.spec, cv2.CAP_ANY, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, OPEN_TIMEOUT_MS,
                                                              cv2.CAP_PROP_READ_TIMEOUT_MSEC, READ_TIMEOUT_MS])
         else:
-            cap = cv2.VideoCapture(self.spec)
+            cap = cv2.VideoCapture(opencv_path(self.spec) if isinstance(self.spec, str) else self.spec)
         if not cap.isOpened():
             cap.release()
             raise ValueError(f"cannot open video source {self.spec!r}")

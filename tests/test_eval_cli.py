@@ -642,6 +642,30 @@ def test_track_leaves_out_the_hidden_files_a_mac_puts_beside_each_frame(tmp_path
     check_boxes_file(tmp_path / "boxes.txt", 10, box)
 
 
+def test_track_and_eval_read_and_write_paths_whose_names_are_not_utf8(tmp_path):
+    """A folder unzipped from an archive made on a Chinese Windows has GBK names ("数据" here), which Python decodes
+    to lone surrogates: OpenCV's imread, VideoWriter and VideoCapture, and its putText on the sequence's name,
+    crashed the process (SIGSEGV, no message) and matplotlib and summary.md refused the name with a traceback. In
+    a child process, as a crash would end pytest's own."""
+    gbk = os.fsdecode("数据".encode("gbk"))
+    data = write_synthetic_dataset(tmp_path, 6)
+    seq = (data / "synthetic" / "drift").rename(data / "synthetic" / f"{gbk} drift")
+    video, out = tmp_path / f"{gbk}.mp4", tmp_path / "out"
+
+    def tacf_cli(*args: str) -> None:
+        done = subprocess.run([sys.executable, "-m", "tacf.cli", *args], capture_output=True, timeout=120)
+        assert done.returncode == 0, f"exit {done.returncode}: {done.stderr.decode(errors='replace')[-2000:]}"
+
+    tacf_cli("track", str(seq), "--tracker", "identity", "--box", "31,41,24,24", "--out", str(tmp_path / "b.txt"),
+             "--video", str(video))
+    tacf_cli("track", str(video), "--tracker", "identity", "--box", "31,41,24,24", "--out", str(tmp_path / "c.txt"))
+    assert len((tmp_path / "c.txt").read_text().splitlines()) == 1 + 6
+    tacf_cli("eval", str(data), "--trackers", "identity", "--out", str(out), "--no-progress", "--videos")
+    assert f"| synthetic/{gbk} drift |".encode(errors="surrogateescape") in (out / "summary.md").read_bytes()
+    for made in ("identity/synthetic/{} drift.txt", "overlap/synthetic/{} drift.png", "videos/synthetic/{} drift.mp4"):
+        assert (out / made.format(gbk)).stat().st_size > 0
+
+
 def test_track_warns_of_a_video_cut_short(tmp_path, caplog):
     """A video cut in half (a copy interrupted, a recorder's power lost) was tracked to where it broke, the box file
     as for a whole video, without a word that frames were missing."""

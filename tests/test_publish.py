@@ -520,6 +520,22 @@ def test_publish_command_line_on_an_image_folder(tmp_path, collector):
     assert "published 5 frames" in done.stderr + done.stdout
 
 
+def test_publish_reads_a_video_and_a_folder_whose_names_are_not_utf8(tmp_path, collector):
+    """A folder unzipped from an archive made on a Chinese Windows has GBK names ("数据" here), which Python decodes
+    to lone surrogates: OpenCV's imread and VideoCapture crashed `tacf publish` on them (SIGSEGV, no message)."""
+    written = tmp_path / "written"               # by OpenCV too, then renamed
+    _write_folder(written / "img", _frames(3))
+    _write_video(written / "clip.avi", _frames(3))
+    folder = written.rename(tmp_path / os.fsdecode("数据".encode("gbk")))
+    for source in (folder / "clip.avi", folder / "img"):
+        cmd = [sys.executable, "-m", "tacf.cli", "publish", str(source), "--key", KEY, "--fps", "50",
+               "--connect", f"tcp/127.0.0.1:{collector.port}", "--wait-subscriber", "5"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, f"exit {done.returncode}: {done.stderr}"
+        assert "published 3 frames" in done.stderr + done.stdout
+    assert len(collector.wait(6)) == 6
+
+
 def test_an_image_folder_plays_in_natural_order(tmp_path):
     """FFmpeg's %d.jpg names frames 1, 2, ... 10: sorted as text, 10.png came before 2.png."""
     for i in (1, 2, 10, 11, 3):

@@ -26,7 +26,7 @@ from . import metrics
 from .attributes import ATTRIBUTE_NAMES
 from .datasets import Sequence
 from .runner import read_confidence, read_run, result_path, rows_fit
-from .text_files import write_atomically
+from .text_files import drawable, write_atomically
 
 log = logging.getLogger(__name__)
 
@@ -521,7 +521,7 @@ def plot_overlaps(reports: list[TrackerReport], sequences: list[Sequence], out_d
             overlap = np.where(present, metrics.iou(r.boxes[seq.name], seq.gt), np.nan)
             ax.plot(frames, overlap, linewidth=1.4, label=f"{r.name} [AUC {r.sequences[seq.name]['auc']:.3f}]",
                     **_line_style(i))
-        ax.set(title=f"{seq.name}: overlap with the ground truth", xlabel="frame", ylabel="IoU",
+        ax.set(title=f"{drawable(seq.name)}: overlap with the ground truth", xlabel="frame", ylabel="IoU",
                xlim=(1, max(len(seq), 2)), ylim=(0, 1.01))
         ax.grid(alpha=0.3)
         ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)

@@ -11,6 +11,13 @@ def read_text(path: Path) -> str:
     return Path(path).read_text(encoding="utf-8-sig")
 
 
+def drawable(name: str) -> str:
+    """A name as text to draw (a plot's title, a video's band): the bytes of a file name that are not UTF-8 (a GBK
+    folder name, decoded by Python to lone surrogates) as U+FFFD; matplotlib refuses such a name, and OpenCV's
+    putText crashes the process (SIGSEGV) on it."""
+    return name.encode(errors="surrogateescape").decode(errors="replace")
+
+
 class CannotWrite(OSError):
     """An output file that could not be written: 'cannot write PATH: REASON' (a full disk's OSError named no
     file)."""
@@ -28,7 +35,8 @@ def write_atomically(path: Path, data: str | bytes) -> None:
     """Write `path` (its folders made) whole or not at all: `data` (str: UTF-8) goes to PATH.part, which then
     replaces it, so that a full disk leaves the file of an earlier run, or none, never a cut one. CannotWrite
     when it fails, PATH.part removed. A path that is there and not a regular file is written to in place."""
-    path, data = Path(path), data.encode() if isinstance(data, str) else data
+    # surrogateescape: a sequence named by a folder whose name is not UTF-8 (GBK) keeps that name's bytes
+    path, data = Path(path), data.encode(errors="surrogateescape") if isinstance(data, str) else data
     part = path.with_name(path.name + ".part")
     try:
         if path.exists() and not path.is_file():

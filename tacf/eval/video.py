@@ -13,12 +13,12 @@ from typing import TextIO
 import numpy as np
 
 from ..boxes import check_box
-from ..images import IMAGE_SUFFIXES
+from ..images import IMAGE_SUFFIXES, opencv_path
 from . import metrics
 from .datasets import Sequence
 from .datasets.folders import frames_of
 from .runner import read_frame
-from .text_files import CannotWrite
+from .text_files import CannotWrite, drawable
 from .trackers import BoxTracker
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,7 @@ def open_source(source: Path) -> tuple[Iterator[tuple[str, np.ndarray]], float]:
         return ((str(p), read_frame(p)) for p in paths), 10.0
     if not source.is_file():
         raise FileNotFoundError(f"{source}: no such video file or image folder")
-    cap = cv2.VideoCapture(str(source))
+    cap = cv2.VideoCapture(opencv_path(source))
     if not cap.isOpened():
         raise ValueError(f"{source}: OpenCV cannot open this video")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
@@ -175,7 +175,7 @@ def write_comparison_video(seq: Sequence, tracks: list[tuple[str, str, np.ndarra
             frame = read_frame(frame_path)
             if writer is None:
                 writer = _open_video(path, fps, (frame.shape[1], frame.shape[0] + band))
-            rows = [(f"{seq.name}  #{index + 1}/{len(seq)}", white),
+            rows = [(f"{drawable(seq.name)}  #{index + 1}/{len(seq)}", white),
                     ("ground truth" if present[index] else "ground truth: target absent", white)]
             if present[index]:
                 _rectangle(frame, seq.gt[index], white)
@@ -200,7 +200,7 @@ def _open_video(path: Path, fps: float, width_height: tuple[int, int]):
     import cv2
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, width_height)
+    writer = cv2.VideoWriter(opencv_path(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, width_height)
     if not writer.isOpened():
         raise OSError(f"cannot write video {path}")
     return writer
@@ -211,7 +211,7 @@ def _check_video(path: Path, frames: int) -> None:
     write frame" when the disk is full, and leaves a file no player opens (its index, the moov atom, missing)."""
     import cv2
 
-    video = cv2.VideoCapture(str(path))
+    video = cv2.VideoCapture(opencv_path(path))
     opened = video.isOpened()
     written = int(video.get(cv2.CAP_PROP_FRAME_COUNT)) if opened else 0
     video.release()
