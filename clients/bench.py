@@ -88,15 +88,14 @@ class Feed:
 
 def load_feeds(root: Path, count: int) -> list[Feed]:
     """`count` feeds from the 1280x720 sequences under root, reusing sequences when there are fewer."""
-    import cv2
-
     from tacf.eval.datasets import load_sequences
+    from tacf.images import read_image
 
     feeds: list[Feed] = []
     for seq in load_sequences(root):
         if any(Path(p).suffix.lower() not in (".jpg", ".jpeg") for p in seq.frames):
             continue                # the files go out as they are, labelled JPEG
-        first = cv2.imread(str(seq.frames[0]))
+        first = read_image(Path(seq.frames[0]))      # OpenCV crashed on a path not in UTF-8 (a GBK folder)
         if first is None or (first.shape[1], first.shape[0]) != FRAME_SIZE:
             continue
         jpegs = tuple(Path(p).read_bytes() for p in seq.frames)
