@@ -518,9 +518,9 @@ def test_every_health_counts_every_frame_received(endpoint, client, feed):
             return (worker[-1], service[-1]) if worker and service else None
         assert wait_until(finals, 5), results.health
         worker_final, service_final = finals()
-        for health in (worker_final, service_final):
-            assert health.frames_received == health.frames_processed + health.frames_dropped + \
-                health.frames_rejected, health
+        for final in (worker_final, service_final):
+            assert final.frames_received == final.frames_processed + final.frames_dropped + \
+                final.frames_rejected, final
         counters = ("frames_received", "frames_processed", "frames_dropped", "last_seq")
         assert [getattr(service_final, c) for c in counters] == [getattr(worker_final, c) for c in counters]
 
