@@ -705,16 +705,18 @@ def test_no_frame_yet_is_a_temporary_refusal():
                 gcs.close()
 
 
+def _tcp_ground_station(port: int):
+    """A ground station listening on TCP `port` for the component to connect to."""
+    return mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                      source_component=GCS_COMPONENT, dialect="common")
+
+
 def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
     """Over TCP the component connects to the ground station. When that goes away for longer than pymavlink's
     reconnection tries (3 s), the component tries on rather than dying, and answers the ground station once it is
     back; closing it then works too."""
     port = free_port()
-
-    def ground_station():
-        return mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
-                                          source_component=GCS_COMPONENT, dialect="common")
-    gcs = ground_station()
+    gcs = _tcp_ground_station(port)
     stop = threading.Event()
     component = MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp", options=no_service_options())
     loop = threading.Thread(target=component.serve, args=(stop,))
@@ -724,7 +726,7 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
         gcs.close()
         time.sleep(5.0)
         assert loop.is_alive(), "the component lives on"
-        gcs = ground_station()
+        gcs = _tcp_ground_station(port)
         assert _receive(gcs, "HEARTBEAT", timeout=15) is not None, "announces itself again"
         assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION) == \
             mav.MAV_RESULT_ACCEPTED
@@ -742,12 +744,8 @@ def test_a_tcp_ground_station_away_for_long_is_logged_once_down_and_once_up_agai
     reconnection attempt on stdout and a warning of ours every few seconds. Now a warning when the link goes down,
     a line when it is up again, and nothing in between."""
     port = free_port()
-
-    def ground_station():
-        return mavutil.mavlink_connection(f"tcpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
-                                          source_component=GCS_COMPONENT, dialect="common")
     caplog.set_level("INFO", logger="tacf_clients.mavlink")
-    gcs = ground_station()
+    gcs = _tcp_ground_station(port)
     stop = threading.Event()
     component = MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp-away", options=no_service_options())
     loop = threading.Thread(target=component.serve, args=(stop,))
@@ -757,7 +755,7 @@ def test_a_tcp_ground_station_away_for_long_is_logged_once_down_and_once_up_agai
         capsys.readouterr()
         gcs.close()
         time.sleep(9.0)
-        gcs = ground_station()
+        gcs = _tcp_ground_station(port)
         assert _receive(gcs, "HEARTBEAT", timeout=15) is not None, "announces itself again"
         assert _receive(gcs, "HEARTBEAT", timeout=5) is not None
     finally:
