@@ -118,12 +118,15 @@ class TrackingClient:
         request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, frames=list(frames),
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
         deadline, target = self._deadline(self.start_timeout), node or self.node
+        # Finding the service is a list: it gets a list's time, not the start's (with zenoh 1.5 a lookup over every
+        # service ran until its deadline, then 15 s and more of the start's 30 before the start was sent)
+        lookup_deadline = min(deadline, self._deadline())
         if target == LEAST_LOADED:                                       # every service, even with self.node set
-            listings = self._services(None, deadline, settle=True)
+            listings = self._services(None, lookup_deadline, settle=True)
             target = least_loaded(listings)
             _refuse_twins([listing.node for listing in listings if listing.node == target])
         elif target is None:
-            target = self._single_node(deadline)
+            target = self._single_node(lookup_deadline)
         # The service goes on with a start it answers too late: a retry then met duplicate_session, or, without a sid,
         # started a second session on the same target.
         late = (f"; service {target!r} may still start the session: check with status"
