@@ -118,8 +118,8 @@ class TrackingClient:
         request = _build(StartRequest, image_key=_image_key(image_key), box=_box(box), seq=seq, frames=list(frames),
                          sid=sid, profile=profile, overrides=dict(overrides or {}))
         deadline, target = self._deadline(self.start_timeout), node or self.node
-        # Finding the service is a list: it gets a list's time, not the start's (with zenoh 1.5 a lookup over every
-        # service ran until its deadline, then 15 s and more of the start's 30 before the start was sent)
+        # Finding the service is a list: it gets a list's time, not the start's (given the start's 30 s, with zenoh
+        # 1.5, the oldest we take, a start by the Foxglove bridge was not answered within 15 s)
         lookup_deadline = min(deadline, self._deadline())
         if target == LEAST_LOADED:                                       # every service, even with self.node set
             listings = self._services(None, lookup_deadline, settle=True)
