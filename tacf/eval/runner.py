@@ -33,8 +33,8 @@ import numpy as np
 
 from ..images import read_image
 from .datasets import Sequence, read_boxes, write_boxes
-from .datasets.base import parse_boxes
-from .text_files import CannotWrite, read_text, write_atomically
+from .datasets.base import parse_boxes, write_rows
+from .text_files import CannotWrite, read_text
 from .trackers import BoxTracker, make_tracker, settings_of
 
 log = logging.getLogger(__name__)
@@ -207,21 +207,15 @@ def confidence_path(out_dir: Path, tracker: str, seq_name: str) -> Path:
     return Path(out_dir) / tracker / "confidence" / f"{seq_name}.txt"
 
 
-def _write_rows(path: Path, rows: np.ndarray, fmt: str, header: str = "") -> None:
-    text = io.StringIO()
-    np.savetxt(text, rows, fmt=fmt, delimiter=",", header=header)
-    write_atomically(path, text.getvalue())
-
-
 SETTINGS = "settings "        # in the confidence file's header: settings_of() the tracker that made the result
 
 
 def write_run(out_dir: Path, tracker: str, seq_name: str, run: TrackRun) -> None:
     """Times and confidence first, boxes last: the box file's presence marks a complete, resumable result."""
-    _write_rows(times_path(out_dir, tracker, seq_name), run.times, "%.9g")
-    _write_rows(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]), "%.3f,%d",
-                "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame\n"
-                f"{SETTINGS}{settings_of(tracker)}")
+    write_rows(times_path(out_dir, tracker, seq_name), run.times, "%.9g")
+    write_rows(confidence_path(out_dir, tracker, seq_name), np.column_stack([run.pme, run.ok]), "%.3f,%d",
+               "pme,ok: the tracker's peak-to-median energy (nan: none) and lost flag (0) per frame\n"
+               f"{SETTINGS}{settings_of(tracker)}")
     write_boxes(result_path(out_dir, tracker, seq_name), run.boxes, one_based=True)
 
 

@@ -84,8 +84,13 @@ def write_boxes(path: Path, boxes: np.ndarray, one_based: bool = True) -> None:
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4).copy()
     if one_based:
         boxes[:, :2] += 1.0
+    write_rows(path, boxes, "%.3f")
+
+
+def write_rows(path: Path, rows: np.ndarray, fmt: str, header: str = "") -> None:
+    """Rows as comma-separated lines in `fmt` (numpy.savetxt's), under a '# ' header if given, atomically."""
     text = io.StringIO()
-    np.savetxt(text, boxes, fmt="%.3f", delimiter=",")
+    np.savetxt(text, rows, fmt=fmt, delimiter=",", header=header)
     write_atomically(path, text.getvalue())
 
 
