@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import pydantic
 import zenoh
 
+from tacf.log_throttle import LogThrottle
 from tacf_clients.errors import (AmbiguousNode, AmbiguousSession, ClientClosed, InvalidBox, InvalidId, InvalidKey,
                                  InvalidRequest, NoService, ProtocolError, RequestTimeout, TacfError, TooManySessions,
                                  UnknownSession, as_invalid_id, error_from_wire)
@@ -451,9 +452,7 @@ class _ResultDecoder:
     a second) scrolled `tacf watch`'s table away."""
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()       # Zenoh may call it from several threads
-        self._warned_at = -MALFORMED_WARNING_PERIOD_S
-        self._held_back = 0
+        self._warnings = LogThrottle()
 
     def __call__(self, sample: zenoh.Sample) -> BoxResult | Health | None:
         leaf = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -467,12 +466,9 @@ class _ResultDecoder:
             return None
 
     def _warn(self, leaf: str, key: str, exc: DecodeError) -> None:
-        now = time.monotonic()
-        with self._lock:
-            if now - self._warned_at < MALFORMED_WARNING_PERIOD_S:
-                self._held_back += 1
-                return
-            held_back, self._held_back, self._warned_at = self._held_back, 0, now
+        if (admitted := self._warnings.admit(MALFORMED_WARNING_PERIOD_S)) is None:
+            return
+        held_back = admitted.held_back
         more = f" ({held_back} more malformed results dropped since the last such warning)" if held_back else ""
         # %r: a key may hold any character but # ? * $, so anyone on the network could write terminal escapes
         # (screen clear, window title) and forged log lines to the terminal of `tacf watch`

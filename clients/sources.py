@@ -25,6 +25,7 @@ import numpy as np
 
 from tacf.eval.datasets.folders import frames_of
 from tacf.images import IMAGE_SUFFIXES, opencv_path, read_image
+from tacf.log_throttle import LogThrottle
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -250,20 +251,17 @@ class CaptureSource(FrameSource):
     def _reopen(self, should_stop: Callable[[], bool]) -> bool:
         """Reopen a failed live source, pausing longer after each failed attempt; False once stopped."""
         self._cap.release()
-        pause, logged_at, unlogged = RECONNECT_FIRST_S, None, 0
+        pause, failures = RECONNECT_FIRST_S, LogThrottle()
         while not sleep_unless(pause, should_stop):
             try:
                 cap = call_unless_stopped(self._open, should_stop)
             except ValueError:
-                now = time.monotonic()
-                if pause == RECONNECT_MAX_S and logged_at is not None and now - logged_at < REOPEN_LOG_PERIOD_S:
-                    unlogged += 1
-                    continue
+                period_s = REOPEN_LOG_PERIOD_S if pause == RECONNECT_MAX_S else 0.0   # each doubling is told
                 pause = min(2 * pause, RECONNECT_MAX_S)
-                more = f" ({unlogged + 1} failed attempts since the last line)" if unlogged else ""
-                log.warning("cannot reopen %s, next attempt in %.1f s%s", self.name, pause, more)
-                if pause == RECONNECT_MAX_S:
-                    logged_at, unlogged = now, 0
+                if (admitted := failures.admit(period_s)) is not None:
+                    held_back = admitted.held_back
+                    more = f" ({held_back + 1} failed attempts since the last line)" if held_back else ""
+                    log.warning("cannot reopen %s, next attempt in %.1f s%s", self.name, pause, more)
                 continue
             if cap is STOPPED:                  # the capture, if it ever opens, is released when collected
                 break

@@ -54,6 +54,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from tacf.log_throttle import LogThrottle
 from tacf.stop_signals import STOP_SIGNALS, hold_stop_signals, release_stop_signals, restore_signal_mask
 
 from .config import ZenohOptions
@@ -293,8 +294,7 @@ class Worker:
         self._message: str | None = None         # why the session failed
         self._notice: str | None = None          # the last rejected frame's reason, or a re-initialisation's
         self._notice_until = 0.0                 # monotonic time it leaves health (NOTICE_HOLD_S)
-        self._reject_logged_at = -math.inf       # monotonic time of the last rejected frame logged
-        self._rejects_unlogged = 0               # rejected frames since, not logged (REJECT_LOG_PERIOD_S)
+        self._reject_lines = LogThrottle()       # once a REJECT_LOG_PERIOD_S
         self._stats = None
         self._pump: threading.Thread | None = None
         self.job: Assignment | None = None
@@ -632,14 +632,10 @@ class Worker:
     def _reject(self, reason: str) -> None:
         self._stats.rejected()
         self._note(reason)
-        now = time.monotonic()
-        if now - self._reject_logged_at < REJECT_LOG_PERIOD_S:
-            self._rejects_unlogged += 1
+        if (admitted := self._reject_lines.admit(REJECT_LOG_PERIOD_S)) is None:
             return
-        more = (f" ({self._rejects_unlogged} more in the last {now - self._reject_logged_at:.0f} s)"
-                if self._rejects_unlogged else "")
+        more = f" ({admitted.held_back} more in the last {admitted.since_s:.0f} s)" if admitted.held_back else ""
         log.warning("rejected frame (%d so far): %s%s", self._stats.frames_rejected, reason, more)
-        self._reject_logged_at, self._rejects_unlogged = now, 0
 
     def _note(self, notice: str) -> None:
         self._notice, self._notice_until = notice, time.monotonic() + NOTICE_HOLD_S
