@@ -569,6 +569,24 @@ def test_a_report_to_a_pipe_or_device_is_written_to_it_not_replaced(tmp_path):
         os.close(reader)
 
 
+
+def test_a_write_interrupted_by_ctrl_c_leaves_no_part_file(tmp_path, monkeypatch):
+    """A Ctrl-C while a result was being written left RESULT.part beside the results; the earlier file stays."""
+    from tacf.eval.text_files import write_atomically
+
+    result = tmp_path / "person1.txt"
+    result.write_text("1,2,3,4\n")
+
+    def cut_short(path, data):
+        with open(path, "wb") as file:
+            file.write(data[:3])
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Path, "write_bytes", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        write_atomically(result, "5,6,7,8\n" * 100)
+    assert result.read_text() == "1,2,3,4\n" and not list(tmp_path.glob("*.part"))
+
 # --- tacf track ---------------------------------------------------------------------------------------------
 def check_boxes_file(path: Path, n: int, box) -> np.ndarray:
     lines = path.read_text().splitlines()

@@ -34,7 +34,8 @@ class CannotWrite(OSError):
 def write_atomically(path: Path, data: str | bytes) -> None:
     """Write `path` (its folders made) whole or not at all: `data` (str: UTF-8) goes to PATH.part, which then
     replaces it, so that a full disk leaves the file of an earlier run, or none, never a cut one. CannotWrite
-    when it fails, PATH.part removed. A path that is there and not a regular file is written to in place."""
+    when it fails, PATH.part removed (as on an interrupt). A path that is there and not a regular file is written
+    to in place."""
     # surrogateescape: a sequence named by a folder whose name is not UTF-8 (GBK) keeps that name's bytes
     path, data = Path(path), data.encode(errors="surrogateescape") if isinstance(data, str) else data
     part = path.with_name(path.name + ".part")
@@ -46,7 +47,9 @@ def write_atomically(path: Path, data: str | bytes) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         part.write_bytes(data)
         part.replace(path)
-    except OSError as exc:
+    except BaseException as exc:        # a Ctrl-C too: no PATH.part left beside the results
         with contextlib.suppress(OSError):
             part.unlink(missing_ok=True)
-        raise CannotWrite.naming(exc, path) from None
+        if isinstance(exc, OSError):
+            raise CannotWrite.naming(exc, path) from None
+        raise
