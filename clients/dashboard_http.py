@@ -266,6 +266,11 @@ class DashboardHandler(BaseHTTPRequestHandler):
         self._error(status, _STDLIB_ERRORS.get(status, status.name.lower()), message or status.description,
                     {"Connection": "close"})
 
+    def handle_expect_100(self) -> bool:
+        """A client that waits for "100 Continue" before sending its body (curl, for a body over 1 KiB) is refused
+        first when it is not let in: it was invited to send the body before the token was looked at."""
+        return self._admitted() and super().handle_expect_100()
+
     # --- routing --------------------------------------------------------------------------------------------
     def do_GET(self) -> None:
         path = urlsplit(self.path).path
@@ -352,7 +357,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
         host = self.headers.get("Host")
         if not access.host_allowed(host):
             self._error(HTTPStatus.FORBIDDEN, "host_not_allowed",
-                        f"this dashboard does not answer to the host name {host!r} (see tacf dashboard --allow-host)")
+                        f"this dashboard does not answer to the host name {host!r} (see tacf dashboard --allow-host)",
+                        {"Connection": "close"})
             return False
         url = urlsplit(self.path)
         query = parse_qs(url.query)
@@ -369,7 +375,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
             return True                              # the URL's: a program that cannot send headers (VLC on /mjpeg/)
         self._error(HTTPStatus.UNAUTHORIZED, "unauthorized", "open the address tacf dashboard printed (it carries "
                     "?token=...), or send Authorization: Bearer TOKEN",
-                    {"WWW-Authenticate": 'Bearer realm="tacf dashboard"'})
+                    # closed: kept open for the idle timeout, clients without the token held the connection cap
+                    {"WWW-Authenticate": 'Bearer realm="tacf dashboard"', "Connection": "close"})
         return False
 
     # --- actions ----------------------------------------------------------------------------------------------

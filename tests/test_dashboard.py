@@ -1049,6 +1049,22 @@ def test_on_loopback_only_loopback_host_names_are_answered():
         assert status == 403 and body["error"] == "host_not_allowed", body
 
 
+
+def test_a_refused_request_ends_its_connection_and_comes_before_100_continue():
+    """A 401 kept its connection for the 10 s idle timeout: clients without the token, reconnecting, held every slot
+    of the connection cap. An "Expect: 100-continue" got its 100 before the token was looked at, inviting the body."""
+    for access, host, status in ((DashboardAccess("k9-Xr2_vQ8mPz3LtW7yB"), "127.0.0.1", b"401"),
+                                 (DashboardAccess(), "evil.example", b"403")):
+        with DashboardApp(no_service_options(), port=0, access=access) as app:
+            address = app.server.server_address[:2]
+            started = time.monotonic()
+            reply = _raw_reply(address, f"GET /api/state HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+            assert reply.startswith(b"HTTP/1.1 " + status) and b"\r\nConnection: close\r\n" in reply, reply
+            assert time.monotonic() - started < 5, "the server ended the connection, not its idle timeout"
+            reply = _raw_reply(address, f"POST /api/stop HTTP/1.1\r\nHost: {host}\r\nContent-Type: application/json"
+                                        "\r\nContent-Length: 11\r\nExpect: 100-continue\r\n\r\n".encode())
+            assert reply.startswith(b"HTTP/1.1 " + status) and b" 100 " not in reply, reply
+
 def test_a_token_guards_every_page_and_a_browser_logs_in_once():
     token = "k9-Xr2_vQ8mPz3LtW7yB"
     with DashboardApp(no_service_options(), port=0, access=DashboardAccess(token)) as app:
