@@ -177,8 +177,9 @@ class TrackerConfig:
     context_challenge_floor: float = 0.3
     context_penalty_rate: float = 0.2  # EMA of the penalties across context frames
     # The challenge factors' responses use one multi-channel kernel over the 31 fHOG channels (KCF's), not the 31
-    # per-channel ones detection uses: 3 FFTs a context patch instead of 63, and the same mean AUC on all 15
-    # sequences of ../shared/data (docs/decisions.md). False measures them exactly as detection would.
+    # per-channel ones detection uses: with the exact kernel 3 FFTs a context patch instead of 63 (with fast_kernel's
+    # first-order one, one inverse FFT either way), and the same mean AUC on all 15 sequences of ../shared/data
+    # (docs/decisions.md). False measures them exactly as detection would.
     context_pooled_kernel: bool = True
 
     # Dimensional attention: s_d = max(z_d - threshold, 0) + floor, EMA over frames.
