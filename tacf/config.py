@@ -60,12 +60,13 @@ MAX_CN_KERNEL = 1e12
 # and Color Names answers nothing, silently. Its response's peak on person12_1's second frame: 1.84 at the defaults
 # (a = 1, b = 2), 0.11 at (0, 2), 0.005 at (0.5, 20), 1e-10 at (0, 5) and (0.1, 10), 0 at (0.001, 20).
 WEAK_CN_CORRELATION = 0.01
-MIN_CN_CHANGE = 1e-4                        # the profiles' lambda1
+MIN_CN_CHANGE = 1e-4                        # the `authors` lambda1 (`paper`'s, 5e-5, sets a lower floor)
 # Off its DC term the HOG kernel's spectrum falls as 1 / hog_kernel_sigma^2 once the sigma is wide, and the filter's
 # answer as 1 / (lambda1 sigma^4), until float32 loses it beside the response's constant part. Only that product
 # counts (kcc with HOG alone: about the same boxes for any pair): at 1e6 a generated target was still followed (IoU
-# 0.64-0.74; 0.97 at the profiles' 6e-6), at 1e7 lost, its responses flat on some frames (PME 0, the box frozen);
-# on the first 25 frames of five UAV sequences, mean IoU 0.1 at 1e7 and boxes frozen from 2e7.
+# 0.64-0.74; 0.97 at 6e-6, the `authors` and `kcc` product, `paper`'s being 3e-6), at 1e7 lost, its responses flat
+# on some frames (PME 0, the box frozen); on the first 25 frames of five UAV sequences, mean IoU 0.1 at 1e7 and boxes
+# frozen from 2e7.
 MAX_HOG_DAMPING = 1e6
 
 
