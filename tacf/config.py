@@ -92,7 +92,7 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
             wanted = {"float": "finite", "int": "an int within its bounds"}.get(f.type, f.type)
             raise ValueError(f"{name}.{f.name} must be {wanted}, got a number past the float range")
         # numpy scalars (a sweep read from an array) count as their Python kinds, and are stored as them so that
-        # to_dict() stays JSON; bool is an int in Python: num_scales=True must not pass as 1, nor 1.0 as True
+        # dataclasses.asdict() stays JSON; bool is an int in Python: num_scales=True must not pass as 1, nor 1.0 as True
         is_bool = isinstance(v, (bool, np.bool_))
         expected = {"bool": is_bool, "int": isinstance(v, numbers.Integral) and not is_bool,
                     "float": isinstance(v, numbers.Real) and not is_bool, "str": isinstance(v, str)}[f.type]
@@ -288,10 +288,6 @@ class TrackerConfig:
             raise ValueError("TrackerConfig: " + "; ".join(problems))
 
     @classmethod
-    def profile_names(cls) -> tuple[str, ...]:
-        return PROFILES
-
-    @classmethod
     def profile(cls, name: str = DEFAULT_PROFILE, **overrides) -> "TrackerConfig":
         """A named parameter set, optionally with some fields replaced: profile("paper", lambda1=1e-4)."""
         if name == "authors":
@@ -312,9 +308,6 @@ class TrackerConfig:
         if unknown:
             raise ValueError(f"unknown TrackerConfig field(s): {', '.join(unknown)}")
         return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def parse_setting(setting: str) -> tuple[str, bool | int | float]:
