@@ -23,7 +23,8 @@ from tacf.stop_signals import (hold_stop_signals, interrupt_on_stop_signals, int
 COMMAND_MODULES = (
     "tacf.eval.cli",         # eval, track, bench tracker
     "tacf_service.cli",      # serve
-    "tacf_clients.cli",      # publish, start, stop, reinit, list, status, watch, demo, dashboard, foxglove, mavlink
+    "tacf_clients.cli",      # publish, start, stop, reinit, list, status, nodes, watch, demo, mavlink, foxglove,
+                             # dashboard
     "tacf_clients.bench",    # bench service
 )
 

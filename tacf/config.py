@@ -60,12 +60,13 @@ MAX_CN_KERNEL = 1e12
 # and Color Names answers nothing, silently. Its response's peak on person12_1's second frame: 1.84 at the defaults
 # (a = 1, b = 2), 0.11 at (0, 2), 0.005 at (0.5, 20), 1e-10 at (0, 5) and (0.1, 10), 0 at (0.001, 20).
 WEAK_CN_CORRELATION = 0.01
-MIN_CN_CHANGE = 1e-4                        # the profiles' lambda1
+MIN_CN_CHANGE = 1e-4                        # the `authors` lambda1 (`paper`'s, 5e-5, sets a lower floor)
 # Off its DC term the HOG kernel's spectrum falls as 1 / hog_kernel_sigma^2 once the sigma is wide, and the filter's
 # answer as 1 / (lambda1 sigma^4), until float32 loses it beside the response's constant part. Only that product
 # counts (kcc with HOG alone: about the same boxes for any pair): at 1e6 a generated target was still followed (IoU
-# 0.64-0.74; 0.97 at the profiles' 6e-6), at 1e7 lost, its responses flat on some frames (PME 0, the box frozen);
-# on the first 25 frames of five UAV sequences, mean IoU 0.1 at 1e7 and boxes frozen from 2e7.
+# 0.64-0.74; 0.97 at 6e-6, the `authors` and `kcc` product, `paper`'s being 3e-6), at 1e7 lost, its responses flat
+# on some frames (PME 0, the box frozen); on the first 25 frames of five UAV sequences, mean IoU 0.1 at 1e7 and boxes
+# frozen from 2e7.
 MAX_HOG_DAMPING = 1e6
 
 
@@ -91,7 +92,7 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
             wanted = {"float": "finite", "int": "an int within its bounds"}.get(f.type, f.type)
             raise ValueError(f"{name}.{f.name} must be {wanted}, got a number past the float range")
         # numpy scalars (a sweep read from an array) count as their Python kinds, and are stored as them so that
-        # to_dict() stays JSON; bool is an int in Python: num_scales=True must not pass as 1, nor 1.0 as True
+        # dataclasses.asdict() stays JSON; bool is an int in Python: num_scales=True must not pass as 1, nor 1.0 as True
         is_bool = isinstance(v, (bool, np.bool_))
         expected = {"bool": is_bool, "int": isinstance(v, numbers.Integral) and not is_bool,
                     "float": isinstance(v, numbers.Real) and not is_bool, "str": isinstance(v, str)}[f.type]
@@ -177,8 +178,9 @@ class TrackerConfig:
     context_challenge_floor: float = 0.3
     context_penalty_rate: float = 0.2  # EMA of the penalties across context frames
     # The challenge factors' responses use one multi-channel kernel over the 31 fHOG channels (KCF's), not the 31
-    # per-channel ones detection uses: 3 FFTs a context patch instead of 63, and the same mean AUC on all 15
-    # sequences of ../shared/data (docs/decisions.md). False measures them exactly as detection would.
+    # per-channel ones detection uses: with the exact kernel 3 FFTs a context patch instead of 63 (with fast_kernel's
+    # first-order one, one inverse FFT either way), and the same mean AUC on all 15 sequences of ../shared/data
+    # (docs/decisions.md). False measures them exactly as detection would.
     context_pooled_kernel: bool = True
 
     # Dimensional attention: s_d = max(z_d - threshold, 0) + floor, EMA over frames.
@@ -286,10 +288,6 @@ class TrackerConfig:
             raise ValueError("TrackerConfig: " + "; ".join(problems))
 
     @classmethod
-    def profile_names(cls) -> tuple[str, ...]:
-        return PROFILES
-
-    @classmethod
     def profile(cls, name: str = DEFAULT_PROFILE, **overrides) -> "TrackerConfig":
         """A named parameter set, optionally with some fields replaced: profile("paper", lambda1=1e-4)."""
         if name == "authors":
@@ -310,9 +308,6 @@ class TrackerConfig:
         if unknown:
             raise ValueError(f"unknown TrackerConfig field(s): {', '.join(unknown)}")
         return dataclasses.replace(self, **changes)
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def parse_setting(setting: str) -> tuple[str, bool | int | float]:

@@ -242,7 +242,8 @@ class CorrelatorBank:
         """response() with one kernel for all channels instead of one per channel: k(z, model_x) of the channel
         means of the cross-correlations and squared norms (KCF's multi-channel kernel; for the Gaussian, the
         geometric mean of the per-channel kernels), under the channel-weighted sum of the filters,
-        sum_d w_d W_d. Three FFTs per sample instead of 2 C + 1: the context challenge factors use it."""
+        sum_d w_d W_d. The context challenge factors use it: with the exact kernel three FFTs per sample instead of
+        2 C + 1; where the first-order form serves (TrackerConfig.fast_kernel), one inverse FFT either way."""
         z_hat = self.spectrum(z) if z_hat is None else z_hat
         kernel_hat = self._kernel_hat((z_hat * self.model_x_hat.conj()).mean(axis=-3), _sq_norms(z).mean(axis=-3),
                                       _sq_norms(self.model_x).mean(axis=-3))

@@ -101,7 +101,8 @@ class NormalisedGrid:
 def resize_auto(patch: np.ndarray, out_hw, fast: bool = False) -> np.ndarray:
     """Resize a sampled patch to out_hw (rows, cols).
 
-    fast=False is mexResize 'auto', as in the authors' code: bilinear when enlarging, area averaging when shrinking.
+    fast=False is mexResize 'auto' as ALGORITHM.md 3.2 ports it: bilinear when the width grows, area averaging
+    otherwise (the authors' compiled mexResize compares the new width with the old height, a quirk not reproduced).
     fast=True (TrackerConfig.fast_resize) halves the patch by exact 2x2 means while it is at least twice the output
     on both axes (OpenCV's integer area path; an odd size first repeats its last row or column), then samples that
     level bilinearly where the patch's own geometry puts each output pixel: a mipmap, which neither shifts nor

@@ -1,4 +1,5 @@
 """The Tracker API: following a generated moving target, every profile and switch, and bad input."""
+import dataclasses
 import json
 from fractions import Fraction
 
@@ -8,6 +9,7 @@ import pytest
 
 from tacf import Tracker, TrackerConfig, TrackResult
 from tacf.boxes import visible_fraction
+from tacf.config import PROFILES
 from tacf.eval.metrics import box_iou
 from tacf.staple import Staple
 from synthetic import assert_follows, leaving_sequence, moving_target_sequence, texture
@@ -309,7 +311,7 @@ def test_config_refuses_values_that_broke_the_tracker(overrides, message):
 
 
 def test_config_bounds_keep_the_profiles_and_their_ends():
-    for name in TrackerConfig.profile_names():
+    for name in PROFILES:
         TrackerConfig.profile(name)
     TrackerConfig.profile(lambda1=1e-12, scale_lambda=1e6, hog_output_sigma_factor=1e-3, cn_output_sigma_factor=1.0,
                           cn_poly_a=1e3, cn_poly_b=3.9, context_challenge_floor=1e-3, hist_bins=2,
@@ -338,12 +340,12 @@ def test_the_heaviest_context_term_allowed_stays_finite():
 
 def test_config_takes_numpy_scalars_as_the_python_values_they_are():
     """A sweep read from an array: np.int64 was refused as an int and np.float32 as a float, while np.float64
-    passed (a float subclass). They are stored as Python values, so that to_dict() stays JSON."""
+    passed (a float subclass). They are stored as Python values, so that dataclasses.asdict() stays JSON."""
     config = TrackerConfig.profile(cell_size=np.int64(4), num_scales=np.int32(33), lambda1=np.float32(1e-4),
                                    subcell_peak=np.bool_(False))
     assert config == TrackerConfig.profile(lambda1=float(np.float32(1e-4)), subcell_peak=False)
     assert [type(config.cell_size), type(config.lambda1), type(config.subcell_peak)] == [int, float, bool]
-    json.dumps(config.to_dict())
+    json.dumps(dataclasses.asdict(config))
     for bad in (dict(num_scales=np.bool_(True)), dict(lambda1=np.bool_(True)), dict(cell_size=np.float64(4.0))):
         with pytest.raises(ValueError, match="must be (int|float)"):
             TrackerConfig.profile(**bad)
