@@ -27,7 +27,6 @@ CLEAR = "\x1b[H\x1b[2J"
 class SessionRow:
     node: str
     sid: str
-    image_key: str = ""
     state: str = "?"
     box: BoxResult | None = None
     health: Health | None = None
@@ -39,7 +38,7 @@ class SessionRow:
         elif isinstance(item, Health):
             self.health, self.state = item, item.state
         else:
-            self.image_key, self.state = item.image_key, item.state
+            self.state = item.state
             if item.health is not None:
                 self.health = item.health
         self.updated = time.monotonic()
