@@ -163,7 +163,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--baud", type=integer(1), default=57600, help="serial baud rate (default 57600)")
     p.add_argument("--system", type=mavlink_id, default=1, help="MAVLink system id (default 1: the vehicle's)")
     p.add_argument("--component", type=mavlink_id, default=100, help="MAVLink component id (default 100, camera 1)")
-    p.add_argument("--sid", help="session id (default mavlink-<image key>; a long key is cut and ends in its digest)")
+    p.add_argument("--sid", help="session id (default mavlink-<image key>, '/' read as '-'; for a key too long for "
+                                 "an id, or with characters other than letters, digits, '_' and '/', one that ends "
+                                 "in the key's digest)")
     p.add_argument("--profile", help="tracker profile")
     p.add_argument("--node", help="service (node id) to run the session on")
     p.add_argument("--signing-passphrase-file", metavar="FILE",

@@ -1,7 +1,7 @@
 """Onboard consumer: a light subscriber for the boxes of one session or of all, for a gimbal or flight controller.
 
     with BoxConsumer(session, sid="cam1-target", latest_only=True) as boxes:
-        for b in boxes:                          # TrackedBox, newest first when the consumer is slow
+        for b in boxes:                          # TrackedBox; a slow consumer skips to the newest one
             gimbal.point_at(b.center_norm) if b.ok else gimbal.hold()
 
 Boxes come in pixels (x, y, w, h, 0-based, top-left origin) and, with the frame size every result carries,

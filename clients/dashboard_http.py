@@ -3,7 +3,7 @@
     GET  /                    the page (clients/static/index.html, dashboard.js, dashboard.css: no CDN, no internet)
     GET  /events              Server-Sent Events: every session's box, health and chart points, one stream
     GET  /api/state           the same as one JSON snapshot (the page loads it first)
-    GET  /frame/<image key>   the newest frame of a watched key as JPEG (ETag = seq; 304 when unchanged);
+    GET  /frame/<image key>   the newest frame of a watched key as JPEG (ETag: its seq and arrival; 304 when unchanged);
                               ?seq=N: the newest kept frame with seq <= N (the frame a box was computed on)
     GET  /mjpeg/<image key>   multipart/x-mixed-replace of the newest frames (a single view, e.g. VLC)
     POST /api/watch           {"key"}: watch an image key's frames

@@ -35,7 +35,9 @@ from tacf_schemas.models import BoxResult, Health
 log = logging.getLogger(__name__)
 
 Box = tuple[float, float, float, float]
-DEMO_FPS = 20.0           # the scene's rate (and any source's without its own): real time for the tracker on one core
+# The rate of every source but a video file with its own (a camera or URL is thinned to it): real time for the
+# tracker on one core.
+DEMO_FPS = 20.0
 FAILED_GRACE_S = 5.0      # a session reported "failed" for this long (the service restarts workers) ends the demo
 FOLLOW_IOU = 0.3          # a box "follows" the target when its IoU with the ground truth exceeds this
 LAST_BOX_WAIT_S = 2.0     # once the source ends, how long the box of its last frame is waited for

@@ -17,7 +17,7 @@ const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f
                   grid: "#2c3644", text: "#8a96a8" };
 
 const state = {
-  sessions: new Map(),     // id -> session JSON (see Dashboard.to_json)
+  sessions: new Map(),     // id -> session JSON (see SessionView.to_json)
   points: new Map(),       // id -> [{t, fps, pme, proc, age}]
   boxes: new Map(),        // id -> Map(frame seq -> box): the last BOX_HISTORY boxes, to draw a frame's own box
   keys: [],                // watched image keys
@@ -27,9 +27,9 @@ const state = {
   newFeed: null,           // the FrameFeed of the "New session" panel: it follows the selected key
   cards: new Map(),        // id -> card elements
   drawn: {},               // id -> what the last frame draw showed (tests read it)
-  charts: {},              // id -> {points, redraws}
+  charts: {},              // id -> {points, redraws, labels, last} of the last chart draw (tests read it)
   reinit: null,            // id of the session being re-initialised by drawing
-  clockOffsetMs: 0,        // server clock - this browser's clock (chart times are the service's)
+  clockOffsetMs: 0,        // server clock - this browser's clock (chart times are when the dashboard got the health)
   events: 0,
   connected: false,
 };
@@ -422,8 +422,8 @@ function renderTable() {
 }
 
 // The service's state for the session, unless the session's health stopped coming (its service hung or silent:
-// the dashboard keeps such a session until its service's token goes) or says the camera stopped (a still frame
-// looks tracked).
+// the dashboard keeps such a session until its service's token goes, or 30 s without news while the token stays)
+// or says the camera stopped (a still frame looks tracked).
 function setBadge(el, s) {
   const h = s.health || {};
   const silentS = s.healthAt === null ? 0 : Math.round((Date.now() - s.healthAt) / 1000);
