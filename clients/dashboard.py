@@ -153,17 +153,16 @@ class FrameSnapshot:
 
 class FrameWatcher:
     """The newest frames of one image key: a RingChannel(1) subscriber drained by one worker thread that reads
-    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). The last `keep` frames stay (at
+    at most `max_fps` frames a second (the ring keeps only the newest meanwhile). The last KEEP frames stay (at
     most KEEP_BYTES of them, but always the newest), so that a box can be drawn on the very frame it was computed
     on, and the frames shown lately (`SHOWN_KEEP`), so that a box drawn on one can be sent with it. Non-JPEG
     frames are turned into JPEG when someone asks for them."""
 
-    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 30.0, keep: int = KEEP):
+    def __init__(self, session: zenoh.Session, key: str, max_fps: float = 30.0):
         self.key = key
         self.received = self.rejected = 0
         self._min_period = 1.0 / max_fps if max_fps > 0 else 0.0
         self._lock = threading.Lock()
-        self._keep = max(1, keep)
         self._frames: deque[tuple[Frame, int]] = deque()   # (frame, received_ns), oldest first
         self._frames_bytes = 0
         self._jpeg: FrameSnapshot | None = None          # the last non-JPEG frame converted
@@ -192,7 +191,7 @@ class FrameWatcher:
                         self._shown.clear()
                     self._frames.append((frame, time.time_ns()))
                     self._frames_bytes += len(frame.data)
-                    while len(self._frames) > 1 and (len(self._frames) > self._keep
+                    while len(self._frames) > 1 and (len(self._frames) > KEEP
                                                      or self._frames_bytes > KEEP_BYTES):
                         self._frames_bytes -= len(self._frames.popleft()[0].data)
                     self.received += 1

@@ -138,13 +138,13 @@ class ImageFolderSource(FrameSource):
     `<seq>/color/`) may be given as `<seq>` too, and reads as in `tacf track` and `tacf eval`: its img/, not a
     stray image beside it."""
 
-    def __init__(self, folder: str | Path, loop: bool = False, fps: float | None = None):
+    def __init__(self, folder: str | Path, loop: bool = False):
         folder = Path(folder)
         self.paths = frames_of(folder)
         if not self.paths:
             raise ValueError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
         folder = self.paths[0].parent
-        self.folder, self.name, self.loop, self.fps = folder, str(folder), loop, fps
+        self.folder, self.name, self.loop = folder, str(folder), loop
 
     def __len__(self) -> int:
         return len(self.paths)
