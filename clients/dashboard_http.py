@@ -267,8 +267,9 @@ class DashboardHandler(BaseHTTPRequestHandler):
                     {"Connection": "close"})
 
     def handle_expect_100(self) -> bool:
-        """A client that waits for "100 Continue" before sending its body (curl, for a body over 1 KiB) is refused
-        first when it is not let in: it was invited to send the body before the token was looked at."""
+        """A client that waits for "100 Continue" before sending its body (curl since 7.69, for a body over 1 MiB, so
+        not for one of MAX_BODY; `-H "Expect: 100-continue"` asks for it) is refused first when it is not let in: it
+        was invited to send the body before the token was looked at."""
         return self._admitted() and super().handle_expect_100()
 
     # --- routing --------------------------------------------------------------------------------------------
