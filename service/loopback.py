@@ -1,4 +1,5 @@
-"""Loopback Zenoh helpers for tests, the benchmark and demos: peer configs, a frame publisher, result collectors.
+"""Loopback Zenoh helpers for tests: peer configs, a frame publisher, result collectors (the benchmark and the demo
+use tacf_clients' own).
 
     endpoint = "tcp/127.0.0.1:7447"  # tests take a free port from tacf_clients.local_service.free_port()
     session = zenoh.open(peer_config(connect=[endpoint]))
