@@ -37,14 +37,14 @@ ErrorCode = Literal[
     "invalid_request",     # malformed msgpack, wrong or missing fields, wrong version
     "invalid_id",          # a node or session id outside [A-Za-z0-9_-]{1,64} (clients; the service: invalid_request)
     "invalid_key",         # an image key that is not a plain key expression
-    "invalid_box",         # non-finite, non-positive size, or outside the image
+    "invalid_box",         # outside the init frame, larger than it, or under a pixel (NaN, w <= 0: invalid_request)
     "invalid_config",      # unknown tracker profile or override, or a value TrackerConfig refuses
     "unknown_op",          # control op not in CONTROL_OPS
     "unknown_session",
     "duplicate_session",
     "too_many_sessions",
-    "frame_rejected",      # the init frame could not be decoded
-    "unavailable",         # the service is shutting down, or busy (too many control queries waiting): retry
+    "frame_rejected",      # a frame the start or reinit carries is not an image of its stated size (header checks)
+    "unavailable",         # shutting down, busy (too many control queries waiting), no worker process to be had: retry
     "internal",            # a bug: reported, never raised across the wire
 ]
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__  # type: ignore[attr-defined]
