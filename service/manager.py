@@ -579,7 +579,7 @@ class SessionManager:
         kind = message[0]
         session.heard_at = time.monotonic()
         if kind == "result":
-            _, seq, box, ok, _pme = message
+            _, seq, box, ok = message
             with self._lock:
                 if session.awaiting_init:
                     return              # computed before the new init reached the worker: stale
