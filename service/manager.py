@@ -114,13 +114,9 @@ class SessionManager:
         self.max_sessions = max_sessions
         self._zenoh = zenoh_session
         self._history = history
-        self._zenoh_options = zenoh_options
-        self._endpoints = tuple(endpoints)
         self._store = store
         self._frame_save_period_s = frame_save_period_s
-        self._tracker_factory = tracker_factory
         self._init_wait_s = init_wait_s
-        self._log_level = log_level
         self._lock = threading.RLock()
         self._sessions: dict[str, Session] = {}
         self._stopping: set[str] = set()    # ids of sessions being stopped: not free for a start until stopped
