@@ -133,8 +133,9 @@ class _InitOnFrame(WireModel):
     first, for the tracker to catch up through. A service keeps the last few frames of a feed only while a
     session follows it, so the first session on a feed never had the frame its box was drawn on, and an
     operator drawing for a few seconds outlasts the frames kept. The service initialises on frame `seq` if it
-    holds it, else on the carried frames, else on the newest frame it has (SessionInfo.init_seq says which),
-    then catches up through the newer frames it holds."""
+    holds it, else on the carried frames, else on the nearest frame it holds after `seq`, else (none after it,
+    or no `seq`) on the newest (SessionInfo.init_seq says which), then catches up through the newer frames it
+    holds."""
     box: InitBox
     seq: Optional[Seq] = None
     frames: Annotated[list[Frame], Field(max_length=MAX_CARRIED_FRAMES)] = []
