@@ -458,7 +458,8 @@ class SessionManager:
 
     def _init_frames(self, key: str, seq: int | None, carried: Sequence[StoredFrame]) -> list[StoredFrame]:
         """The frames to initialise on: frame `seq` and the newer ones kept; else the carried frames (the one the
-        box was drawn on, then newer ones, sent with the request) and the newer ones kept; else the newest kept."""
+        box was drawn on, then newer ones, sent with the request) and the newer ones kept; else those kept after
+        `seq` (FrameHistory.frames_from), else the newest kept."""
         frames = self._history.frames_from(key, seq)
         if carried and not (frames and frames[0].seq == seq):
             return list(carried) + self._history.frames_after(key, carried[-1])
