@@ -244,7 +244,8 @@ class Health(WireModel):
     frames_processed: Count = 0
     frames_dropped: Count = 0                # not processed: superseded (latest-only, seq gaps), duplicate or older,
                                              # before the init or as a stop came, or while the session had no worker
-    frames_rejected: Count = 0               # undecodable, wrong size, wrong fields
+    frames_rejected: Count = 0               # undecodable, wrong size, wrong fields; or the tracker could not use it:
+                                             # the init box does not fit it, its update failed, a new aspect ratio
     frames_lost: Count = 0                   # processed with the target flagged lost (BoxResult.ok False)
     pme: Optional[FiniteFloat] = None
     last_seq: Optional[Seq] = None
