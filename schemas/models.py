@@ -37,14 +37,14 @@ ErrorCode = Literal[
     "invalid_request",     # malformed msgpack, wrong or missing fields, wrong version
     "invalid_id",          # a node or session id outside [A-Za-z0-9_-]{1,64} (clients; the service: invalid_request)
     "invalid_key",         # an image key that is not a plain key expression
-    "invalid_box",         # non-finite, non-positive size, or outside the image
+    "invalid_box",         # outside the init frame, larger than it, or under a pixel (NaN, w <= 0: invalid_request)
     "invalid_config",      # unknown tracker profile or override, or a value TrackerConfig refuses
     "unknown_op",          # control op not in CONTROL_OPS
     "unknown_session",
     "duplicate_session",
     "too_many_sessions",
-    "frame_rejected",      # the init frame could not be decoded
-    "unavailable",         # the service is shutting down, or busy (too many control queries waiting): retry
+    "frame_rejected",      # a frame the start or reinit carries is not an image of its stated size (header checks)
+    "unavailable",         # shutting down, busy (too many control queries waiting), no worker process to be had: retry
     "internal",            # a bug: reported, never raised across the wire
 ]
 ERROR_CODES: tuple[str, ...] = ErrorCode.__args__  # type: ignore[attr-defined]
@@ -133,8 +133,9 @@ class _InitOnFrame(WireModel):
     first, for the tracker to catch up through. A service keeps the last few frames of a feed only while a
     session follows it, so the first session on a feed never had the frame its box was drawn on, and an
     operator drawing for a few seconds outlasts the frames kept. The service initialises on frame `seq` if it
-    holds it, else on the carried frames, else on the newest frame it has (SessionInfo.init_seq says which),
-    then catches up through the newer frames it holds."""
+    holds it, else on the carried frames, else on the nearest frame it holds after `seq`, else (none after it,
+    or no `seq`) on the newest (SessionInfo.init_seq says which), then catches up through the newer frames it
+    holds."""
     box: InitBox
     seq: Optional[Seq] = None
     frames: Annotated[list[Frame], Field(max_length=MAX_CARRIED_FRAMES)] = []
@@ -243,7 +244,8 @@ class Health(WireModel):
     frames_processed: Count = 0
     frames_dropped: Count = 0                # not processed: superseded (latest-only, seq gaps), duplicate or older,
                                              # before the init or as a stop came, or while the session had no worker
-    frames_rejected: Count = 0               # undecodable, wrong size, wrong fields
+    frames_rejected: Count = 0               # undecodable, wrong size, wrong fields; or the tracker could not use it:
+                                             # the init box does not fit it, its update failed, a new aspect ratio
     frames_lost: Count = 0                   # processed with the target flagged lost (BoxResult.ok False)
     pme: Optional[FiniteFloat] = None
     last_seq: Optional[Seq] = None

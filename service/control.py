@@ -46,14 +46,14 @@ class _Lane:
 
 
 class ControlServer:
-    def __init__(self, zenoh_session, node: str, manager: SessionManager, threads: int = CONTROL_THREADS):
+    def __init__(self, zenoh_session, node: str, manager: SessionManager):
         import zenoh
         self.node = node
         self._manager = manager
         self._encoding = zenoh.Encoding(MSGPACK_ENCODING)
         # Unbounded queues: _admit bounds them (within a query or two when callbacks of several links race), so
         # that close() can always queue the end markers.
-        self._slow = _Lane(threads)
+        self._slow = _Lane(CONTROL_THREADS)
         self._quick = _Lane(QUICK_THREADS)
         # A query admitted after the end markers would wait behind them unanswered: admitting and closing take
         # turns, and a closed server refuses at once.
@@ -62,7 +62,7 @@ class ControlServer:
         # Declared before the threads start (queries admitted meanwhile wait in their lane): a declaration that
         # fails leaves no thread behind to keep the process alive.
         self._queryable = zenoh_session.declare_queryable(control_key(node, "*"), self._admit)
-        lanes = [(self._slow, f"control-{i}") for i in range(threads)]
+        lanes = [(self._slow, f"control-{i}") for i in range(CONTROL_THREADS)]
         lanes += [(self._quick, f"control-quick-{i}") for i in range(QUICK_THREADS)]
         # Daemons: close() gives them `timeout` to finish; one stuck past it (a start waiting on a fork server that
         # hangs) must not keep the process alive after the service has closed.

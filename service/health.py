@@ -32,12 +32,6 @@ class HealthStats:
         self._processing_ms: deque[float] = deque(maxlen=TIMING_WINDOW)
         self._processed_at: deque[float] = deque()
 
-    def received(self, count: int = 1) -> None:
-        self.frames_received += count
-
-    def dropped(self, count: int = 1) -> None:
-        self.frames_dropped += count
-
     def rejected(self) -> None:
         self.frames_rejected += 1
 

@@ -1,4 +1,5 @@
-"""Loopback Zenoh helpers for tests, the benchmark and demos: peer configs, a frame publisher, result collectors.
+"""Loopback Zenoh helpers for tests: peer configs, a frame publisher, result collectors (the benchmark and the demo
+use tacf_clients' own).
 
     endpoint = "tcp/127.0.0.1:7447"  # tests take a free port from tacf_clients.local_service.free_port()
     session = zenoh.open(peer_config(connect=[endpoint]))
@@ -35,7 +36,6 @@ class FramePublisher:
                  cache: int = 0) -> None:
         self.key, self.scene, self.fps, self.encoding, self.quality = key, scene, fps, encoding, quality
         self.truth: dict[int, tuple] = {}
-        self.put_ns: dict[int, int] = {}
         self.seq = -1
         self._session = session
         self._publisher = None
@@ -78,15 +78,13 @@ class FramePublisher:
                 frame = frame.model_copy(update={"seq": i})
             else:
                 frame, box = self._encode(i)
-            stamp = time.time_ns()
-            frame = frame.model_copy(update={"stamp_ns": stamp})
+            frame = frame.model_copy(update={"stamp_ns": time.time_ns()})
             self.truth[i] = box
             try:
                 self._publisher.put(encode(frame))
             except Exception as exc:
                 log.debug("put failed: %s", exc)
                 return
-            self.put_ns[i] = stamp
             self.seq = i
             i += 1
             next_at += period

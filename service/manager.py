@@ -114,13 +114,9 @@ class SessionManager:
         self.max_sessions = max_sessions
         self._zenoh = zenoh_session
         self._history = history
-        self._zenoh_options = zenoh_options
-        self._endpoints = tuple(endpoints)
         self._store = store
         self._frame_save_period_s = frame_save_period_s
-        self._tracker_factory = tracker_factory
         self._init_wait_s = init_wait_s
-        self._log_level = log_level
         self._lock = threading.RLock()
         self._sessions: dict[str, Session] = {}
         self._stopping: set[str] = set()    # ids of sessions being stopped: not free for a start until stopped
@@ -282,7 +278,7 @@ class SessionManager:
             replaced = self._not_restored.pop(sid, None)     # in the table a session of this id is the new one
         if replaced is not None:
             log.warning("session %s replaces the one of that id kept, not restored, in %s", sid, self._store.path)
-        self._mark_dirty(save_now=True)
+        self._save(force=True)
         log.info("started session %s on %s (profile %s, box %s, asked seq %s, init seq %s)", sid, image_key,
                  profile, session.box, request.drawn_on, session.init_seq)
         return session.info(self.node)
@@ -311,13 +307,13 @@ class SessionManager:
         finally:
             with self._lock:
                 self._stopping.discard(sid)
-        self._mark_dirty(save_now=True)
+        self._save(force=True)
         log.info("stopped session %s", sid)
         return session.info(self.node)
 
     def _forget_kept(self, kept: PersistedSession) -> SessionInfo:
         """Stop a session the restore left out: it has no worker, so stopping it takes it out of the state file."""
-        self._mark_dirty(save_now=True)
+        self._save(force=True)
         log.info("stopped session %s, kept, not restored, in %s: removed from the file", kept.sid, self._store.path)
         return SessionInfo(node=self.node, sid=kept.sid, image_key=kept.image_key, profile=kept.profile,
                            overrides=kept.overrides, state="stopped", box=kept.box, last_seq=kept.last_seq,
@@ -343,7 +339,7 @@ class SessionManager:
             written = self._flush_init(session)
             if written is not None:             # the common case: answered once the worker has the new box
                 written.wait(REINIT_WRITE_WAIT_S)
-        self._mark_dirty(save_now=True)
+        self._save(force=True)
         log.info("re-initialised session %s with box %s (seq %s)", session.sid, request.box, request.drawn_on)
         return reply
 
@@ -462,7 +458,8 @@ class SessionManager:
 
     def _init_frames(self, key: str, seq: int | None, carried: Sequence[StoredFrame]) -> list[StoredFrame]:
         """The frames to initialise on: frame `seq` and the newer ones kept; else the carried frames (the one the
-        box was drawn on, then newer ones, sent with the request) and the newer ones kept; else the newest kept."""
+        box was drawn on, then newer ones, sent with the request) and the newer ones kept; else those kept after
+        `seq` (FrameHistory.frames_from), else the newest kept."""
         frames = self._history.frames_from(key, seq)
         if carried and not (frames and frames[0].seq == seq):
             return list(carried) + self._history.frames_after(key, carried[-1])
@@ -579,7 +576,7 @@ class SessionManager:
         kind = message[0]
         session.heard_at = time.monotonic()
         if kind == "result":
-            _, seq, box, ok, _pme = message
+            _, seq, box, ok = message
             with self._lock:
                 if session.awaiting_init:
                     return              # computed before the new init reached the worker: stale
@@ -704,11 +701,6 @@ class SessionManager:
             log.debug("cannot publish health of %s: %s", session.sid, exc)
 
     # ------------------------------------------------------------------ persistence
-
-    def _mark_dirty(self, save_now: bool = False) -> None:
-        self._dirty = True
-        if save_now:
-            self._save(force=True)
 
     def _save(self, force: bool = False, last: bool = False) -> None:
         """Write the table (and each session's box frame) when it changed, at most every SAVE_PERIOD_S unless

@@ -1,4 +1,4 @@
-"""A minimal control caller (used by the benchmark and tests). The full client API is tacf_clients.
+"""A minimal control caller (used by tests). The full client API is tacf_clients.
 
     reply = call(session, "edge", "start", StartRequest(image_key="cam", box=(10, 10, 40, 40)))
     # -> SessionInfo, or raises ControlError(code, message)

@@ -1,4 +1,5 @@
-"""A synthetic video for tests and benchmarks: a textured square moving over a textured background.
+"""A synthetic video for tests: a textured square moving over a textured background (`tacf demo` and `tacf publish
+scene` have their own, tacf_clients.scene).
 
     scene = MovingTargetScene(1280, 720)
     image, box = scene.frame(i)        # HxWx3 BGR uint8, ground-truth [x, y, w, h]

@@ -21,7 +21,7 @@ Parent <-> worker protocol over a multiprocessing Pipe (tuples):
                                                            IDLE_HEARTBEAT_S until assigned, so that the service
                                                            can tell a wedged spare from a waiting one
                        ("ready",)                          assigned, subscribed, tracker built: send the init
-                       ("result", seq, box, ok, pme)       per processed frame (the parent keeps the last box)
+                       ("result", seq, box, ok)            per processed frame (the parent keeps the last box)
                        ("health", health_msgpack)          about 1 Hz
                        ("failed", message, generation)     the tracker cannot be initialised: a bad box (the
                                                            generation of its init), its config (None: any init)
@@ -649,7 +649,7 @@ class Worker:
                             pme=_finite(result.pme), score=_finite(result.score), scale=_finite(result.scale),
                             processing_ms=processing_ms, published_ns=time.time_ns())
         self._box_pub.put(encode(message))
-        self._send(("result", frame.seq, box, bool(result.ok), _finite(result.pme)))
+        self._send(("result", frame.seq, box, bool(result.ok)))
 
     def _publish_health(self) -> None:
         from tacf_schemas import encode

@@ -1305,11 +1305,11 @@ def test_replies_to_a_replaced_init_change_nothing(service):
     service.manager._queue_init(session, (1.0, 1.0, 5.0, 5.0), None, released=True, frames=[])
     service.manager._queue_init(session, (40.0, 40.0, 5.0, 5.0), None, released=True, frames=[])   # a reinit
     service.manager._on_message(session, ("initialised", 3, session.init_generation - 1))
-    service.manager._on_message(session, ("result", 4, (2.0, 2.0, 5.0, 5.0), True, 9.0))
+    service.manager._on_message(session, ("result", 4, (2.0, 2.0, 5.0, 5.0), True))
     service.manager._on_message(session, ("failed", "box outside the frame", session.init_generation - 1))
     assert session.awaiting_init and session.box == (40.0, 40.0, 5.0, 5.0) and session.state == "starting"
     service.manager._on_message(session, ("initialised", 5, session.init_generation))
-    service.manager._on_message(session, ("result", 6, (41.0, 40.0, 5.0, 5.0), True, 9.0))
+    service.manager._on_message(session, ("result", 6, (41.0, 40.0, 5.0, 5.0), True))
     assert not session.awaiting_init and session.box == (41.0, 40.0, 5.0, 5.0) and session.state == "tracking"
     service.manager._on_message(session, ("failed", "tracker config: bad", None))     # whatever the init
     assert session.state == "failed" and session.gave_up
