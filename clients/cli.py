@@ -62,7 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                           "and print it (`started SID on NODE: state, key, ...`; --json: its "
                                           "SessionInfo). The box is put on frame --seq if the service holds it "
                                           "(a feed's last 24 frames, kept only while a session follows the feed), "
-                                          "else on the newest frame, where a moving target may have left it; "
+                                          "else on the nearest one it holds after it, else on the newest, where a "
+                                          "moving target may have left it; "
                                           "`tacf dashboard` sends the frame the box was drawn on with the start.")
     p.add_argument("--key", "-k", required=True, type=_image_key, help="image key the frames are published on")
     p.add_argument("--box", "-b", required=True, type=box, help="initial box x,y,w,h in pixels")
