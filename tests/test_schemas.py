@@ -14,12 +14,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tacf_schemas import (CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Frame, Health, InvalidIdError,
-                          InvalidKeyError, ListRequest, SessionInfo, SessionList, StartRequest, StopRequest,
-                          box_key, control_key, decode, decode_error_reply, encode, health_key, is_deadline_reply,
-                          parse_liveliness_key,
-                          parse_session_key, sanitise_id, service_liveliness_key, session_liveliness_key,
-                          validate_id, validate_image_key)
+from tacf_schemas import (ALL_LIVELINESS, CONTROL_OPS, MODELS, BoxResult, DecodeError, Error, Frame, Health,
+                          InvalidIdError, InvalidKeyError, ListRequest, SessionInfo, SessionList, StartRequest,
+                          StopRequest, box_key, control_key, decode, decode_error_reply, encode, health_key,
+                          is_deadline_reply, parse_control_key, parse_liveliness_key, parse_session_key, sanitise_id,
+                          service_liveliness_key, session_liveliness_key, validate_id, validate_image_key)
 from tacf_schemas.export import JSON_DIR, drift, write
 from tacf_schemas.images import FrameError, check_frame, decode_frame, encode_frame, jpeg_size, png_size
 from tacf_schemas.limits import MAX_FRAME_PIXELS
@@ -272,6 +271,12 @@ def test_keys():
     assert parse_session_key("tacf/edge/sessions/s1/box") == ("edge", "s1", "box")
     assert parse_liveliness_key("@tacf/edge/s1") == ("edge", "s1")
     assert parse_liveliness_key("@tacf/edge") == ("edge", None)
+    assert parse_control_key("tacf/edge/control/start") == ("edge", "start")
+    for not_control in ("tacf/edge/control/explode", "tacf/edge/sessions/s1/box", "tacf/*/control/list",
+                        "other/edge/control/stop", "tacf/edge/control/stop/more"):
+        with pytest.raises(ValueError):
+            parse_control_key(not_control)
+    assert ALL_LIVELINESS == "@tacf/**"
     with pytest.raises(ValueError):
         control_key("edge", "explode")
     with pytest.raises(InvalidIdError):
