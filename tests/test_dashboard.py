@@ -1041,7 +1041,7 @@ def test_on_loopback_only_loopback_host_names_are_answered():
         assert app.url == f"http://127.0.0.1:{port}/"
         for host in (f"127.0.0.1:{port}", f"localhost:{port}", "ground.lan", f"GROUND.lan:{port}"):
             assert _get(base + "/api/state", {"Host": host})[0] == 200, host
-        for host in (f"evil.example:{port}", "127.0.0.1.evil.example", "", "10.0.0.5"):
+        for host in (f"evil.example:{port}", "127.0.0.1.evil.example", "localhost.evil.example", "", "10.0.0.5"):
             status, _, body = _get(base + "/api/state", {"Host": host})
             assert status == 403 and json.loads(body)["error"] == "host_not_allowed", (host, body)
         status, body = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]},
