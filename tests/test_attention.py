@@ -116,15 +116,17 @@ def test_motion_term_stops_at_the_edge_of_the_map_instead_of_wrapping_behind_the
     assert backwards[0, -4] == pytest.approx(gamma)
 
 
-def test_spatial_map_ema():
-    attention = SpatiotemporalAttention(learning_rate=0.5, motion_gain=2.0)
+@pytest.mark.parametrize("rate", [0.25, 1.0])   # not 0.5, at which the EMA's two weights could be swapped unseen
+def test_spatial_map_ema(rate):
+    attention = SpatiotemporalAttention(learning_rate=rate, motion_gain=2.0)
     window = np.ones((5, 5))
     first = np.zeros((5, 5)); first[4, 4] = 1
     second = np.zeros((5, 5)); second[0, 0] = 1
     attention.keep(attention.propose(first, window, None, np.ones(2)))
     attention.propose(np.ones((5, 5)), window, None, np.ones(2))  # proposed, not kept: no effect
     combined = attention.propose(second, window, None, np.ones(2))
-    np.testing.assert_allclose(combined, 0.5 * attention_map(first, window) + 0.5 * attention_map(second, window))
+    np.testing.assert_allclose(combined, (1 - rate) * attention_map(first, window)
+                               + rate * attention_map(second, window))     # rate 1, the default: this frame's map
 
 
 def test_crop_centres_the_zero_displacement():

@@ -1041,7 +1041,7 @@ def test_on_loopback_only_loopback_host_names_are_answered():
         assert app.url == f"http://127.0.0.1:{port}/"
         for host in (f"127.0.0.1:{port}", f"localhost:{port}", "ground.lan", f"GROUND.lan:{port}"):
             assert _get(base + "/api/state", {"Host": host})[0] == 200, host
-        for host in (f"evil.example:{port}", "127.0.0.1.evil.example", "", "10.0.0.5"):
+        for host in (f"evil.example:{port}", "127.0.0.1.evil.example", "localhost.evil.example", "", "10.0.0.5"):
             status, _, body = _get(base + "/api/state", {"Host": host})
             assert status == 403 and json.loads(body)["error"] == "host_not_allowed", (host, body)
         status, body = _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]},
@@ -1111,6 +1111,11 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
         # another app on this host (any port) with a cookie SimpleCookie finds malformed
         assert _get(base + "/api/state", {"Cookie": 'prefs={"theme":"dark"}; ' + cookie.split(";")[0]})[0] == 200
         assert _get(base + "/", {"Cookie": f"{COOKIE}_{port}=wrong-wrong-wrong-wrong"})[0] == 401
+        for part in ("", token[:-1], token[1:]):          # a part of the token, or an empty one, is no token
+            assert _get(base + "/api/state", {"Cookie": f"{COOKIE}_{port}={part}"})[0] == 401, part
+            assert _get(f"{base}/api/state?token={part}")[0] == 401, part
+            if part:
+                assert _get(base + "/api/state", {"Authorization": "Bearer " + part})[0] == 401, part
         with pytest.raises(urllib.error.HTTPError) as again:   # the printed address opened again, logged in already
             opener.open(urllib.request.Request(app.url, headers={"Cookie": cookie.split(";")[0]}), timeout=10)
         assert again.value.code == 303 and again.value.headers["Location"] == "/", "the token leaves the address bar"

@@ -337,23 +337,23 @@ def test_a_result_recorded_with_other_settings_is_run_again(tmp_path, caplog):
     assert main([*args, "opencv-mosse"]) == 0 and pairs_run() == 0         # resumed, now that they are its own
 
 
-@needs_data
 def test_eval_reruns_a_result_of_another_length_and_scores_the_first_frames_of_a_longer_one(tmp_path):
-    args = ["eval", str(SEQUENCES), "--sequences", "UAV123_10fps/wakeboard7", "--trackers", "identity",
-            "--out", str(tmp_path), "--no-progress"]
-    result = tmp_path / "identity" / "UAV123_10fps" / "wakeboard7.txt"
+    out = tmp_path / "out"
+    args = ["eval", str(write_synthetic_dataset(tmp_path, 12)), "--trackers", "identity", "--out", str(out),
+            "--no-progress"]
+    result = out / "identity" / "synthetic" / "drift.txt"
 
     def frames_scored() -> int:
-        return json.loads((tmp_path / "summary.json").read_text())["trackers"]["identity"]["frames"]
+        return json.loads((out / "summary.json").read_text())["trackers"]["identity"]["frames"]
 
     assert main(args + ["--max-frames", "5"]) == 0 and frames_scored() == 5
-    assert main(args) == 0 and frames_scored() == 67     # the 5-row smoke result runs again
-    assert len(result.read_text().splitlines()) == 67
+    assert main(args) == 0 and frames_scored() == 12     # the 5-row smoke result runs again
+    assert len(result.read_text().splitlines()) == 12
     before = result.stat().st_mtime_ns
     assert main(args + ["--max-frames", "5"]) == 0 and frames_scored() == 5
     assert result.stat().st_mtime_ns == before           # the whole run's first 5 boxes are scored, not rerun
     result.write_text(result.read_text() + "garbage\n")  # edited by hand, say
-    assert main(args) == 0 and frames_scored() == 67     # runs again, instead of a traceback
+    assert main(args) == 0 and frames_scored() == 12     # runs again, instead of a traceback
 
 
 @needs_data
@@ -1022,26 +1022,24 @@ def test_sigterm_in_bench_tracker_writes_the_report_of_the_pairs_finished(tmp_pa
     assert report["interrupted"] is True and 1 <= len(report["peers"]["opencv-csrt"]["sequences"]) < 10
 
 
-@needs_data
 def test_bench_tracker_json_is_strict_json_when_a_tracker_has_no_speed(tmp_path):
     """A tracker that failed on every sequence has no fps nor cores, and the ratio none either: they were written
     as NaN, which json.loads takes but strict readers (jq, JavaScript's JSON.parse) refuse; summary.json writes
     null there."""
-    seq = tmp_path / "UAV123_10fps" / "wakeboard7"
-    seq.mkdir(parents=True)
-    (seq / "img").symlink_to(SEQUENCES / "UAV123_10fps" / "wakeboard7" / "img")
-    rows = (SEQUENCES / "UAV123_10fps" / "wakeboard7" / "groundtruth.txt").read_text().splitlines(keepends=True)
-    (seq / "groundtruth.txt").write_text("NaN,NaN,NaN,NaN\n" + "".join(rows[1:]))   # UAV123's absent target
+    data = write_synthetic_dataset(tmp_path, 6)
+    truth = data / "synthetic" / "drift" / "groundtruth.txt"
+    rows = truth.read_text().splitlines(keepends=True)
+    truth.write_text("NaN,NaN,NaN,NaN\n" + "".join(rows[1:]))    # UAV123's absent target
     out = tmp_path / "bench.json"
-    assert main(["bench", "tracker", str(tmp_path), "--trackers", "identity", "--max-frames", "3", "--json",
-                 str(out), "--no-progress"]) == 1
+    assert main(["bench", "tracker", str(data), "--sequences", "*", "--trackers", "identity", "--max-frames", "3",
+                 "--json", str(out), "--no-progress"]) == 1
 
     def refuse(constant):
         raise ValueError(f"{constant} is not JSON")
 
     report = json.loads(out.read_text(), parse_constant=refuse)
     assert report["fps"] is None and report["cores"] is None and report["ratio_to_opencv-csrt"] is None
-    assert list(report["failed"]) == ["UAV123_10fps/wakeboard7"]
+    assert list(report["failed"]) == ["synthetic/drift"]
 
 
 def test_bench_tracker_reports_a_tracker_that_finished_nothing_with_the_same_keys(tmp_path, monkeypatch):
@@ -1177,26 +1175,24 @@ def slow_first_init(monkeypatch):
     monkeypatch.setattr(runner, "_warmed_up", set(), raising=False)
 
 
-@needs_data
-def test_bench_tracker_does_not_charge_a_process_s_first_init_to_a_sequence(slow_first_init):
+def test_bench_tracker_does_not_charge_a_process_s_first_init_to_a_sequence(slow_first_init, tmp_path):
     """A tracker whose first init in the process is slow is timed at its per-stream speed."""
     from tacf.eval import bench
 
-    sequences = load_sequences(SEQUENCES, "UAV123_10fps/wakeboard7")
+    sequences = load_sequences(write_synthetic_dataset(tmp_path, 8))
     report = bench.bench(["slow-start"], sequences, max_frames=5)
     assert report["frames"] == 5 and report["seconds"] < 0.1
 
 
-@needs_data
 def test_eval_does_not_charge_a_process_s_first_init_to_a_sequence(slow_first_init, tmp_path):
     """The first sequence of each tracker in an eval process was charged what the process pays once: tacf's
     first init there took 1.06 s (numba loading the compiled fHOG), and truck2 scored 46.5 fps beside
     wakeboard7's 100.8."""
     from tacf.eval.runner import pending_jobs, run_jobs
 
-    sequences = load_sequences(SEQUENCES, "UAV123_10fps/wakeboard7")
-    [outcome] = run_jobs(pending_jobs(["slow-start"], sequences, tmp_path), progress=False)
-    assert outcome.error is None and outcome.frames == 67 and outcome.seconds < 0.25
+    sequences = load_sequences(write_synthetic_dataset(tmp_path, 20))
+    [outcome] = run_jobs(pending_jobs(["slow-start"], sequences, tmp_path / "out"), progress=False)
+    assert outcome.error is None and outcome.frames == 20 and outcome.seconds < 0.25
 
 
 def test_console_script_lists_subcommands():

@@ -82,8 +82,8 @@ def test_precision_curve_inclusive_threshold():
 
 
 def test_nan_and_empty_ground_truth_frames_are_skipped():
-    gt = np.array([[0, 0, 10, 10], [np.nan] * 4, [0, 0, 0, 10], [0, 0, 10, 10]], float)
-    pred = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10], [50, 50, 10, 10]], float)
+    gt = np.array([[0, 0, 10, 10], [np.nan] * 4, [0, 0, 0, 10], [0, 0, 10, 0], [0, 0, 10, 10]], float)
+    pred = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10], [0, 0, 10, 10], [50, 50, 10, 10]], float)
     s = metrics.score(pred, gt)
     assert s.frames_scored == 2
     assert s.success[0] == pytest.approx(0.5)
@@ -201,6 +201,18 @@ def test_lost_flag_rates_hand_case():
     assert rates["flags_on_failures"] == 2 / 4  # the flag on IoU 0.3 is neither right nor a false alarm
     never = metrics.lost_flag_rates(np.zeros(8, bool), overlaps)
     assert never["failures_flagged"] == 0 and np.isnan(never["flags_on_failures"])
+
+
+def test_an_overlap_at_a_lost_flag_bound_counts_for_neither_side():
+    """A failure is IoU < 0.1 and a tracked frame IoU > 0.5, as the README says: a frame at either bound is
+    neither, in the rates as in the curve."""
+    overlaps = np.array([metrics.FAILURE_IOU, metrics.TRACKED_IOU, 0.0, 1.0])
+    rates = metrics.lost_flag_rates(np.ones(4, bool), overlaps)
+    assert (rates["failures"], rates["tracked"], rates["flags_on_failures"]) == (1, 1, 1 / 4)
+    # thresholds 1, 2, 3: the frames at the bounds, flagged from 2 on, move neither share
+    _, failures_flagged, tracked_flagged = metrics.lost_flag_curve([1.0, 1.0, 2.0, 2.0], overlaps)
+    np.testing.assert_array_equal(failures_flagged, [0, 0, 1])
+    np.testing.assert_array_equal(tracked_flagged, [0, 0, 1])
 
 
 def test_lost_flag_curve_hand_case():

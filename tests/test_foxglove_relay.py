@@ -107,7 +107,7 @@ def test_a_viewer_that_stopped_reading_holds_up_neither_the_relay_nor_its_shutdo
     ("http://127.0.0.1:8080", True), ("http://localhost:3000", True), ("https://[::1]", True),
     ("https://app.foxglove.dev", True),             # Foxglove's web app, connecting to ws://127.0.0.1:8765
     ("file://", True), ("app://lichtblick", True),  # desktop apps: no web page sends these
-    ("https://evil.example", False), ("http://127.0.0.1.evil.example", False),
+    ("https://evil.example", False), ("http://127.0.0.1.evil.example", False), ("http://localhost.evil.example", False),
     ("http://10.0.0.2:8080", False),                # a Lichtblick served elsewhere: only with --allow-origin
     ("null", False),                                # any site's sandboxed frame
 ])

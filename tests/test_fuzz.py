@@ -193,6 +193,16 @@ def test_a_payload_of_many_small_objects_is_refused_before_it_is_unpacked(elemen
     assert refused.value.code == "too_large" and "msgpack objects" in refused.value.message
 
 
+def test_each_key_and_value_of_a_small_map_counts_as_an_object():
+    """Maps of 15 pairs, 31 objects each: 5,000 of them are over MAX_MSGPACK_OBJECTS (131,072), and refused as
+    such; counted as one object a pair, they were not, and were unpacked (then refused as not a start)."""
+    small_map = b"\x8f" + b"".join(b"\xa1" + bytes([ord("a") + i]) + b"\x00" for i in range(15))
+    payload = b"\xdd" + (5000).to_bytes(4, "big") + small_map * 5000
+    with pytest.raises(DecodeError) as refused:
+        decode(payload, StartRequest)
+    assert refused.value.code == "too_large" and "msgpack objects" in refused.value.message
+
+
 def check_image(frame: Frame) -> None:
     """decode_frame returns the frame's pixels at its declared size, or raises a typed FrameError."""
     try:

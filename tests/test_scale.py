@@ -209,6 +209,17 @@ def test_sample_rows_are_windowed_and_the_zero_weight_scales_are_zero():
     assert sample[16].any()
 
 
+def test_a_sample_without_gradients_keeps_the_scale():
+    """On a blank frame fHOG gives nothing: the response is 0 at every scale, and its first maximum, the largest
+    scale, grew the box on each such frame. tacf.tracker skips a blank frame before this filter; Staple does not."""
+    image = textured_image((240, 320))
+    pos = np.array([120.0, 160.0])
+    sf = make_filter([40, 50], image.shape[:2], features=None)
+    sf.update_model(image, pos, 1.0)
+    blank = np.full_like(image, 128)
+    assert sf.estimate(blank, pos, 1.0) == 1.0 and sf.estimate(blank, pos, 1.1) == 1.1
+
+
 def test_scale_is_clamped_at_both_limits():
     image = textured_image((200, 200))
     pos = np.array([100.0, 100.0])

@@ -21,7 +21,7 @@ from tacf_schemas import (ALL_LIVELINESS, CONTROL_OPS, MODELS, BoxResult, Decode
                           service_liveliness_key, session_liveliness_key, validate_id, validate_image_key)
 from tacf_schemas.export import JSON_DIR, drift, write
 from tacf_schemas.images import FrameError, check_frame, decode_frame, encode_frame, jpeg_size, png_size
-from tacf_schemas.limits import MAX_FRAME_PIXELS
+from tacf_schemas.limits import MAX_FRAME_PIXELS, MAX_PAYLOAD_BYTES
 from wire_cases import BEYOND_SCHEMA, CASES
 
 
@@ -88,6 +88,24 @@ def test_decode_errors_are_typed(payload):
     with pytest.raises(DecodeError) as info:
         decode(payload, StopRequest)
     assert info.value.code in ("malformed", "invalid", "too_large")
+
+
+def test_a_start_whose_carried_frames_pass_the_payload_limit_is_too_large():
+    """Each frame a start carries is within MAX_FRAME_BYTES, and it may carry eight: decode's payload limit is what
+    holds a message to MAX_PAYLOAD_BYTES. With the check removed, or made >=, every test here passed."""
+    def start(*sizes: int) -> bytes:
+        frames = [Frame(seq=seq, stamp_ns=1, encoding="jpeg", width=16, height=16, data=bytes(size))
+                  for seq, size in enumerate(sizes, 1)]
+        return encode(StartRequest(image_key="cam", box=(1, 1, 5, 5), seq=1, frames=frames))
+
+    half = MAX_PAYLOAD_BYTES // 2
+    over_the_limit = start(half, half)
+    at_the_limit = start(half, MAX_PAYLOAD_BYTES - half - (len(over_the_limit) - 2 * half))
+    assert len(at_the_limit) == MAX_PAYLOAD_BYTES
+    assert len(decode(at_the_limit, StartRequest).frames) == 2
+    with pytest.raises(DecodeError) as refused:
+        decode(over_the_limit, StartRequest)
+    assert refused.value.code == "too_large" and f"exceeds {MAX_PAYLOAD_BYTES}" in refused.value.message
 
 
 @pytest.mark.parametrize("box", [(0, 0, 0, 5), (0, 0, 5, -1), (math.nan, 0, 1, 1), (0, math.inf, 1, 1), (1, 2, 3)])
