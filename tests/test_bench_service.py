@@ -1,4 +1,4 @@
-"""`tacf bench service` end to end: a real `tacf serve` child, real 1280x720 JPEG sequences, real Zenoh."""
+"""`tacf bench service` end to end: a real `tacf serve` child, generated 1280x720 JPEG sequences, real Zenoh."""
 from __future__ import annotations
 
 import json
@@ -24,9 +24,28 @@ from tacf_clients.zconfig import ZenohOptions, make_config, open_session
 import busy_tracker
 
 TESTS = Path(__file__).resolve().parent
-DATA = TESTS.parents[1] / "shared" / "data" / "sequences"
 
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=f"benchmark sequences not found at {DATA}")
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """A dataset folder as the benchmark reads it: two 1280x720 JPEG sequences of a moving target (the benchmark's
+    feeds, generated: these tests are of the tool, not of the shared sequences) and one of another size it passes
+    over."""
+    import cv2
+    from tacf_service.scene import MovingTargetScene
+
+    root = tmp_path_factory.mktemp("bench-data")
+    for name, (width, height) in (("UAV123_10fps/scene1", (1280, 720)), ("UAV123_10fps/scene2", (1280, 720)),
+                                  ("small/scene3", (640, 360))):
+        scene, folder = MovingTargetScene(width, height, target=96), root / name / "img"
+        folder.mkdir(parents=True)
+        boxes = []
+        for i in range(30):
+            image, box = scene.frame(i)
+            cv2.imwrite(str(folder / f"{i + 1:06d}.jpg"), image, [cv2.IMWRITE_JPEG_QUALITY, 85])
+            boxes.append(",".join(f"{v:g}" for v in box))
+        (folder.parent / "groundtruth.txt").write_text("\n".join(boxes) + "\n")
+    return root
 
 
 def test_percentiles_are_nearest_rank():
@@ -65,6 +84,7 @@ def _hold_the_gil(seconds: float) -> None:
         sys.setswitchinterval(interval)
 
 
+@pytest.mark.zenoh
 def test_the_feed_publisher_starts_its_schedule_again_after_a_stall():
     """Frame k of the run was due at start + k / (N fps) whatever happened: after a stall every overdue frame went
     out back to back, a burst the service's latest-only slots turned into drops (20 frames after 1 s at 2 x 10
@@ -86,10 +106,10 @@ def test_the_feed_publisher_starts_its_schedule_again_after_a_stall():
     assert abs(len(publisher.sent[0]) - len(publisher.sent[1])) <= 1, "the feeds take turns"
 
 
-@needs_data
-def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
+@pytest.mark.zenoh
+def test_bench_service_reports_latency_drops_memory_and_cpu(data, tmp_path, capsys):
     out = tmp_path / "bench.json"
-    assert main(["bench", "service", str(DATA), "--feeds", "2", "--fps", "5", "--seconds", "4", "--warmup", "1",
+    assert main(["bench", "service", str(data), "--feeds", "2", "--fps", "5", "--seconds", "4", "--warmup", "1",
                  "--json", str(out), "--no-progress"]) == 0
     assert "2 feeds:" not in capsys.readouterr().err
     report = json.loads(out.read_text())
@@ -108,7 +128,7 @@ def test_bench_service_reports_latency_drops_memory_and_cpu(tmp_path, capsys):
         len(over_time["open_fds"]) >= 10
     assert min(over_time["open_fds"]) > 0 and min(over_time["rss_mb"]) > 100
     assert 0 < max(over_time["pss_mb"]) < max(over_time["rss_mb"])
-    assert all(name.startswith(("UAV123", "DTB70")) for name in report["sequences"])   # the 1280x720 ones
+    assert sorted(report["sequences"]) == ["UAV123_10fps/scene1", "UAV123_10fps/scene2"]   # the 1280x720 ones
 
 
 def test_bench_service_without_sequences_is_a_clear_error(tmp_path, caplog):
@@ -140,14 +160,14 @@ def _serve_processes(node: str) -> list[int]:
     return found
 
 
-@needs_data
-def test_bench_service_stops_its_service_on_sigterm_and_sighup():
+@pytest.mark.zenoh
+def test_bench_service_stops_its_service_on_sigterm_and_sighup(data):
     """The service runs in a session of its own: only the bench can stop it. Only Ctrl-C used to reach the
     bench's clean-up; SIGTERM (a CI job's timeout) and SIGHUP (the terminal closed) left `tacf serve`, its fork
     server and its workers running."""
     assert not _serve_processes("bench"), "a bench service is already running"
     for sig in (signal.SIGTERM, signal.SIGHUP):
-        bench = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(DATA), "--seconds", "60",
+        bench = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(data), "--seconds", "60",
                                   "--no-progress"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
             deadline = time.monotonic() + 60
@@ -176,8 +196,8 @@ def _errors(caplog) -> list[str]:
     return errors
 
 
-@needs_data
-def test_a_service_that_cannot_start_is_one_error_with_its_cause(monkeypatch, caplog):
+@pytest.mark.zenoh
+def test_a_service_that_cannot_start_is_one_error_with_its_cause(data, monkeypatch, caplog):
     """A failure in a run (here the service's port taken, as a race after free_port() can do) was a traceback, and
     the reports of the feed counts already run were lost. Then it was the first line of the error only, without
     the cause the service's log gives."""
@@ -185,14 +205,14 @@ def test_a_service_that_cannot_start_is_one_error_with_its_cause(monkeypatch, ca
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         monkeypatch.setattr(local_service, "free_port", lambda: taken.getsockname()[1])
-        assert main(["bench", "service", str(DATA), "--seconds", "1", "--no-progress"]) == 1
+        assert main(["bench", "service", str(data), "--seconds", "1", "--no-progress"]) == 1
     errors = _errors(caplog)
     assert len(errors) == 1 and errors[0].startswith("1 feeds: tacf serve exited with code"), errors
     assert "Address already in use" in errors[0], errors
 
 
-@needs_data
-def test_a_service_killed_during_the_run_is_reported_as_exited_at_once(caplog):
+@pytest.mark.zenoh
+def test_a_service_killed_during_the_run_is_reported_as_exited_at_once(data, caplog):
     """A service killed mid-run was measured dead for the rest of the window, then reported as "no tracking service
     'bench' answered"."""
     killed_at = []
@@ -210,7 +230,7 @@ def test_a_service_killed_during_the_run_is_reported_as_exited_at_once(caplog):
     killer = threading.Thread(target=kill_the_service)
     killer.start()
     try:
-        status = main(["bench", "service", str(DATA), "--fps", "5", "--seconds", "60", "--warmup", "0",
+        status = main(["bench", "service", str(data), "--fps", "5", "--seconds", "60", "--warmup", "0",
                        "--no-progress"])
     finally:
         killer.join()
@@ -231,8 +251,8 @@ if b"forkserver" in open("/proc/self/cmdline", "rb").read():
 """
 
 
-@needs_data
-def test_a_session_that_sends_no_box_fails_the_run_and_names_it(tmp_path, monkeypatch, caplog):
+@pytest.mark.zenoh
+def test_a_session_that_sends_no_box_fails_the_run_and_names_it(data, tmp_path, monkeypatch, caplog):
     """A session that never sent a box (its worker hung) made the bench wait 120 s in silence, then report an
     empty measurement with exit code 0."""
     caplog.set_level(logging.INFO)
@@ -240,7 +260,7 @@ def test_a_session_that_sends_no_box_fails_the_run_and_names_it(tmp_path, monkey
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")])))
     monkeypatch.setattr(bench, "FIRST_BOX_TIMEOUT_S", 8.0)
     out = tmp_path / "bench.json"
-    assert main(["bench", "service", str(DATA), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup",
+    assert main(["bench", "service", str(data), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup",
                  "0", "--json", str(out), "--no-progress"]) == 1
     [report] = json.loads(out.read_text())      # a list, as for every run of several counts
     assert report["feeds"] == 1, "the report of the count run before is written"
@@ -249,12 +269,12 @@ def test_a_session_that_sends_no_box_fails_the_run_and_names_it(tmp_path, monkey
     assert errors == ["2 feeds: no box within 8 s from feed1 (starting)"], errors
 
 
-@needs_data
-def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(tmp_path):
+@pytest.mark.zenoh
+def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(data, tmp_path):
     """Ctrl-C during the second feed count threw the report of the first away. That report was then written as one
     object, where a run of both counts writes a list of two: a script reading the file had to handle both."""
     out = tmp_path / "bench.json"
-    bench_run = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(DATA), "--feeds", "1",
+    bench_run = subprocess.Popen([sys.executable, "-m", "tacf.cli", "bench", "service", str(data), "--feeds", "1",
                                   "2", "--fps", "5", "--seconds", "1", "--warmup", "0", "--json", str(out),
                                   "--no-progress"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
@@ -272,8 +292,8 @@ def test_ctrl_c_writes_the_reports_of_the_feed_counts_already_run(tmp_path):
     assert not _serve_processes("bench"), "the service outlived the bench"
 
 
-@needs_data
-def test_a_stop_signal_after_the_window_closed_keeps_that_count_s_report(tmp_path, monkeypatch, capsys):
+@pytest.mark.zenoh
+def test_a_stop_signal_after_the_window_closed_keeps_that_count_s_report(data, tmp_path, monkeypatch, capsys):
     """A Ctrl-C during the 2 s wait for the boxes of the window's last frames threw that count's report away,
     although its window was complete. The wait now runs its course, the report is made, and the exit code is
     130. The Ctrl-C comes 0.5 s after the window's end (when the session workers are looked up)."""
@@ -285,7 +305,7 @@ def test_a_stop_signal_after_the_window_closed_keeps_that_count_s_report(tmp_pat
 
     monkeypatch.setattr(bench, "_workers", workers_then_ctrl_c)
     out = tmp_path / "bench.json"
-    assert main(["bench", "service", str(DATA), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup", "0",
+    assert main(["bench", "service", str(data), "--feeds", "1", "2", "--fps", "5", "--seconds", "1", "--warmup", "0",
                  "--json", str(out), "--no-progress"]) == 130
     assert "tacf bench: interrupted" in capsys.readouterr().err
     [report] = json.loads(out.read_text())      # the second count is not run
@@ -293,8 +313,8 @@ def test_a_stop_signal_after_the_window_closed_keeps_that_count_s_report(tmp_pat
     assert not _serve_processes("bench"), "the service outlived the bench"
 
 
-@needs_data
-def test_a_stop_signal_while_the_last_count_stops_its_service_exits_130(tmp_path, monkeypatch, capsys):
+@pytest.mark.zenoh
+def test_a_stop_signal_while_the_last_count_stops_its_service_exits_130(data, tmp_path, monkeypatch, capsys):
     """A Ctrl-C while the last feed count shut down (the sessions stopped, the service stopping) was lost: the
     bench exited 0 as if it had not been stopped."""
     class CtrlCOnStop(local_service.LocalService):
@@ -305,7 +325,7 @@ def test_a_stop_signal_while_the_last_count_stops_its_service_exits_130(tmp_path
 
     monkeypatch.setattr(local_service, "LocalService", CtrlCOnStop)
     out = tmp_path / "bench.json"
-    assert main(["bench", "service", str(DATA), "--fps", "5", "--seconds", "1", "--warmup", "0", "--json", str(out),
+    assert main(["bench", "service", str(data), "--fps", "5", "--seconds", "1", "--warmup", "0", "--json", str(out),
                  "--no-progress"]) == 130
     assert "tacf bench: interrupted" in capsys.readouterr().err
     assert json.loads(out.read_text())["feeds"] == 1
@@ -319,8 +339,8 @@ def _forked_workers(service_pid: int) -> list[int]:
     return [pid for server in servers for pid in bench._children(server)]
 
 
-@needs_data
-def test_a_worker_restarted_in_the_window_is_measured_with_the_one_it_replaced(tmp_path, monkeypatch):
+@pytest.mark.zenoh
+def test_a_worker_restarted_in_the_window_is_measured_with_the_one_it_replaced(data, tmp_path, monkeypatch):
     """The benchmark listed the service's processes once, as the window opened. A worker killed in the window
     took the CPU time it had used before the window off the total (the run reported less than nothing), and the
     worker the service started in its place was measured for neither CPU nor memory (with one feed, no session
@@ -358,7 +378,7 @@ def test_a_worker_restarted_in_the_window_is_measured_with_the_one_it_replaced(t
     killer.start()
     out = tmp_path / "bench.json"
     try:
-        status = main(["bench", "service", str(DATA), "--fps", "5", "--seconds", str(seconds), "--warmup",
+        status = main(["bench", "service", str(data), "--fps", "5", "--seconds", str(seconds), "--warmup",
                        str(warmup), "--json", str(out), "--no-progress"])
     finally:
         killer.join()
