@@ -68,6 +68,16 @@ def test_grayscale_frames():
     assert _mean_iou(TrackerConfig.profile(), images, truth) > 0.6
 
 
+def test_one_channel_frames_are_tracked_as_gray_ones():
+    """An H x W x 1 frame (a gray image read with its channel axis kept) is the H x W one: the same boxes."""
+    images, truth = moving_target_sequence(frames=6, gray=True)
+    gray, one_channel = Tracker(), Tracker()
+    gray.init(images[0], truth[0])
+    one_channel.init(images[0][:, :, None], truth[0])
+    for image in images[1:]:
+        assert one_channel.update(image[:, :, None]).box == gray.update(image).box
+
+
 def test_scale_estimate_follows_a_growing_target():
     rng = np.random.default_rng(3)
     background = texture(rng, (300, 300, 3), blur=4)
@@ -166,6 +176,10 @@ def test_a_config_that_is_no_tracker_config_is_a_clear_error():
     ("abcd", "four"),
     ((500, 10, 20, 20), "outside"),
     ((-40, 10, 20, 20), "outside"),
+    ((100, 10, 20, 20), "outside"),                              # touching the frame's edges: no pixel of it inside
+    ((10, 100, 20, 20), "outside"),
+    ((-20, 10, 20, 20), "outside"),
+    ((10, -20, 20, 20), "outside"),
     ((0, 0, 5000, 5000), "larger than the 100x100 image"),       # took 16 s to initialise, 1e5 ran out of memory
     ((10**400, 10, 20, 20), "finite numbers .* past the float range"),   # numpy's OverflowError
     ((True, True, True, True), "not booleans"),                  # was tracked as a 1x1 box at (1, 1)
