@@ -36,6 +36,19 @@ def test_histograms_count_the_bin_index_under_each_mask(channels):
         np.testing.assert_array_equal(hist, counts / counts.sum())
 
 
+def test_masks_are_the_centred_blocks_of_their_own_height_and_width():
+    """The foreground mask is the fg_area block at the patch's centre, the background mask all but the target's
+    block: with margins that differ by axis (a box as wide as the frame, its area cut to the frame), each its own."""
+    patch = np.zeros((40, 80, 3), np.uint8)
+    model = ColourModel(patch, np.array([40.0, 80.0]), fg_area=np.array([10.0, 60.0]), target_hw=np.array([20.0, 70.0]),
+                        bins=32, learning_rate=0.02, floor=0.1)
+    fg, bg = np.zeros((40, 80), np.uint8), np.ones((40, 80), np.uint8)
+    fg[15:25, 10:70] = 1
+    bg[10:30, 5:75] = 0
+    np.testing.assert_array_equal(model.fg_mask, fg)
+    np.testing.assert_array_equal(model.bg_mask, bg)
+
+
 def _target_on_background(size=96, target=32, target_bgr=(20, 20, 220), background_bgr=(30, 160, 40)):
     patch = np.empty((size, size, 3), np.uint8)
     patch[:] = background_bgr

@@ -30,6 +30,9 @@ def test_authors_rule_is_bilinear_to_enlarge_and_area_to_shrink(shape):
     patch = random_patch(shape)
     assert np.array_equal(resize_auto(patch, (60, 70)), cv2.resize(patch, (70, 60), interpolation=cv2.INTER_LINEAR))
     assert np.array_equal(resize_auto(patch, (17, 23)), cv2.resize(patch, (23, 17), interpolation=cv2.INTER_AREA))
+    # one axis growing, the other shrinking (DSST's scale patches of a tall or wide target): the width decides
+    assert np.array_equal(resize_auto(patch, (60, 30)), cv2.resize(patch, (30, 60), interpolation=cv2.INTER_AREA))
+    assert np.array_equal(resize_auto(patch, (20, 70)), cv2.resize(patch, (70, 20), interpolation=cv2.INTER_LINEAR))
 
 
 @pytest.mark.parametrize("out_hw", [(60, 70), (45, 45), (30, 40), (21, 26)])
