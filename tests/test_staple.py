@@ -35,6 +35,34 @@ def test_follows_a_moving_textured_target(gray):
     assert all(r.ok and np.isfinite(r.pme) for r in results)
 
 
+def test_merge_factor_is_the_colour_response_s_weight():
+    """merge_factor weighs the colour response, 1 - merge_factor the filter's. With every pixel in one colour bin
+    the colour response is flat and says nothing: the colour alone (1) leaves the box in place, the filter alone
+    (0) follows the target."""
+    images, truth = moving_target_sequence(frames=12, gray=True)
+    images = [image // 2 for image in images]   # all under 128: one bin of two
+
+    def centres(merge_factor):
+        tracker = Staple(StapleConfig(merge_factor=merge_factor, hist_bins=2))
+        tracker.init(images[0], truth[0])
+        return np.array([[x + w / 2, y + h / 2] for x, y, w, h in (tracker.update(i).box for i in images[1:])])
+
+    start = truth[0, :2] + truth[0, 2:] / 2
+    np.testing.assert_allclose(centres(1.0), np.tile(start, (len(images) - 1, 1)))
+    assert np.abs(centres(0.0) - (truth[1:, :2] + truth[1:, 2:] / 2)).max() < 3
+
+
+def test_the_gray_feature_is_centred_on_mid_grey():
+    """Staple's gray channel is pixel / 255 - 0.5: a mid-grey patch gives it nothing, only 1 / 510 of a level,
+    where a channel of pixel / 255 would add a windowed constant of half a level to every filter."""
+    images, truth = moving_target_sequence(frames=1)
+    tracker = Staple()
+    tracker.init(images[0], truth[0])
+    patch = np.full((*tracker.grid.patch_hw.astype(int), 3), 128, np.uint8)
+    gray = np.fft.irfft2(tracker._features_hat(patch)[0], s=tracker.grid.filter_hw)
+    np.testing.assert_allclose(gray, (128 / 255 - 0.5) * tracker.cosine_window, atol=1e-6)
+
+
 def test_bad_input_is_refused():
     images, truth = moving_target_sequence(frames=2)
     tracker = Staple()
