@@ -174,6 +174,19 @@ def test_fusion_prefers_the_confident_response():
     assert fusion_weight(np.zeros((5, 5))) == 0.0
 
 
+def test_fusion_divides_each_response_by_its_peak():
+    """sum_M p_M R_M / max(R_M), the p_M summing to 1: a response of a thousand times the values (HOG's and Color
+    Names' differ by orders of magnitude) weighs no more; of two copies, one scaled, the fusion is the map over its
+    peak."""
+    rng = np.random.default_rng(2)
+    hog, colour_names = rng.random((9, 9)), rng.random((9, 9))
+    weights = np.array([fusion_weight(hog), fusion_weight(colour_names)])
+    weights /= weights.sum()
+    np.testing.assert_allclose(fuse([hog, 1000 * colour_names]),
+                               weights[0] * hog / hog.max() + weights[1] * colour_names / colour_names.max())
+    np.testing.assert_allclose(fuse([hog, 1000 * hog]), hog / hog.max())
+
+
 @pytest.mark.parametrize("true_offset", [(0.0, 0.0), (0.3, -0.2), (-0.45, 0.4), (2.25, -1.7)])
 def test_subcell_peak_finds_a_peak_between_cells(true_offset):
     grid = np.arange(-7, 8, dtype=float)
