@@ -203,6 +203,26 @@ def test_uav20l_loads_from_the_uav123_folders_of_the_official_release(tmp_path, 
     assert "frames in data_seq/UAV123/group1 and data_seq/UAV123_10fps/group1; a range table's path" in caplog.text
 
 
+def test_uav123_text_range_table_and_frames_named_without_numbers(tmp_path):
+    """A `name folder first last` table (the real one is in ../shared/data, absent from a clean clone): each range
+    its own frames, by the numbers in their names, or by position in a folder whose names carry none."""
+    write_frames(tmp_path / "data_seq" / "UAV123_10fps" / "group1", 6)
+    names = [f"frame_{letter}.jpg" for letter in "abcdef"]
+    (tmp_path / "data_seq" / "UAV123_10fps" / "car").mkdir()
+    for name in names:
+        (tmp_path / "data_seq" / "UAV123_10fps" / "car" / name).write_bytes(JPG)
+    (tmp_path / "anno" / "UAV123_10fps").mkdir(parents=True)
+    for name in ("group1_1", "group1_2", "car_2"):
+        (tmp_path / "anno" / "UAV123_10fps" / f"{name}.txt").write_text("11,21,5,6\n" * 3)
+    (tmp_path / "UAV123_10fps_ranges.txt").write_text(
+        "# name folder first_frame last_frame\ngroup1_1 group1 1 3\ngroup1_2 group1 4 6\ncar_2 car 3 5\n")
+    seqs = {s.name: s for s in load_sequences(tmp_path)}
+    assert sorted(seqs) == ["UAV123_10fps/car_2", "UAV123_10fps/group1_1", "UAV123_10fps/group1_2"]
+    assert [p.name for p in seqs["UAV123_10fps/group1_1"].frames] == ["000001.jpg", "000002.jpg", "000003.jpg"]
+    assert [p.name for p in seqs["UAV123_10fps/group1_2"].frames] == ["000004.jpg", "000005.jpg", "000006.jpg"]
+    assert [p.name for p in seqs["UAV123_10fps/car_2"].frames] == names[2:5]
+
+
 def test_uav123_real_table_parses():
     if not ANNOTATIONS.is_dir():
         pytest.skip("../shared/data is absent")

@@ -23,6 +23,18 @@ def test_fps_counts_only_the_frames_of_the_sequences_that_were_timed():
     assert np.isnan(score_runs("none", [untimed], {"untimed": runs["untimed"]}).entry()["fps"])
 
 
+def test_the_table_ranks_the_trackers_by_auc_best_first_and_a_tracker_without_one_last():
+    from tacf.eval.report import markdown_table
+
+    def entry(auc):
+        return {"auc": auc, "precision20": 0.5, "fps": 10.0, "frames": 5, "sequences": {"s": {"auc": auc}}}
+
+    table = markdown_table({"trackers": {"unscored": entry(float("nan")), "worse": entry(0.4), "better": entry(0.6)}})
+    rows = [line.split(" | ")[0] for line in table.splitlines() if line.startswith("| ") and " | 5 | " in line]
+    assert rows == ["| better", "| worse", "| unscored"]
+    assert "| sequence | better | worse | unscored |" in table
+
+
 def test_otb_s_tre_pools_each_sequence_s_frames_over_its_starts():
     from tacf.eval.report import robustness, robustness_table
 
