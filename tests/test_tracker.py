@@ -256,6 +256,19 @@ def test_config_refuses_wrong_types_and_memory_bombs():
     assert TrackerConfig.profile("authors", lambda1=1).lambda1 == 1   # an int where a float is expected is fine
 
 
+@pytest.mark.parametrize("field", ["learning_rate", "context_penalty_rate", "dim_learning_rate",
+                                   "spatial_learning_rate", "hist_learning_rate", "likelihood_floor",
+                                   "scale_learning_rate", "scale_min_visible", "motion_search_threshold",
+                                   "lost_min_visible"])
+def test_every_rate_and_fraction_is_refused_outside_0_to_1(field):
+    """A rate or a fraction past 1 or under 0 means nothing (lost_min_visible=2 flags every frame lost, -1 none)."""
+    for value in (-0.1, 1.5):
+        with pytest.raises(ValueError, match=rf"TrackerConfig.{field} must be in \[0, 1\], got {value}"):
+            TrackerConfig(**{field: value})
+    for value in (0.0, 1.0):
+        assert getattr(TrackerConfig(**{field: value}), field) == value
+
+
 @pytest.mark.parametrize("field, value, message", [
     ("lambda1", 10**5000, "lambda1 must be finite"),        # str() raises past 4,300 digits: no field was named
     ("num_scales", 10**5000, "num_scales must be an int within its bounds"),
