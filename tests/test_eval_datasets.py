@@ -256,6 +256,16 @@ def test_otb_david_starts_at_frame_300(tmp_path):
     assert len(seq) == 11 and seq.frames[0].name == "0300.jpg"
 
 
+def test_otb_david_cut_to_its_annotated_frames_starts_at_its_first(tmp_path):
+    """A copy holding only the frames the ground truth covers (0300-0310 for 11 rows) is not cut again."""
+    (tmp_path / "David" / "img").mkdir(parents=True)
+    for number in range(300, 311):
+        (tmp_path / "David" / "img" / f"{number:04d}.jpg").write_bytes(JPG)
+    (tmp_path / "David" / "groundtruth_rect.txt").write_text("1,1,5,5\n" * 11)
+    (seq,) = load_sequences(tmp_path)
+    assert len(seq) == 11 and seq.frames[0].name == "0300.jpg"
+
+
 def test_otb_david_given_as_dot_or_dot_dot_still_starts_at_frame_300(tmp_path, monkeypatch):
     """`tacf eval .` in David's folder (or `..` from its img/) matched the ground truth with frames 1 to 11."""
     write_frames(tmp_path / "David" / "img", 310, "{:04d}.jpg")
