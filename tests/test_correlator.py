@@ -67,6 +67,9 @@ def test_label_peak_sits_at_minus_one_displacement():
     assert label.max() == pytest.approx(1.0)
     even = gaussian_label((8, 6), 1.0)
     assert np.all(even[3] == 0)  # for even sizes one row (displacement +4) stays empty, as in the authors' code
+    # the width: exp(-d^2 / (2 sigma^2)) at a displacement of d cells from the peak, on each axis
+    np.testing.assert_allclose([label[55, 42], label[56, 1], label[53, 38]],
+                               np.exp(-np.array([1, 4, 9 + 16]) / (2 * 1.5**2)))
 
 
 @pytest.mark.parametrize("shift", [(0, 0), (3, -2), (-5, 4), (6, 6)])

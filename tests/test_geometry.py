@@ -20,6 +20,13 @@ def random_patch(shape) -> np.ndarray:
     return RNG.integers(0, 256, shape).astype(np.uint8)
 
 
+@pytest.mark.parametrize("target_hw, padding", [((200, 200), 1.0), ((100, 400), 1.0), ((199, 200), 2.5),
+                                                ((50, 50), 2.5), ((25, 100), 2.5), ((49, 50), 3.0), ((1, 1), 3.0)])
+def test_padding_falls_with_the_target_s_area(target_hw, padding):
+    """ALGORITHM.md section 1: 1 from the fixed area (200^2) up, 2.5 from 50^2, 3 below."""
+    assert geometry.search_padding(np.array(target_hw, dtype=np.float64), 200.0**2) == padding
+
+
 def ramp(height: int, width: int) -> np.ndarray:
     """A float32 image whose value is the column coordinate: resampling it reads back where each pixel sampled."""
     return np.tile(np.arange(width, dtype=np.float32), (height, 1))
