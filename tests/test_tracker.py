@@ -214,6 +214,11 @@ def test_lost_flag_follows_the_pme_floor():
 def test_config_validation_and_profiles():
     assert TrackerConfig.profile("paper").lambda1 == 5e-5
     assert TrackerConfig.profile("authors").context_interval == 4
+    # ALGORITHM.md section A: the paper's lambda1, lambda2, f_c, penalties summing to 1 and beta_t; the code's values
+    differing = ("lambda1", "context_lambda2", "context_interval", "context_penalty_total", "dim_floor")
+    assert [getattr(TrackerConfig.profile("paper"), f) for f in differing] == [5e-5, 0.0625, 2, 1.0, 0.1]
+    assert [getattr(TrackerConfig.profile("authors"), f) for f in differing] == [1e-4, 1 / 256, 4, 4.0, 0.3]
+    assert TrackerConfig.profile("paper").dim_threshold == TrackerConfig.profile("authors").dim_threshold == 0.3
     kcc = TrackerConfig.profile("kcc")
     assert not (kcc.context_attention or kcc.dimensional_attention or kcc.spatiotemporal_attention)
     with pytest.raises(ValueError, match="unknown tracker profile"):
