@@ -334,6 +334,33 @@ def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="re"))
 
 
+def test_a_session_failed_on_its_box_then_reinitialised_is_restarted_after_a_crash(service, client):
+    """A session whose box did not fit its first frame fails for good (no restart would help); a reinit with a
+    box that fits makes it a session like any other, whose crashed worker is restarted, not left dead while its
+    status still says tracking."""
+    key = "test/cam/late-failed"
+    results = Collector(client, NODE, "refit")
+    try:
+        # no frame yet: the box is checked by the worker on the first frame, which it does not fit
+        start(client, service, image_key=key, box=(600.0, 300.0, 30.0, 30.0), sid="refit")
+        with FramePublisher(client, key, MovingTargetScene(320, 180, speed=2.0), fps=10) as pub:
+            assert wait_until(lambda: any(h.state == "failed" for h in results.health), 30), results.health
+            seq = pub.seq
+            call(client, NODE, "reinit", ReinitRequest(sid="refit", box=pub.truth[seq], seq=seq))
+            assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="refit")).state == "tracking",
+                              30)
+            pid = service.manager.worker_pids()["refit"]
+            os.kill(pid, signal.SIGKILL)
+            assert wait_until(lambda: service.manager.worker_pids().get("refit") not in (None, pid), 15), \
+                call(client, NODE, "status", StatusRequest(sid="refit"))
+            assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="refit")).state
+                              in ("tracking", "lost"), 30)
+            assert call(client, NODE, "status", StatusRequest(sid="refit")).restarts == 1
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="refit"))
+
+
 def test_a_health_after_a_reinit_has_no_pme_of_the_old_target(service, client):
     """A reinit replaces the target: until a frame of the new one is tracked, Health has no pme, as a new session's.
     It showed the old target's, beside the new init frame's last_seq, for as long as the feed paused."""
@@ -1062,6 +1089,33 @@ def test_a_restart_long_after_the_crash_starts_on_the_last_box_s_own_frame(servi
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="late"))
+
+
+def test_a_sixth_crash_within_a_minute_leaves_the_session_failed(service, client, feed, monkeypatch):
+    """README: a crashed worker is restarted after each of five crashes within a minute, and a sixth leaves the
+    session `failed` (until a reinit or a stop)."""
+    import tacf_service.manager as manager
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (0.1,) * len(manager.RESTART_BACKOFF_S))
+    sid = "crashloop"
+    start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid=sid)
+    try:
+        for crash in range(1, manager.MAX_CRASHES + 2):
+            assert wait_until(lambda: sid in service.manager.worker_pids(), 10), crash
+            pid = service.manager.worker_pids()[sid]
+            os.kill(pid, signal.SIGKILL)
+            if crash <= manager.MAX_CRASHES:
+                assert wait_until(lambda: service.manager.worker_pids().get(sid) not in (None, pid), 10), \
+                    (crash, call(client, NODE, "status", StatusRequest(sid=sid)))
+        info = call(client, NODE, "status", StatusRequest(sid=sid))
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5), info
+        time.sleep(1.0)                 # ten backoffs: no restart comes
+        info = call(client, NODE, "status", StatusRequest(sid=sid))
+        assert info.state == "failed" and info.restarts == manager.MAX_CRASHES, info
+        assert f"{manager.MAX_CRASHES + 1} crashes in 60 s, not restarting" in info.health.message, info.health
+        assert sid not in service.manager.worker_pids()
+    finally:
+        call(client, NODE, "stop", StopRequest(sid=sid))
 
 
 def test_counters_never_go_down_when_a_camera_restarts_its_seq_count(service, client):
