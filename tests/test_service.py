@@ -1179,6 +1179,33 @@ def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped
         assert final.frames_dropped - before.frames_dropped >= 40 - caught_up, (before, final)
 
 
+def test_frames_of_a_short_gap_between_two_workers_are_each_received_once(service, client, monkeypatch):
+    """A gap of a few frames (fewer than the service keeps) is handed whole to the new worker to catch up through:
+    it counts those frames itself, so none of them, the first that came after the death included, is counted
+    again as unserved."""
+    import tacf_service.manager as manager
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (2.0,) * len(manager.RESTART_BACKOFF_S))
+    key, sid = "test/cam/shortgap", "shortgap"
+    with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
+        play_frames(publisher, scene, 3, 20)
+        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
+        before = results.last_health()
+        os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5)
+        play_frames(publisher, scene, 20, 25)               # 0.5 s, within the 2 s backoff
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "tracking", 30)
+        play_frames(publisher, scene, 25, 30)
+        assert wait_until(lambda: results.results()[-1].seq == 29, 10)
+        call(client, NODE, "stop", StopRequest(sid=sid))
+        final = wait_until(lambda: next((h for h in reversed(results.health) if h.message == "stopped by request"),
+                                        None), 5)
+        assert final, results.health
+        # frames 20-29, and frame 19 again: the new worker initialises on the last box's frame
+        assert final.frames_received - before.frames_received == 11, (before, final)
+        assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, final
+
+
 def test_frames_that_come_before_a_first_worker_subscribes_are_received(endpoint, client):
     """A session started with no warm worker waits for one to start (0.2-0.4 s forked here, seconds spawned or
     while the fork server loads): the frames of that wait beyond the 7 handed to the worker to catch up through
