@@ -743,6 +743,28 @@ def test_a_query_admitted_after_the_control_server_closed_is_refused_not_lost(cl
     assert error.code == "unavailable" and "shutting down" in error.message
 
 
+def test_the_payload_bytes_of_an_answered_query_are_given_back_to_its_lane(service, client):
+    """A lane admits a query while the payload bytes it holds fit its budget (its threads' worth of the wire's
+    largest query): each answered query gives its bytes back, else the lane refused every query as busy once a
+    budget's worth had come in all."""
+    from tacf_schemas.limits import MAX_PAYLOAD_BYTES
+    from tacf_service.control import QUICK_THREADS
+
+    junk = bytes(MAX_PAYLOAD_BYTES // 2 + 1)        # no request (0 is no map), but admitted and answered
+
+    def answered() -> bool:
+        """Refused as invalid; busy only while the last one's bytes are being given back, just after its reply."""
+        try:
+            call(client, NODE, "status", junk, timeout=30)
+        except ControlError as refused:
+            assert refused.code in ("invalid_request", "unavailable"), refused
+            return refused.code == "invalid_request"
+        raise AssertionError("a status with no request in it was answered")
+
+    for _ in range(2 * QUICK_THREADS + 1):
+        assert wait_until(answered, 5, 0.2)
+
+
 def test_unknown_op_and_wildcard_op(service, client):
     for key in (f"tacf/{NODE}/control/explode", f"tacf/{NODE}/control/*"):
         replies = list(client.get(key, timeout=3))
