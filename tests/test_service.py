@@ -334,6 +334,33 @@ def test_reinit_moves_the_session_to_a_new_box(service, client, feed):
         call(client, NODE, "stop", StopRequest(sid="re"))
 
 
+def test_a_session_failed_on_its_box_then_reinitialised_is_restarted_after_a_crash(service, client):
+    """A session whose box did not fit its first frame fails for good (no restart would help); a reinit with a
+    box that fits makes it a session like any other, whose crashed worker is restarted, not left dead while its
+    status still says tracking."""
+    key = "test/cam/late-failed"
+    results = Collector(client, NODE, "refit")
+    try:
+        # no frame yet: the box is checked by the worker on the first frame, which it does not fit
+        start(client, service, image_key=key, box=(600.0, 300.0, 30.0, 30.0), sid="refit")
+        with FramePublisher(client, key, MovingTargetScene(320, 180, speed=2.0), fps=10) as pub:
+            assert wait_until(lambda: any(h.state == "failed" for h in results.health), 30), results.health
+            seq = pub.seq
+            call(client, NODE, "reinit", ReinitRequest(sid="refit", box=pub.truth[seq], seq=seq))
+            assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="refit")).state == "tracking",
+                              30)
+            pid = service.manager.worker_pids()["refit"]
+            os.kill(pid, signal.SIGKILL)
+            assert wait_until(lambda: service.manager.worker_pids().get("refit") not in (None, pid), 15), \
+                call(client, NODE, "status", StatusRequest(sid="refit"))
+            assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid="refit")).state
+                              in ("tracking", "lost"), 30)
+            assert call(client, NODE, "status", StatusRequest(sid="refit")).restarts == 1
+    finally:
+        results.close()
+        call(client, NODE, "stop", StopRequest(sid="refit"))
+
+
 def test_a_health_after_a_reinit_has_no_pme_of_the_old_target(service, client):
     """A reinit replaces the target: until a frame of the new one is tracked, Health has no pme, as a new session's.
     It showed the old target's, beside the new init frame's last_seq, for as long as the feed paused."""
@@ -716,6 +743,28 @@ def test_a_query_admitted_after_the_control_server_closed_is_refused_not_lost(cl
     assert error.code == "unavailable" and "shutting down" in error.message
 
 
+def test_the_payload_bytes_of_an_answered_query_are_given_back_to_its_lane(service, client):
+    """A lane admits a query while the payload bytes it holds fit its budget (its threads' worth of the wire's
+    largest query): each answered query gives its bytes back, else the lane refused every query as busy once a
+    budget's worth had come in all."""
+    from tacf_schemas.limits import MAX_PAYLOAD_BYTES
+    from tacf_service.control import QUICK_THREADS
+
+    junk = bytes(MAX_PAYLOAD_BYTES // 2 + 1)        # no request (0 is no map), but admitted and answered
+
+    def answered() -> bool:
+        """Refused as invalid; busy only while the last one's bytes are being given back, just after its reply."""
+        try:
+            call(client, NODE, "status", junk, timeout=30)
+        except ControlError as refused:
+            assert refused.code in ("invalid_request", "unavailable"), refused
+            return refused.code == "invalid_request"
+        raise AssertionError("a status with no request in it was answered")
+
+    for _ in range(2 * QUICK_THREADS + 1):
+        assert wait_until(answered, 5, 0.2)
+
+
 def test_unknown_op_and_wildcard_op(service, client):
     for key in (f"tacf/{NODE}/control/explode", f"tacf/{NODE}/control/*"):
         replies = list(client.get(key, timeout=3))
@@ -1064,6 +1113,41 @@ def test_a_restart_long_after_the_crash_starts_on_the_last_box_s_own_frame(servi
         call(client, NODE, "stop", StopRequest(sid="late"))
 
 
+def test_a_sixth_crash_within_a_minute_leaves_the_session_failed_until_a_reinit(service, client, feed,
+                                                                               monkeypatch):
+    """README: a crashed worker is restarted after each of five crashes within a minute, and a sixth leaves the
+    session `failed` until a reinit or a stop."""
+    import tacf_service.manager as manager
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (0.1,) * len(manager.RESTART_BACKOFF_S))
+    sid = "crashloop"
+    start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid=sid)
+    try:
+        for crash in range(1, manager.MAX_CRASHES + 2):
+            assert wait_until(lambda: sid in service.manager.worker_pids(), 10), crash
+            pid = service.manager.worker_pids()[sid]
+            os.kill(pid, signal.SIGKILL)
+            if crash <= manager.MAX_CRASHES:
+                assert wait_until(lambda: service.manager.worker_pids().get(sid) not in (None, pid), 10), \
+                    (crash, call(client, NODE, "status", StatusRequest(sid=sid)))
+        info = call(client, NODE, "status", StatusRequest(sid=sid))
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5), info
+        time.sleep(1.0)                 # ten backoffs: no restart comes
+        info = call(client, NODE, "status", StatusRequest(sid=sid))
+        assert info.state == "failed" and info.restarts == manager.MAX_CRASHES, info
+        assert f"{manager.MAX_CRASHES + 1} crashes in 60 s, not restarting" in info.health.message, info.health
+        assert sid not in service.manager.worker_pids()
+        seq = feed.seq
+        call(client, NODE, "reinit", ReinitRequest(sid=sid, box=feed.truth[seq], seq=seq))
+        assert wait_until(lambda: sid in service.manager.worker_pids(), 10)
+        pid = service.manager.worker_pids()[sid]
+        os.kill(pid, signal.SIGKILL)        # the reinit counts crashes from none again: restarted
+        assert wait_until(lambda: service.manager.worker_pids().get(sid) not in (None, pid), 10), \
+            call(client, NODE, "status", StatusRequest(sid=sid))
+    finally:
+        call(client, NODE, "stop", StopRequest(sid=sid))
+
+
 def test_counters_never_go_down_when_a_camera_restarts_its_seq_count(service, client):
     """A seq gap counts its frames as received and dropped at once. A camera that restarts its count within
     STALE_WINDOW seqs sends a frame with the missing seq: a new frame, which the worker tracks. It was taken off the
@@ -1123,6 +1207,33 @@ def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped
         assert final.frames_received - before.frames_received >= published, (before, final)
         caught_up = 0 if stop_before_restart else manager.CATCHUP_FRAMES      # frames the new worker counts itself
         assert final.frames_dropped - before.frames_dropped >= 40 - caught_up, (before, final)
+
+
+def test_frames_of_a_short_gap_between_two_workers_are_each_received_once(service, client, monkeypatch):
+    """A gap of a few frames (fewer than the service keeps) is handed whole to the new worker to catch up through:
+    it counts those frames itself, so none of them, the first that came after the death included, is counted
+    again as unserved."""
+    import tacf_service.manager as manager
+
+    monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (2.0,) * len(manager.RESTART_BACKOFF_S))
+    key, sid = "test/cam/shortgap", "shortgap"
+    with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
+        play_frames(publisher, scene, 3, 20)
+        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
+        before = results.last_health()
+        os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5)
+        play_frames(publisher, scene, 20, 25)               # 0.5 s, within the 2 s backoff
+        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "tracking", 30)
+        play_frames(publisher, scene, 25, 30)
+        assert wait_until(lambda: results.results()[-1].seq == 29, 10)
+        call(client, NODE, "stop", StopRequest(sid=sid))
+        final = wait_until(lambda: next((h for h in reversed(results.health) if h.message == "stopped by request"),
+                                        None), 5)
+        assert final, results.health
+        # frames 20-29, and frame 19 again: the new worker initialises on the last box's frame
+        assert final.frames_received - before.frames_received == 11, (before, final)
+        assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, final
 
 
 def test_frames_that_come_before_a_first_worker_subscribes_are_received(endpoint, client):
@@ -1637,6 +1748,33 @@ def test_a_camera_that_restarts_its_count_is_caught_up_through_its_new_frames_on
         results.close()
         publisher.undeclare()
         for sid in ("restarted", "follower"):
+            call(client, NODE, "stop", StopRequest(sid=sid))
+
+
+def test_a_box_carried_with_its_frame_after_a_camera_restarted_its_count_is_caught_up_through_newer_frames_only(
+        service, client):
+    """A frame carried by a start, which the service does not hold, is placed among the kept ones by seq and stamp:
+    the frames of the camera's count before its restart have higher seqs, but older stamps, and are not caught up
+    through (boxes would go out for frames older than the one the box was drawn on)."""
+    scene = MovingTargetScene(640, 360, speed=3.0)
+    key = "test/cam/restarting-carried"
+    publisher = client.declare_publisher(key)
+    results = Collector(client, NODE, "carried-after-restart")
+    try:
+        play_frames(publisher, scene, 100, 101)
+        start(client, service, image_key=key, box=scene.box(100), seq=100, sid="holder")   # keeps the history
+        play_frames(publisher, scene, 101, 116)
+        play_frames(publisher, scene, 0, 3)                    # the camera restarts its count
+        drawn_on = encode_frame(scene.frame(3)[0], 3, "jpeg", quality=85)    # shown to the user, not published
+        play_frames(publisher, scene, 4, 6)
+        start(client, service, image_key=key, box=scene.box(3), frames=[drawn_on], sid="carried-after-restart")
+        play_frames(publisher, scene, 6, 12)
+        assert wait_until(lambda: results.results() and results.results()[-1].seq == 11, 10)
+        assert [r.seq for r in results.results() if r.seq >= 100] == []
+    finally:
+        results.close()
+        publisher.undeclare()
+        for sid in ("carried-after-restart", "holder"):
             call(client, NODE, "stop", StopRequest(sid=sid))
 
 

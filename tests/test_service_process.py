@@ -17,6 +17,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 zenoh = pytest.importorskip("zenoh")
@@ -26,6 +27,7 @@ from tacf_clients.client import TrackingClient
 from tacf_clients.errors import RequestTimeout
 from tacf_clients.local_service import free_port
 from tacf_schemas import ListRequest, StartRequest, StatusRequest, StopRequest, encode, service_liveliness_key
+from tacf_schemas.images import encode_frame
 from tacf_service.app import ServiceOptions, TrackingService
 from tacf_service.config import ZenohOptions, service_config, worker_endpoints
 from tacf_service.errors import ServiceError
@@ -648,6 +650,22 @@ def restored_from(tmp_path, caplog, saved: list[PersistedSession] | None, **opti
         yield [s.sid for s in service.manager.list().sessions]
     finally:
         service.close()
+
+
+def test_a_session_restored_between_two_frame_saves_starts_on_the_stored_frame_with_its_own_box(tmp_path):
+    """The frame is stored every 5 s, the table every second: a service killed between two frame saves left a last
+    box newer than the stored frame. The restore must put the box computed on that frame (frame_box) on it, not the
+    last box, which belongs to a frame up to 5 s later, where the target has moved."""
+    state = tmp_path / "sessions.json"
+    store = StateStore(state)
+    frame_box, last_box = (40.0, 30.0, 20.0, 20.0), (200.0, 120.0, 20.0, 20.0)
+    store.save([SAVED.model_copy(update={"box": last_box, "last_seq": 60, "frame_seq": 10,
+                                         "frame_box": frame_box})])
+    store.save_frame("a", encode(encode_frame(np.zeros((180, 320, 3), np.uint8), 10)))
+    with TrackingService(ServiceOptions(node=NODE, zenoh=ZenohOptions(listen=(f"tcp/127.0.0.1:{free_port()}",)),
+                                        state_file=str(state), spare_workers=0)) as service:
+        info = service.manager.status("a")
+        assert (info.init_seq, info.box) == (10, frame_box), info
 
 
 def test_sessions_beyond_max_sessions_are_not_restored_silently(tmp_path, caplog):
