@@ -1186,11 +1186,7 @@ def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped
     monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (6.0,) * len(manager.RESTART_BACKOFF_S))
     key, sid = "test/cam/gap", "gap"
     with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
-        play_frames(publisher, scene, 3, 20)
-        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
-        before = results.last_health()                      # every frame from the init frame to 19 counted
-        os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
-        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5)
+        before = _track_to_19_then_kill_the_worker(client, service, sid, scene, publisher, results)
         play_frames(publisher, scene, 20, 60)               # 4 s, within the 6 s backoff
         if stop_before_restart:
             assert call(client, NODE, "status", StatusRequest(sid=sid)).restarts == 0
@@ -1198,11 +1194,7 @@ def test_frames_that_come_while_a_session_has_no_worker_are_received_and_dropped
             assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "tracking", 30)
             play_frames(publisher, scene, 60, 70)
             assert wait_until(lambda: results.results()[-1].seq == 69, 10)
-        call(client, NODE, "stop", StopRequest(sid=sid))
-        final = wait_until(lambda: next((h for h in reversed(results.health) if h.message == "stopped by request"),
-                                        None), 5)
-        assert final, results.health
-        assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, final
+        final = _final_health(client, sid, results)
         published = 40 if stop_before_restart else 50       # after `before`, which counted every frame up to 19
         assert final.frames_received - before.frames_received >= published, (before, final)
         caught_up = 0 if stop_before_restart else manager.CATCHUP_FRAMES      # frames the new worker counts itself
@@ -1218,22 +1210,35 @@ def test_frames_of_a_short_gap_between_two_workers_are_each_received_once(servic
     monkeypatch.setattr(manager, "RESTART_BACKOFF_S", (2.0,) * len(manager.RESTART_BACKOFF_S))
     key, sid = "test/cam/shortgap", "shortgap"
     with session_on_a_played_feed(client, service, key, sid) as (scene, publisher, results):
-        play_frames(publisher, scene, 3, 20)
-        assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
-        before = results.last_health()
-        os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
-        assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5)
+        before = _track_to_19_then_kill_the_worker(client, service, sid, scene, publisher, results)
         play_frames(publisher, scene, 20, 25)               # 0.5 s, within the 2 s backoff
         assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "tracking", 30)
         play_frames(publisher, scene, 25, 30)
         assert wait_until(lambda: results.results()[-1].seq == 29, 10)
-        call(client, NODE, "stop", StopRequest(sid=sid))
-        final = wait_until(lambda: next((h for h in reversed(results.health) if h.message == "stopped by request"),
-                                        None), 5)
-        assert final, results.health
+        final = _final_health(client, sid, results)
         # frames 20-29, and frame 19 again: the new worker initialises on the last box's frame
         assert final.frames_received - before.frames_received == 11, (before, final)
-        assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, final
+
+
+def _track_to_19_then_kill_the_worker(client, service, sid, scene, publisher, results) -> Health:
+    """Play frames 3-19 to a session_on_a_played_feed, then SIGKILL its worker: its last health before the death,
+    every frame from the init frame to 19 counted."""
+    play_frames(publisher, scene, 3, 20)
+    assert wait_until(lambda: (h := results.last_health()) and h.last_seq == 19, 10), results.last_health()
+    before = results.last_health()
+    os.kill(service.manager.worker_pids()[sid], signal.SIGKILL)
+    assert wait_until(lambda: call(client, NODE, "status", StatusRequest(sid=sid)).state == "failed", 5)
+    return before
+
+
+def _final_health(client, sid, results) -> Health:
+    """Stop the session: its last health, whose counters add up."""
+    call(client, NODE, "stop", StopRequest(sid=sid))
+    final = wait_until(lambda: next((h for h in reversed(results.health) if h.message == "stopped by request"),
+                                    None), 5)
+    assert final, results.health
+    assert final.frames_received == final.frames_processed + final.frames_dropped + final.frames_rejected, final
+    return final
 
 
 def test_frames_that_come_before_a_first_worker_subscribes_are_received(endpoint, client):
