@@ -74,12 +74,13 @@ def tacf_command(*args: str, env: dict | None = None):
 
 @contextmanager
 def serving(server):
-    """`server.serve(stop)` (a bridge, a MAVLink component) on a thread of its own while the block runs."""
+    """`server.serve(stop)` (a bridge, a MAVLink component) on a thread of its own while the block runs; yields
+    that thread."""
     stop = threading.Event()
     loop = threading.Thread(target=server.serve, args=(stop,), name=f"serving-{type(server).__name__}")
     loop.start()
     try:
-        yield
+        yield loop
     finally:
         stop.set()
         loop.join(timeout=10)

@@ -717,11 +717,8 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
     back; closing it then works too."""
     port = free_port()
     gcs = _tcp_ground_station(port)
-    stop = threading.Event()
-    component = MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp", options=no_service_options())
-    loop = threading.Thread(target=component.serve, args=(stop,))
-    loop.start()
-    try:
+    with MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp", options=no_service_options()) as component, \
+            serving(component) as loop:
         assert _receive(gcs, "HEARTBEAT") is not None
         gcs.close()
         time.sleep(5.0)
@@ -733,10 +730,6 @@ def test_a_tcp_ground_station_that_goes_away_and_comes_back_is_served_again():
         gcs.close()
         time.sleep(5.0)                                 # gone again: its link has no socket as it closes
         assert loop.is_alive(), "the component lives on through a heartbeat sent to a ground station gone"
-    finally:
-        stop.set()
-        loop.join(timeout=15)
-        component.close()
 
 
 def test_a_tcp_ground_station_away_for_long_is_logged_once_down_and_once_up_again(caplog, capsys):
@@ -746,22 +739,17 @@ def test_a_tcp_ground_station_away_for_long_is_logged_once_down_and_once_up_agai
     port = free_port()
     caplog.set_level("INFO", logger="tacf_clients.mavlink")
     gcs = _tcp_ground_station(port)
-    stop = threading.Event()
-    component = MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp-away", options=no_service_options())
-    loop = threading.Thread(target=component.serve, args=(stop,))
-    loop.start()
     try:
-        assert _receive(gcs, "HEARTBEAT") is not None
-        capsys.readouterr()
-        gcs.close()
-        time.sleep(9.0)
-        gcs = _tcp_ground_station(port)
-        assert _receive(gcs, "HEARTBEAT", timeout=15) is not None, "announces itself again"
-        assert _receive(gcs, "HEARTBEAT", timeout=5) is not None
+        with MavlinkCamera(f"tcp:127.0.0.1:{port}", "test/mavlink/tcp-away",
+                           options=no_service_options()) as component, serving(component):
+            assert _receive(gcs, "HEARTBEAT") is not None
+            capsys.readouterr()
+            gcs.close()
+            time.sleep(9.0)
+            gcs = _tcp_ground_station(port)
+            assert _receive(gcs, "HEARTBEAT", timeout=15) is not None, "announces itself again"
+            assert _receive(gcs, "HEARTBEAT", timeout=5) is not None
     finally:
-        stop.set()
-        loop.join(timeout=15)
-        component.close()
         gcs.close()
     assert capsys.readouterr().out.splitlines() == []
     link_lines = [r.getMessage() for r in caplog.records if "MAVLink link" in r.getMessage()]
