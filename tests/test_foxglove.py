@@ -373,16 +373,20 @@ def test_a_message_stamp_is_set_only_where_it_cannot_override_a_boxs_own():
     assert (empty.timestamp.seconds, empty.timestamp.nanos, len(empty.points)) == (7, 5, 0)
 
 
-def test_the_message_that_takes_the_last_box_off_is_stamped_with_the_cameras_clock(rig):
+def test_the_message_that_takes_the_last_box_off_is_stamped_with_the_cameras_clock(rig, tmp_path):
     """It was stamped with the bridge's clock, which no frame carries: a viewer that pairs annotations with images
-    by stamp kept the box on the camera's frames. A camera whose clock is years off shows it."""
+    by stamp kept the box on the camera's frames. A camera whose clock is years off shows it. A recording logs
+    every message, images too, at the bridge's time: a replay puts each image with the boxes and health of then."""
+    from mcap.reader import make_reader
+
     from tacf_clients.publisher import FramePublisher
 
     service, _, _, rig_board = rig
     key, camera_clock_ns = "test/foxglove/old-clock", 1_700_000_000 * 10**9
+    recording = tmp_path / "old-clock.mcap"
     with Dashboard(session=rig_board.session, image_keys=[key]) as board, \
-            FoxgloveBridge(board, port=0) as bridge, foxglove_client(bridge.port) as fox, serving(bridge), \
-            FramePublisher(rig_board.session, key, encoding="jpeg") as camera:
+            FoxgloveBridge(board, port=0, record=recording) as bridge, foxglove_client(bridge.port) as fox, \
+            serving(bridge), FramePublisher(rig_board.session, key, encoding="jpeg") as camera:
         def publish() -> None:
             camera.put(SCENE.frame(0), stamp_ns=camera_clock_ns + camera.next_seq * 10**8)
             fox.pump_until(lambda: False, timeout=0.05)
@@ -407,6 +411,27 @@ def test_the_message_that_takes_the_last_box_off_is_stamped_with_the_cameras_clo
         emptied = fox.received(f"/{key}/tracks")[-1]
         assert not emptied.points
         assert 0 <= emptied.timestamp.seconds - 1_700_000_000 < 100, emptied.timestamp
+    with open(recording, "rb") as stream:
+        log_times = {channel.topic: message.log_time for _, channel, message in make_reader(stream).iter_messages()}
+    assert abs(log_times[f"/{key}/image"] - log_times[f"/{key}/tracks"]) < 60 * 10**9, log_times
+
+
+def test_a_rectangle_has_its_box_s_corners_and_is_green_while_tracking_red_when_lost():
+    """The end-to-end test's IoU above 0.5 let a rectangle with width and height swapped through (the scene's 25 x 19
+    target: 0.61), and checked no colour: the corners of a tall box, and the colour of each state, exactly."""
+    def decoded(annotations):
+        schema = annotations.get_schema()
+        return decode_protobuf(schema.name, schema.data, annotations.encode())
+
+    tracking = {"node": "n", "sid": "a", "box": {"box": [10.0, 20.0, 30.0, 50.0], "ok": True, "pme": 9.0, "seq": 1,
+                                                 "stamp_ns": 5}}
+    lost = {"node": "n", "sid": "b", "box": {**tracking["box"], "ok": False}}
+    message = decoded(session_annotations([tracking, lost], empty_stamp_ns=0))
+    assert [(p.x, p.y) for p in message.points[0].points] == [(10, 20), (40, 20), (40, 70), (10, 70)]
+    green, red = (p.outline_color for p in message.points)
+    assert green.g > green.r and red.r > red.g, (green, red)
+    assert [t.text_color for t in message.texts] == [green, red]
+    assert [{kv.key: kv.value for kv in p.metadata}["ok"] for p in message.points] == ["true", "false"]
 
 
 @contextmanager
@@ -467,6 +492,9 @@ def test_a_camera_stamping_past_2106_holds_up_no_other():
 def test_a_viewer_who_subscribes_to_a_paused_camera_gets_its_last_frame_boxes_and_session(rig):
     """Messages went out only on a change: a viewer who subscribed after the camera paused got no image, no
     rectangle and no session state until the next one, which a paused camera never sends."""
+    import os
+    import signal
+
     from tacf_clients.demo import HoldingPublisher
     from tacf_clients.scene import SceneSource
 
@@ -489,6 +517,10 @@ def test_a_viewer_who_subscribes_to_a_paused_camera_gets_its_last_frame_boxes_an
                 assert first.pump_until(lambda: any(m.points for m in first.received(topics[1])), timeout=20)
                 camera.close()                                     # the camera pauses
                 first.pump_until(lambda: False, timeout=1.5)       # its last frame and box go out
+            # and the session stops changing (the service paused): its health, every second, changed it anyway and
+            # hid a session never sent to a late viewer
+            os.kill(service.process.pid, signal.SIGSTOP)
+            time.sleep(0.5)
             with foxglove_client(bridge.port) as late:
                 for topic in topics:
                     late.subscribe(topic)
@@ -497,6 +529,7 @@ def test_a_viewer_who_subscribes_to_a_paused_camera_gets_its_last_frame_boxes_an
                 assert late.received(topics[1])[-1].points, "the rectangle on the last frame"
                 assert late.received(topics[2])[-1]["sid"] == sid
         finally:
+            os.kill(service.process.pid, signal.SIGCONT)
             camera.close()
             board.stop(sid, node=service.node)
 
@@ -518,6 +551,8 @@ def test_the_tracks_of_a_key_the_board_cannot_watch_go_with_its_last_session(rig
                                             "seq": seq, "sid": "fox-unwatched", "node": service.node})
         assert ok, info
         assert fox.pump_until(lambda: ours() == {f"/{KEY}/tracks", f"/tacf/{service.node}/fox-unwatched"}), ours()
+        fox.subscribe(f"/{KEY}/tracks")         # a topic withdrawn as soon as advertised would carry nothing
+        assert fox.pump_until(lambda: any(m.points for m in fox.received(f"/{KEY}/tracks")), timeout=20)
         ok, info = fox.call("/tacf/stop", {"sid": "fox-unwatched"})
         assert ok, info
         assert fox.pump_until(lambda: not ours(), timeout=15), ours()
@@ -586,6 +621,8 @@ def test_closing_with_a_connection_in_its_handshake_finishes_the_recording_at_on
         finally:
             idle.close()
     assert path.read_bytes().endswith(b"\x89MCAP0\r\n"), "the recording is finished"
+    with pytest.raises(ConnectionRefusedError):             # the SDK's server is stopped, not left serving
+        socket.create_connection((bridge.internal_host, bridge.server.port), timeout=5).close()
 
 
 @pytest.mark.parametrize("request_bytes, expected", [
@@ -636,6 +673,10 @@ def test_the_overrides_of_a_start_request_reach_the_service(rig, client):
 def test_unknown_sessions_and_encodings_are_refused_and_the_bridge_serves_on(client):
     ok, message = client.call("/tacf/stop", {"sid": "nobody"})
     assert not ok and "nobody" in message, message
+    asked_elsewhere = {"/tacf/stop": {"sid": "nobody", "node": "elsewhere"}, "/tacf/list": {"node": "elsewhere"}}
+    for service, request in asked_elsewhere.items():    # the service asked for, not whichever answers
+        ok, message = client.call(service, request)
+        assert not ok and "'elsewhere'" in message, (service, message)
     ok, message = client.call("/tacf/list", b"\x00\x01", encoding="cbor")
     assert not ok and "encoding" in message, message
     ok, message = client.call("/tacf/list", {"nodes": "all"})

@@ -7,6 +7,7 @@ import asyncio
 import socket
 import threading
 import time
+from collections import Counter
 from contextlib import contextmanager
 
 import pytest
@@ -19,23 +20,26 @@ from websockets.sync.client import connect  # noqa: E402
 from tacf_clients.foxglove_relay import SubprotocolRelay, origin_allowed  # noqa: E402
 
 BLOCK = bytes(256 * 1024)
+FLOOD_BLOCKS = 400          # 100 MB: what a flood costs a relay that reads ahead without bound, not all memory
 
 
 @contextmanager
-def upstream_server(flood: bool, closes: list | None = None):
+def upstream_server(flood: bool, closes: list | None = None, sent: list | None = None):
     """A WebSocket server on a free loopback port that speaks foxglove.sdk.v1 only: it echoes what it gets, and
-    with `flood` also sends 256 KB messages as fast as the connection takes them. Told "close CODE REASON" it
-    closes with them, told "drop" it drops the TCP connection without a close frame (a crash); the close code
-    and reason each connection got are appended to `closes`. Yields its port."""
+    with `flood` first sends FLOOD_BLOCKS messages of 256 KB as fast as the connection takes them, appending the
+    connection's id to `sent` for each. Told "close CODE REASON" it closes with them, told "drop" it drops the TCP
+    connection without a close frame (a crash); the close code and reason each connection got are appended to
+    `closes`. Yields its port."""
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()
 
     async def handler(connection):
         try:
-            if flood:
-                while True:
-                    await connection.send(BLOCK)
+            for _ in range(FLOOD_BLOCKS if flood else 0):
+                await connection.send(BLOCK)
+                if sent is not None:
+                    sent.append(connection.id)
             async for message in connection:
                 if message == "drop":
                     connection.transport.abort()
@@ -51,7 +55,8 @@ def upstream_server(flood: bool, closes: list | None = None):
                 closes.append((connection.protocol.close_code, connection.protocol.close_reason))
 
     async def start():
-        return await serve(handler, "127.0.0.1", 0, subprotocols=["foxglove.sdk.v1"], compression=None)
+        return await serve(handler, "127.0.0.1", 0, subprotocols=["foxglove.sdk.v1"], compression=None,
+                           max_size=None)       # as the SDK's server, whose limit is larger than the relay's
 
     server = asyncio.run_coroutine_threadsafe(start(), loop).result(timeout=5)
     try:
@@ -82,7 +87,8 @@ def test_either_name_is_accepted_and_messages_pass_unchanged_both_ways():
 
 
 def test_a_viewer_that_stopped_reading_holds_up_neither_the_relay_nor_its_shutdown():
-    with upstream_server(flood=True) as upstream_port:
+    sent: list = []
+    with upstream_server(flood=True, sent=sent) as upstream_port:
         relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0)
         try:
             with connect(f"ws://127.0.0.1:{relay.port}", subprotocols=["foxglove.websocket.v1"], open_timeout=5,
@@ -92,6 +98,12 @@ def test_a_viewer_that_stopped_reading_holds_up_neither_the_relay_nor_its_shutdo
                              max_size=None) as reader:                      # another viewer is served meanwhile
                     assert all(reader.recv(timeout=5) == BLOCK for _ in range(20))
                 time.sleep(1.0)                                             # the stalled pipe fills up
+                # and the server is held up too, rather than the relay reading on into its memory (measured: 61
+                # blocks in the socket buffers and queues; without a bound the relay took all 400 at once)
+                blocks = Counter(sent)
+                assert max(blocks.values()) < FLOOD_BLOCKS / 2, blocks
+                time.sleep(0.5)
+                assert Counter(sent) == blocks
                 started = time.monotonic()
                 relay.close()
                 assert time.monotonic() - started < 5, "close() does not wait on a viewer that reads nothing"
@@ -133,6 +145,25 @@ def test_another_web_site_in_the_operators_browser_is_refused():
                 with connect(url, subprotocols=["foxglove.websocket.v1"], origin=origin, open_timeout=5) as ws:
                     ws.send("hello")
                     assert ws.recv(timeout=5) == "hello"
+        finally:
+            relay.close()
+
+
+def test_a_viewer_s_message_over_the_limit_ends_its_connection_and_never_reaches_the_server():
+    """Viewers send subscriptions and service calls, all small: a bigger message (the relay would hold it whole in
+    memory, and the SDK's server after it) closes the connection with 1009, message too big: the server's echo
+    of it never comes."""
+    from tacf_clients.foxglove_relay import MAX_CLIENT_MESSAGE
+
+    with upstream_server(flood=False) as upstream_port:
+        relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0)
+        try:
+            with connect(f"ws://127.0.0.1:{relay.port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5,
+                         max_size=None) as ws:                              # the server's echo would be taken
+                ws.send(bytes(MAX_CLIENT_MESSAGE + 1))
+                with pytest.raises(ConnectionClosed):
+                    ws.recv(timeout=5)
+                assert ws.protocol.close_code == 1009
         finally:
             relay.close()
 
