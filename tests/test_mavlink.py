@@ -99,10 +99,11 @@ def _receive(gcs, kind: str, timeout: float = 10.0, where=lambda m: True):
     return None
 
 
-def _command(gcs, command: int, *params: float, component: int = mav.MAV_COMP_ID_CAMERA, timeout: float = 20.0):
+def _command(gcs, command: int, *params: float, component: int = mav.MAV_COMP_ID_CAMERA, system: int = 1,
+             timeout: float = 20.0):
     """Send COMMAND_LONG and return its final COMMAND_ACK's result (None: no ACK), past any IN_PROGRESS."""
     params = list(params) + [0.0] * (7 - len(params))
-    gcs.mav.command_long_send(1, component, command, 0, *params)
+    gcs.mav.command_long_send(system, component, command, 0, *params)
     ack = _receive(gcs, "COMMAND_ACK", timeout,
                    where=lambda m: m.command == command and m.result != mav.MAV_RESULT_IN_PROGRESS)
     return None if ack is None else ack.result
@@ -142,17 +143,23 @@ def test_a_start_waits_as_long_as_the_clients(rig):
 
 
 def test_refuses_what_it_cannot_do_and_ignores_other_components(rig):
-    gcs, _, client, _ = rig
+    gcs, _, client, component = rig
     for corners in ((0.6, 0.2, 0.4, 0.5), (0.1, 0.1, 0.1, 0.3), (-0.1, 0.2, 0.3, 0.4), (0.1, 0.2, 1.5, 0.4),
                     (math.nan, 0.2, 0.3, 0.4)):
         assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *corners) == mav.MAV_RESULT_DENIED, corners
     for point in ((1.2, 0.5, 0.1), (0.5, -0.1, 0.1), (0.5, 0.5, 1.5), (0.5, 0.5, math.nan)):
         assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_POINT, *point) == mav.MAV_RESULT_DENIED, point
+    # a drag to the frame's edges (a ground station clamps it to 0..1) is no refusal
+    assert wait_until(lambda: component._frame_header() is not None, 10)
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.0, 0.5, 0.5, 1.0) == mav.MAV_RESULT_ACCEPTED
+    assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
     assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HEARTBEAT) == mav.MAV_RESULT_UNSUPPORTED
     assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, math.nan) == mav.MAV_RESULT_UNSUPPORTED
     assert _command(gcs, mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_HEARTBEAT, 1e6) == \
         mav.MAV_RESULT_UNSUPPORTED
     assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.3, 0.3, component=101, timeout=1.5) is None
+    # the camera of another vehicle (system 2) on the same MAVLink network: its drag is not for this one
+    assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.3, 0.3, system=2, timeout=1.5) is None
     # broadcast commands it does not handle are the other components' to answer (MAVProxy asks every component for
     # the home position); the ones it handles it answers
     assert _command(gcs, mav.MAV_CMD_GET_HOME_POSITION, component=0, timeout=1.5) is None
@@ -244,19 +251,31 @@ def _held_target(camera, component) -> tuple:
     return SCENE.box(camera.index_of(first))
 
 
-def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
+def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig, monkeypatch):
     gcs, camera, client, component = rig
     target = _held_target(camera, component)
+    boxes_started, start = [], component.client.start
+    monkeypatch.setattr(component.client, "start", lambda key, box, **kw: boxes_started.append(box) or
+                        start(key, box, **kw))
     assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
         mav.MAV_RESULT_ACCEPTED
+    # in pixels, exactly: the IoU below lets a box of the target's height and width through (the scene's 25 x 19)
+    assert boxes_started == [pytest.approx(target)]
     info = client.status(SID)
     assert info.image_key == KEY
     status = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
                       where=lambda m: m.target_data == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
     assert status is not None and status.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
     assert status.tracking_mode == mav.CAMERA_TRACKING_MODE_RECTANGLE
+    assert status.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, "held still: tracked, not coasting"
+    assert math.isnan(status.radius), "a radius only in point mode"
     assert box_iou(_status_box(status), target) > 0.5, (_status_box(status), target)
     assert abs(status.point_x - (status.rec_top_x + status.rec_bottom_x) / 2) < 1e-4
+
+    started, count = time.monotonic(), 0
+    while time.monotonic() - started < 2.0:
+        count += _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=0.2) is not None
+    assert 12 <= count <= 30, f"{count} statuses in 2 s at the default 10 Hz"
 
     # The target moves; the boxes follow it, at the rate the ground station asks for.
     camera.hold.clear()
@@ -289,6 +308,7 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig):
     idle = _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS",
                     where=lambda m: m.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_IDLE)
     assert idle is not None and idle.tracking_mode == mav.CAMERA_TRACKING_MODE_NONE and math.isnan(idle.rec_top_x)
+    assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=1.0) is None, "one IDLE status, then none"
     assert SID not in {s.sid for s in client.list()}
 
     # A session stopped elsewhere (the dashboard, tacf stop) ends the tracking the ground station sees.
@@ -372,6 +392,32 @@ def test_a_start_answered_too_late_is_stopped_by_a_stop(rig, monkeypatch):
         assert SID in {s.sid for s in client.list()}
         assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
         assert SID not in {s.sid for s in client.list()}
+    finally:
+        camera.hold.clear()
+
+
+def test_a_refused_re_target_leaves_the_session_tracking_and_stoppable(rig, monkeypatch):
+    """A drag the service refuses while a session runs fails, and changes nothing: the status stays ACTIVE with the
+    box (not ERROR, which would say the tracking stopped) and a stop still stops the session."""
+    from tacf_clients.errors import TacfError
+
+    gcs, camera, client, component = rig
+    target = _held_target(camera, component)
+    try:
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+            mav.MAV_RESULT_ACCEPTED
+
+        def refused(*args, **kwargs):
+            raise TacfError("refused")
+        monkeypatch.setattr(component.client, "reinit", refused)
+        assert _command(gcs, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, *_normalised_corners(target)) == \
+            mav.MAV_RESULT_FAILED
+        monkeypatch.undo()
+        assert component.tracking
+        assert _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", where=lambda m: m.target_data and
+                        m.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE) is not None
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        assert SID not in {s.sid for s in client.list()}, "the stop stopped it on the service"
     finally:
         camera.hold.clear()
 
@@ -532,6 +578,8 @@ def test_the_box_follows_the_target_after_the_camera_restarts():
                 gcs.close()
                 if restarted is not None:
                     restarted.close()
+        listed = TrackingClient(session=session, node=service.node).list()
+        assert component.sid not in {info.sid for info in listed}, "closing the component stopped its session"
 
 
 def test_a_killed_service_turns_the_status_to_error_and_a_restored_one_back_to_active(tmp_path):
@@ -683,6 +731,39 @@ def test_a_slow_start_is_answered_in_progress_while_the_loop_goes_on_and_a_retra
                 stop.set()
                 loop.join(timeout=10)
                 gcs.close()
+
+
+def test_a_stop_sent_while_a_start_is_in_progress_stops_what_the_start_started():
+    """An operator who stops while the start is still in progress (a camera gone quiet) stops the session: the stop
+    runs after the start, as the commands came."""
+    import zenoh
+
+    from tacf_clients.zconfig import make_config
+    from tacf_schemas.codec import encode
+    from tacf_schemas.images import encode_frame
+
+    key, sid = "test/mavlink/quiet-stop", "mavlink-quiet-stop"
+    with LocalService(node=f"mavs{free_port()}", extra_args=("--init-wait", "3")) as service, \
+            zenoh.open(make_config(service.options)) as session:
+        service.wait_ready(session)
+        port = free_port()
+        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
+                                         source_component=GCS_COMPONENT, dialect="common")
+        try:
+            with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, session=session, sid=sid) as component, \
+                    serving(component):
+                assert _receive(gcs, "HEARTBEAT") is not None
+                session.put(key, encode(encode_frame(SCENE.frame(0), 7)))    # one frame, then the camera is quiet
+                assert wait_until(lambda: component._frame_header() is not None, 10)
+                gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0,
+                                          *_normalised_corners(SCENE.box(0)), 0.0, 0.0, 0.0)
+                assert _receive(gcs, "COMMAND_ACK", 1.0, where=lambda m: m.result == mav.MAV_RESULT_IN_PROGRESS)
+                assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+                assert wait_until(lambda: not component._pending, 20), "the start is done"
+                assert not component.tracking
+                assert sid not in {info.sid for info in TrackingClient(session=session, node=service.node).list()}
+        finally:
+            gcs.close()
 
 
 def test_no_frame_yet_is_a_temporary_refusal():
@@ -850,6 +931,7 @@ def test_tacf_mavlink_command_announces_itself_until_sigterm():
     (("--link", "udpout:no-such-host.invalid:14550"), "cannot resolve host 'no-such-host.invalid'"),
     (("--link", "tcp:no-such-host.invalid:5760"), "cannot resolve host 'no-such-host.invalid'"),
     (("--link", "udpout:127.0.0.1:99999"), "a port of 1 to 65535"),
+    (("--link", "udpout:127.0.0.1:65536"), "a port of 1 to 65535"),
     (("--link", "udpout:127.0.0.1:14550", "--sid", ""), "invalid session id ''"),
 ])
 def test_a_bad_endpoint_or_sid_is_a_one_line_error(args, says):
