@@ -275,7 +275,7 @@ def test_a_dragged_rectangle_is_tracked_shown_and_stopped(rig, monkeypatch):
     started, count = time.monotonic(), 0
     while time.monotonic() - started < 2.0:
         count += _receive(gcs, "CAMERA_TRACKING_IMAGE_STATUS", timeout=0.2) is not None
-    assert 12 <= count <= 30, f"{count} statuses in 2 s at the default 10 Hz"
+    assert 8 <= count <= 40, f"{count} statuses in 2 s at the default 10 Hz (1 Hz: 2)"
 
     # The target moves; the boxes follow it, at the rate the ground station asks for.
     camera.hold.clear()
