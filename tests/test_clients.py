@@ -18,7 +18,7 @@ from tacf_clients.errors import (ERRORS, AmbiguousNode, DuplicateSession, Invali
 from tacf_clients.local_service import LocalService, free_port
 from tacf_clients.scene import Scene, SceneSource
 from tacf_clients.zconfig import ZenohOptions, make_config
-from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo
+from tacf_schemas.models import ERROR_CODES, BoxResult, Health, SessionInfo, SessionList
 from tacf_service.loopback import wait_until
 from camera_rig import no_service_options
 
@@ -180,6 +180,8 @@ def test_error_replies_raise_typed_exceptions(client, camera, service):
             client.start(camera.key, box)
     with pytest.raises(InvalidId):
         client.stop("not a valid id")
+    with pytest.raises(InvalidId):                        # as the service would refuse it (`tacf start --sid`)
+        client.start(camera.key, SCENE.box(0), sid="not a valid id")
     for text in ("0.02", "true"):                         # typed into a form: refused, not sent as a number
         with pytest.raises(InvalidRequest, match="overrides"):
             client.start(camera.key, SCENE.box(0), sid="textual", overrides={"learning_rate": text})
@@ -249,7 +251,9 @@ def test_a_call_takes_no_longer_than_its_timeout_however_many_queries_it_makes()
         try:
             with TrackingClient(ZenohOptions.loopback(port), timeout=1.0) as client:
                 started = time.monotonic()
-                with pytest.raises(RequestTimeout):
+                # the service goes on with a start answered too late: a retry would start a second session
+                with pytest.raises(RequestTimeout, match="service 'slow' may still start the session: check with "
+                                                         "status or list before starting it again"):
                     client.start("cam/a", (1, 2, 3, 4))
                 assert time.monotonic() - started < 1.3
                 time.sleep(1.0)                       # the late start is answered (to nobody): the queue is clear
@@ -338,6 +342,105 @@ def test_a_start_on_the_least_loaded_service_refuses_a_node_id_two_services_answ
         finally:
             for queryable in twins:
                 queryable.undeclare()
+
+
+def _fake_service(session: zenoh.Session, node: str, replies: dict, delay_s: float = 0.0):
+    """A queryable answering tacf/<node>/control/<op> with replies[op] (a model, or an Error sent as reply_err) after
+    `delay_s`."""
+    from tacf_schemas.codec import MSGPACK_ENCODING, encode
+    from tacf_schemas.models import Error
+
+    def answer(query):
+        time.sleep(delay_s)
+        with query:
+            reply = replies[str(query.key_expr).rsplit("/", 1)[-1]]
+            if isinstance(reply, Error):
+                query.reply_err(encode(reply))
+            else:
+                query.reply(query.key_expr, encode(reply), encoding=zenoh.Encoding(MSGPACK_ENCODING))
+
+    return session.declare_queryable(f"tacf/{node}/control/*", answer)
+
+
+def _info(node: str, sid: str = "s") -> SessionInfo:
+    return SessionInfo(node=node, sid=sid, image_key="cam/a", profile="default", state="tracking", box=(1, 2, 3, 4),
+                       created_ns=1)
+
+
+def test_a_start_waits_for_a_service_slower_than_the_other_calls_allow():
+    """A service's first start waits for its fork server to load the tracker (5.7 s with numba's cache empty): with a
+    client's default timeouts a start waits START_TIMEOUT, not the 5 s of the other calls."""
+    from tacf_clients.client import DEFAULT_TIMEOUT
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as services:
+        cold = _fake_service(services, "cold", {"start": _info("cold")}, delay_s=DEFAULT_TIMEOUT + 0.5)
+        try:
+            with TrackingClient(ZenohOptions.loopback(port)) as client:
+                assert client.start("cam/a", (1, 2, 3, 4), node="cold").node == "cold"
+        finally:
+            cold.undeclare()
+
+
+def test_a_session_whose_service_went_away_is_looked_for_again():
+    """The client remembers the service of each session; once that service no longer answers (restarted elsewhere,
+    out of reach) a call on the session looks for it again instead of failing with NoService."""
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as services:
+        with TrackingClient(ZenohOptions.loopback(port), timeout=2.0) as client:
+            gone = _fake_service(services, "gone", {"status": _info("gone"), "list": SessionList(node="gone",
+                                                                                                max_sessions=8)})
+            assert _wait(lambda: client.nodes() == ["gone"])
+            assert client.status("s").node == "gone"            # found there, and remembered
+            gone.undeclare()
+            moved = _fake_service(services, "moved", {"status": _info("moved"), "list": SessionList(node="moved",
+                                                                                                   max_sessions=8)})
+            try:
+                assert _wait(lambda: client.nodes() == ["moved"])
+                assert client.status("s").node == "moved"
+            finally:
+                moved.undeclare()
+
+
+def test_a_session_looked_for_names_the_error_that_says_more_than_not_here():
+    """A status by session id alone asks every service: one that holds the session and fails says more than the
+    others' "unknown session"."""
+    from tacf_schemas.models import Error
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as services:
+        elsewhere = _fake_service(services, "elsewhere", {"status": Error(code="unknown_session",
+                                                                          message="no session 's'", node="elsewhere")})
+        broken = _fake_service(services, "broken", {"status": Error(code="internal", message="state file unreadable",
+                                                                    node="broken")})
+        try:
+            with TrackingClient(ZenohOptions.loopback(port), timeout=2.0) as client, \
+                    pytest.raises(ServiceError, match="state file unreadable"):
+                client.status("s")
+        finally:
+            elsewhere.undeclare()
+            broken.undeclare()
+
+
+def test_a_node_watch_tells_each_service_coming_and_going_once_until_it_is_closed():
+    from tacf_schemas import keys
+
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as services, \
+            TrackingClient(ZenohOptions.loopback(port), timeout=2.0) as client:
+        first = services.liveliness().declare_token(keys.service_liveliness_key("edge1"))
+        events: list[tuple[str, bool]] = []
+        with client.watch_nodes(lambda node, alive: events.append((node, alive))) as watch:
+            assert _wait(lambda: watch.nodes == ["edge1"])       # up before the watch: from the history
+            second = services.liveliness().declare_token(keys.service_liveliness_key("edge2"))
+            assert _wait(lambda: watch.nodes == ["edge1", "edge2"])
+            first.undeclare()
+            assert _wait(lambda: watch.nodes == ["edge2"])
+        second.undeclare()                                       # after the watch's close: not told
+        third = services.liveliness().declare_token(keys.service_liveliness_key("edge3"))
+        time.sleep(0.5)
+        third.undeclare()
+        assert events == [("edge1", True), ("edge2", True), ("edge1", False)], events
 
 
 def _cli_error(main, argv: list[str], capsys) -> str:

@@ -113,10 +113,17 @@ def test_latest_only_across_sessions(net):
         for seq in range(20):
             net.put(_box("a", seq))
             net.put(_box("b", 100 + seq, node="edge2"))
-        assert _wait(lambda: boxes.received == 40)
-        newest = {b.sid: b.seq for b in iter(lambda: boxes.get(timeout=0.2), None)}
-        assert newest == {"a": 19, "b": 119}
-        assert boxes.dropped == 38
+            net.put(_box("a", 200 + seq, node="edge2"))          # the same sid on another service: a session too
+        assert _wait(lambda: boxes.received == 60)
+        newest = {(b.node, b.sid): b.seq for b in iter(lambda: boxes.get(timeout=0.2), None)}
+        assert newest == {("edge1", "a"): 19, ("edge2", "b"): 119, ("edge2", "a"): 219}
+        assert boxes.dropped == 57
+        # the session whose box waits longest comes first: a session sending often does not keep a consumer slower
+        # than it from the others
+        for box in (_box("a", 20), _box("b", 120, node="edge2"), _box("a", 21)):
+            net.put(box)
+        assert _wait(lambda: boxes.received == 63)
+        assert [(b.sid, b.seq) for b in iter(lambda: boxes.get(timeout=0.2), None)] == [("b", 120), ("a", 21)]
 
 
 def test_callback_form_and_lost_flag(net):
@@ -136,6 +143,35 @@ def test_callback_form_and_lost_flag(net):
         net.put(_box("cam1", 3))
         assert done.wait(5)
     assert [b.ok for b in got] == [True, False, True]
+
+
+def test_a_full_queue_drops_its_oldest_boxes_and_counts_them(net):
+    with BoxConsumer(net.vehicle, sid="cam1", queue_size=3) as boxes:
+        net.wait_matched(box_key("edge1", "cam1"))
+        for seq in range(5):
+            net.put(_box("cam1", seq))
+        assert _wait(lambda: boxes.received == 5)
+        assert [b.seq for b in iter(lambda: boxes.get(timeout=0.2), None)] == [2, 3, 4]
+        assert boxes.dropped == 2
+
+
+def test_a_callback_that_fails_is_handed_the_next_boxes_all_the_same(net, caplog):
+    """One failure of the user's callback (a gimbal's serial link down for a moment) is logged; the boxes after it
+    still come, instead of the callback thread ending with it and every later box going unseen."""
+    got: list[int] = []
+
+    def on_box(b: TrackedBox):
+        got.append(b.seq)
+        if b.seq == 1:
+            raise RuntimeError("gimbal link down")
+
+    caplog.set_level(logging.ERROR, logger="tacf_clients.stream")
+    with BoxConsumer(net.vehicle, sid="cam1", on_box=on_box):
+        net.wait_matched(box_key("edge1", "cam1"))
+        for seq in (1, 2, 3):
+            net.put(_box("cam1", seq))
+        assert _wait(lambda: got == [1, 2, 3]), got
+    assert any("callback for tacf/*/sessions/cam1/box failed" in r.getMessage() for r in caplog.records)
 
 
 def test_a_sample_decoded_while_the_stream_closes_is_not_handed_out_after_close(net):
@@ -188,11 +224,24 @@ def test_closing_a_stream_after_its_session_stops_its_callback(net):
     assert calls == [0]
 
 
+def test_a_subscription_with_a_health_callback_only_is_handed_the_health(net):
+    health: list[Health] = []
+    with TrackingClient(session=net.vehicle) as client, client.subscribe("cam1", on_health=health.append):
+        net.wait_matched(health_key("edge1", "cam1"))
+        net.put(_box("cam1", 1))
+        net.put(_health("cam1", state="lost"), leaf="health")
+        assert _wait(lambda: [h.state for h in health] == ["lost"]), health
+
+
 def test_consumer_opens_its_own_session(net):
     with BoxConsumer(sid="cam9", options=net.options) as boxes:
         net.wait_matched(box_key("edge1", "cam9"))
         net.put(_box("cam9", 7))
         assert boxes.get(timeout=5).seq == 7
+    assert boxes.session.is_closed(), "the session it opened is closed with it"
+    with BoxConsumer(net.vehicle, sid="cam9"):
+        pass
+    assert not net.vehicle.is_closed(), "a session it was given is the caller's"
 
 
 def test_a_bad_id_is_refused_as_the_client_refuses_it():
@@ -208,13 +257,30 @@ def test_a_bad_id_is_refused_as_the_client_refuses_it():
 def test_render_table():
     row = SessionRow("edge1", "cam1")
     row.apply(_box("cam1", 42, ok=False))
-    row.apply(_health("cam1", state="lost"))
+    row.apply(_health("cam1", state="lost").model_copy(update={"frames_lost": 1}))
     text = render_table([row, SessionRow("edge2", "idle")])
     lines = text.splitlines()
     assert lines[0].split()[:3] == ["NODE", "SID", "STATE"]
     assert "cam1" in lines[1] and "lost" in lines[1] and "LOST" in lines[1] and "42" in lines[1]
     assert "(64, 48, 32, 24)" in lines[1] and "29.5" in lines[1]
+    assert lines[0].split()[-3:] == ["RECV", "LOST", "DROP"] and lines[1].split()[-3:] == ["100", "1", "2"]
     assert "no sessions" in render_table([])
+
+
+def test_the_session_table_puts_each_count_under_its_heading():
+    health = _health("s1").model_copy(update={"frames_lost": 1})
+    info = SessionInfo(node="edge1", sid="s1", image_key="cam/a", profile="paper", state="tracking",
+                       box=(1.0, 2.0, 3.0, 4.0), created_ns=time.time_ns(), health=health)
+    header, row = session_table([info]).splitlines()
+    assert header.split()[-4:] == ["FPS", "PROCESSED", "LOST", "DROPPED"]
+    assert row.split()[-4:] == ["29.5", "98", "1", "2"]
+
+
+def test_a_row_not_heard_of_for_5_s_is_stale_unless_its_session_stopped():
+    tracking, stopped = SessionRow("edge1", "cam1", state="tracking"), SessionRow("edge1", "cam2", state="stopped")
+    assert "(stale)" not in render_table([tracking], now=tracking.updated + 4)
+    assert "tracking (stale)" in render_table([tracking], now=tracking.updated + 6)
+    assert "(stale)" not in render_table([stopped], now=stopped.updated + 60)     # a stopped session sends nothing
 
 
 def test_a_session_s_line_says_why_it_failed_or_waits():
@@ -286,6 +352,7 @@ def test_watch_prints_live_rows(net):
         thread.join(timeout=5)
     assert not thread.is_alive()
     assert "tacf watch" in out.getvalue()
+    assert "\x1b" not in out.getvalue(), "no screen clearing where the output is not a terminal (a file, a pipe)"
 
 
 def test_watch_ends_on_a_table_of_what_it_received(net):
@@ -348,11 +415,12 @@ def test_watch_of_one_session_follows_it_to_another_service(net):
 
     info = SessionInfo(node="edge1", sid="moved", image_key="cam/a", profile="paper", state="tracking",
                        box=(1.0, 2.0, 3.0, 4.0), created_ns=time.time_ns())
+    other = info.model_copy(update={"sid": "other-session"})       # listed too, and not watched
 
     def reply(query):
         with query:
             query.reply(control_key("edge1", "list"), encode(SessionList(node="edge1", max_sessions=8,
-                                                                         sessions=[info])))
+                                                                         sessions=[info, other])))
 
     queryable = net.service.declare_queryable(control_key("edge1", "list"), reply)
     out = io.StringIO()
@@ -368,6 +436,7 @@ def test_watch_of_one_session_follows_it_to_another_service(net):
         stop.set()
         thread.join(timeout=5)
         queryable.undeclare()
+    assert "moved" in out.getvalue() and "other-session" not in out.getvalue()
 
 
 def test_watch_refuses_a_bad_session_id_before_it_says_anything(net):
@@ -440,6 +509,7 @@ def test_malformed_results_are_warned_of_once_a_period_with_the_count_held_back(
         time.sleep(1.0)
         net.service.put(key, b"\xc1")
         assert _wait(lambda: stream.rejected == 51)
+    assert not net.vehicle.is_closed(), "the client closes only a session it opened"
     warnings = [r.getMessage() for r in caplog.records if "malformed box" in r.getMessage()]
     assert len(warnings) == 2 and "(49 more malformed results dropped since" in warnings[1], warnings
 

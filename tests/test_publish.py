@@ -11,7 +11,9 @@ import signal
 import subprocess
 import sys
 import threading
+import socket
 import time
+import types
 from pathlib import Path
 
 import cv2
@@ -375,6 +377,37 @@ def test_thinner_keeps_every_third_frame_of_a_30fps_camera():
     assert all(Thinner(None).admit() for _ in range(5))
 
 
+def test_thinner_keeps_every_third_frame_of_a_camera_whose_frames_come_a_little_early(monkeypatch):
+    """A camera's frames come a few ms either side of its period: a frame due 0.1 s after the last one kept, coming
+    at 0.098 s, must pass, or a 30 fps camera thinned to 10 fps gives every fourth frame (7.5 fps)."""
+    clock = [0.0]
+    monkeypatch.setattr(sources, "time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    thinner = Thinner(10)
+    admitted = []
+    for i in range(30):
+        clock[0] = i / 30 - (0.002 if i % 3 == 0 else 0.0)
+        admitted.append(thinner.admit())
+    assert admitted == [True, False, False] * 10
+
+
+def test_a_pacer_whose_sleeps_overshoot_keeps_its_rate(monkeypatch):
+    """Every sleep ends a little late (the timer's slack, a busy machine): ticks keep to the schedule, or a replay
+    plays ever slower than asked, by as much per frame as a sleep overshoots."""
+    clock = [0.0]
+
+    def oversleeping(seconds, should_stop, slice_s=0.1):
+        clock[0] += max(seconds, 0.0) + 0.001
+        return False
+
+    monkeypatch.setattr(sources, "time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    monkeypatch.setattr(sources, "sleep_unless", oversleeping)
+    pacer, ticks = Pacer(50), []
+    for _ in range(11):
+        pacer.wait()
+        ticks.append(clock[0])
+    assert ticks[-1] - ticks[0] == pytest.approx(10 / 50)
+
+
 class CountingLiveSource(FrameSource):
     """A live source that delivers frame after frame as fast as it is read; each frame's index is its count."""
     live = True
@@ -465,9 +498,9 @@ def test_publish_image_folder_jpeg_loops_with_increasing_seq(tmp_path, collector
 def test_publish_stop_event_and_encodings(tmp_path, collector):
     with _publisher_session(collector.port) as session:
         _wait_matched(session)
-        with FramePublisher(session, KEY, encoding="mono8") as pub:
+        with FramePublisher(session, KEY, encoding="mono8", first_seq=100) as pub:
             frame = pub.put(_frames(1)[0])
-            assert (frame.encoding, len(frame.data)) == ("mono8", 96 * 64)
+            assert (frame.encoding, len(frame.data), frame.seq) == ("mono8", 96 * 64, 100)
         with pytest.raises(ValueError):
             FramePublisher(session, "bad/*/key")
         stop = threading.Event()
@@ -493,6 +526,73 @@ def test_a_replay_sent_slower_than_asked_is_told(collector, monkeypatch, caplog,
     assert stats.frames == 12 and bool(told) == warned, (stats.fps, told)
     if warned:
         assert told[0].startswith("sending ") and "below the 40 asked: a frame takes longer" in told[0], told
+
+
+class StampedSource(FrameSource):
+    """One image over and over, every frame stamped `stamp_ns` (the capture time the source gives it)."""
+
+    def __init__(self, image: np.ndarray, stamp_ns: int, live: bool):
+        self.image, self.stamp_ns, self.live = image, stamp_ns, live
+
+    def frames(self, should_stop=never_stop):
+        index = 0
+        while not should_stop():
+            yield SourceFrame(index, self.image, self.stamp_ns)
+            index += 1
+
+
+def test_a_live_frame_is_stamped_when_captured_and_a_replayed_one_when_sent(collector):
+    """The frame age a session reports is its stamp's: a live frame carries the time the camera delivered it, not
+    the later one it went out at; a replayed one (read ahead, or held) the time it is sent, its "capture"."""
+    captured = time.time_ns() - 2_000_000_000
+    image = _frames(1)[0]
+    with _publisher_session(collector.port) as session:
+        _wait_matched(session)
+        publish(session, StampedSource(image, captured, live=True), KEY, encoding="bgr8", max_frames=3)
+        replay_started = time.time_ns()
+        publish(session, StampedSource(image, captured, live=False), KEY, fps=100, encoding="bgr8", max_frames=3)
+        replay_ended = time.time_ns()
+    frames = collector.wait(6)
+    assert [f.stamp_ns for f in frames[:3]] == [captured] * 3
+    assert all(replay_started <= f.stamp_ns <= replay_ended for f in frames[3:6]), frames[3:]
+
+
+class FailingLiveSource(FrameSource):
+    """A live source that delivers two frames, then fails."""
+    live = True
+
+    def frames(self, should_stop=never_stop):
+        for index in range(2):
+            yield SourceFrame(index, _frames(1)[0], time.time_ns())
+        raise SourceError("the capture card stopped answering")
+
+
+def test_a_live_source_s_failure_ends_the_frames_with_its_error():
+    """A live source is read on a thread of its own: its error is raised where its frames are taken, so that
+    `tacf publish` reports it (exit 2), not a source that merely ended."""
+    frames = paced_frames(FailingLiveSource(), None, threading.Event())
+    with pytest.raises(SourceError, match="the capture card stopped answering"):
+        for _ in frames:
+            pass
+
+
+def test_a_subscriber_that_left_before_the_end_counts_as_having_listened():
+    """A session stopped before the feed ends: the frames reached it, and `tacf publish` must not say at the end
+    that they reached nobody."""
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as listener, \
+            _publisher_session(port) as session, FramePublisher(session, KEY) as probe:
+        subscriber = listener.declare_subscriber(KEY, lambda sample: None)
+        assert probe.wait_matched(5)
+
+        def leave_after_the_first(frame: Frame, src: SourceFrame) -> None:
+            if frame.seq == 0:
+                subscriber.undeclare()
+                assert wait_until(lambda: not probe.matched, timeout=5)
+
+        stats = publish(session, SceneSource(Scene.from_spec("scene:320x240")), KEY, fps=50, max_frames=3,
+                        on_frame=leave_after_the_first)
+    assert stats.frames == 3 and stats.matched
 
 
 def test_frames_that_reached_nobody_are_said_so():
@@ -551,8 +651,10 @@ def test_an_image_named_with_a_superscript_digit_is_listed(tmp_path):
     assert [p.name for p in ImageFolderSource(tmp_path).paths] == ["1.png", "3.png", "²2.png"]
 
 
-def test_publish_command_line_fails_on_a_video_without_frames(tmp_path, collector):
-    """A video whose headers survive but whose frames were cut off opens, then yields nothing: that is no success."""
+@pytest.mark.parametrize("loop", [(), ("--loop",)], ids=["once", "looped"])
+def test_publish_command_line_fails_on_a_video_without_frames(tmp_path, collector, loop):
+    """A video whose headers survive but whose frames were cut off opens, then yields nothing: that is no success;
+    looped, it would play its nothing again and again."""
     clip = tmp_path / "clip.avi"
     writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 25, (64, 48))
     for i in range(5):
@@ -561,7 +663,7 @@ def test_publish_command_line_fails_on_a_video_without_frames(tmp_path, collecto
     data = clip.read_bytes()
     cut = tmp_path / "headers_only.avi"
     cut.write_bytes(data[:data.index(b"movi") + 4])
-    cmd = [sys.executable, "-m", "tacf.cli", "publish", str(cut), "--key", KEY,
+    cmd = [sys.executable, "-m", "tacf.cli", "publish", str(cut), *loop, "--key", KEY,
            "--connect", f"tcp/127.0.0.1:{collector.port}"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert done.returncode == 2, done.stdout + done.stderr
@@ -827,6 +929,31 @@ def test_a_camera_that_is_not_there_is_a_clear_error_at_start(camera):
     cam.down()
     with pytest.raises(ValueError, match="cannot open video source"):
         open_source(cam.url)
+
+
+def test_stopping_ends_a_reconnection_while_the_stream_does_not_answer(camera):
+    """The camera back on its port but silent (a server up before its stream): FFmpeg holds the reopen for up to
+    OPEN_TIMEOUT_MS (10 s), and a stop, Ctrl-C, waited for it."""
+    cam = camera(frames_per_connection=3)
+    stop = threading.Event()
+    stopped_at = []
+
+    def stop_once_reopening(silent: socket.socket) -> None:
+        connection, _ = silent.accept()                 # FFmpeg opens the stream again
+        stopped_at.append(time.monotonic())
+        stop.set()
+        time.sleep(3)
+        connection.close()
+
+    with open_source(cam.url) as source:
+        frames = source.frames(should_stop=stop.is_set)
+        cam.down()
+        with socket.create_server(("127.0.0.1", cam.port)) as silent:
+            silent.settimeout(10)
+            threading.Thread(target=stop_once_reopening, args=(silent,), daemon=True).start()
+            assert len([next(frames) for _ in range(3)]) == 3
+            assert next(frames, None) is None
+            assert stopped_at and time.monotonic() - stopped_at[0] < 1.5
 
 
 def test_publish_runs_on_through_reconnections_with_one_seq_count(camera, collector):
