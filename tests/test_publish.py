@@ -8,10 +8,10 @@ import http.server
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
-import socket
 import time
 import types
 from pathlib import Path
