@@ -427,6 +427,33 @@ def test_healthz_without_any_service():
         assert status == 200 and "tacf_dashboard_up 1" in text.decode()
 
 
+def test_each_refusal_of_a_service_keeps_its_code_and_gets_its_own_status():
+    """The page and programs tell a service's refusals apart by status: only 404 (unknown session) was ever read
+    here, and a full service (429) or a session id in use (409) could have come out as any other. A service here
+    is a queryable on a real Zenoh session that refuses every call with the code under test."""
+    import msgpack
+
+    statuses = {"unknown_session": 404, "duplicate_session": 409, "invalid_config": 400, "too_many_sessions": 429,
+                "unavailable": 503, "internal": 502, "rate_limited": 502}      # the last: a newer service's code
+    refusing = {"code": ""}
+    port = free_port()
+    with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as service:
+        def refuse(query):
+            with query:
+                query.reply_err(msgpack.packb({"v": 2, "code": refusing["code"], "message": "refused",
+                                               "node": "edge"}))
+
+        queryable = service.declare_queryable("tacf/edge/control/*", refuse)
+        try:
+            with DashboardApp(ZenohOptions.loopback(port), port=0) as app:
+                for code, status in statuses.items():
+                    refusing["code"] = code
+                    reply = _post(app.url + "api/stop", {"sid": "s", "node": "edge"})
+                    assert reply[0] == status and reply[1]["error"] == code, (code, reply)
+        finally:
+            queryable.undeclare()
+
+
 def test_a_killed_service_s_sessions_go_at_once_and_come_back_with_it(tmp_path):
     """A service killed without a goodbye kept its sessions on the page for SILENT_DROP_S (30 s): its liveliness
     token goes within milliseconds, and with it its sessions; a health still in flight does not bring one back,
@@ -766,6 +793,38 @@ def test_odd_requests_get_a_clear_answer():
             assert head.startswith(b"HTTP/1.1 405") and b"\r\nAllow: GET, POST\r\n" in head, head
 
 
+def test_unknown_pages_and_actions_get_a_404_and_refusals_name_their_cause():
+    """Programs tell the API's refusals apart by status and error code, which no test read for these: a page or
+    action that is not there, a body that is not a JSON object, a frame not come yet, a stream of a key not
+    watched. A POST's JSON is taken with a charset parameter, as programs send it, and up to 64 KiB exactly."""
+    with DashboardApp(no_service_options(), port=0, image_keys=[KEY]) as app:
+        base = app.url.rstrip("/")
+        address = app.server.server_address[:2]
+        status, _, page = _get(base + "/index.html")
+        assert status == 200 and b"TACF ground station" in page
+        status, _, body = _get(base + "/no/such/page")
+        assert status == 404 and json.loads(body) == {"error": "not_found", "message": "no such page: /no/such/page"}
+        status, body = _post(base + "/api/nothing", {"key": KEY})
+        assert status == 404 and body == {"error": "not_found", "message": "no such action: /api/nothing"}
+        assert _post(base + "/api/watch", [KEY]) == (400, {"error": "invalid_request",
+                                                           "message": "expected a JSON object"})
+        status, _, body = _get(f"{base}/frame/{KEY}")
+        assert status == 404 and json.loads(body)["error"] == "no_frame", body
+        status, _, body = _get(base + "/mjpeg/not/watched")
+        assert status == 404 and json.loads(body)["error"] == "not_watched", body
+
+        for content_type in ("application/json; charset=utf-8", "Application/JSON"):
+            assert _post(base + "/api/watch", {"key": KEY}, content_type)[0] == 200, content_type
+        start = json.dumps({"image_key": KEY, "box": [1, 2, 30, 40], "profile": "fast"}).encode()
+        for size, status in ((dashboard_http.MAX_BODY, 503), (dashboard_http.MAX_BODY + 1, 413)):
+            # 503: read and valid, then no service to start it on
+            assert _post(base + "/api/start", start[:-1] + b" " * (size - len(start)) + b"}")[0] == status, size
+        reply = _raw_reply(address, b"POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json"
+                                    b"\r\nContent-Length: 0\r\n\r\n")
+        head, _, body = reply.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 400 ") and json.loads(body)["error"] == "invalid_request", reply
+
+
 def test_head_answers_as_get_without_the_body():
     """Uptime monitors and `curl -I` probe /healthz with HEAD: it was refused, 405. Its reply has GET's
     status and headers, Content-Length included, and no body, so that the next reply on the connection is read
@@ -845,6 +904,7 @@ def test_requests_the_standard_library_refuses_get_json_too():
             assert b"\r\nContent-Type: application/json\r\n" in head, head
             reply = json.loads(body)
             assert reply["error"] == error and reply["message"], reply
+            assert status != 414 or reply["message"] == dashboard_http.HEAD_TOO_LARGE, "the limit is on the head"
 
 
 def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
@@ -958,6 +1018,60 @@ def test_a_camera_sending_frames_that_are_no_images_is_counted_and_answered():
             assert b"X-Seq: 0" not in received
 
 
+def test_a_frame_unchanged_since_its_etag_is_a_304_and_an_mjpeg_viewer_gets_each_frame_once():
+    """A page polling /frame sends back the ETag it got: the same frame again is a 304 without a body, and a frame
+    sent anew under the same seq (a camera restarted) is a new one. An MJPEG viewer of a still camera gets its
+    frame once, not ten times a second."""
+    key = "test/dashboard/etag"
+    frame = encode_frame(SCENE.frame(0), 7, "jpeg")
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=[key]) as app:
+        address = app.server.server_address[:2]
+        session.put(key, encode(frame))
+        assert _wait(lambda: app.dashboard.frame_counts()[key][0] == 1)
+        status, headers, _ = _get(f"{app.url}frame/{key}")
+        assert status == 200 and headers["X-Seq"] == "7", headers
+        etag = headers["ETag"]
+        reply = _raw_reply(address, f"GET /frame/{key} HTTP/1.1\r\nHost: 127.0.0.1\r\nIf-None-Match: {etag}\r\n"
+                                    "Connection: close\r\n\r\n".encode())
+        assert reply.startswith(b"HTTP/1.1 304 ") and reply.endswith(b"\r\n\r\n"), reply
+        assert _get(f"{app.url}frame/{key}", {"If-None-Match": '"7-1"'})[0] == 200
+
+        with socket.create_connection(address, timeout=10) as viewer:
+            viewer.sendall(f"GET /mjpeg/{key} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+            received, deadline = b"", time.monotonic() + 1.0
+            with contextlib.suppress(socket.timeout):
+                while (left := deadline - time.monotonic()) > 0:
+                    viewer.settimeout(left)
+                    received += viewer.recv(65536)
+        assert received.startswith(b"HTTP/1.1 200 ") and received.count(b"--tacfframe\r\n") == 1, received[:300]
+
+        session.put(key, encode(frame))
+        assert _wait(lambda: app.dashboard.frame_counts()[key][0] == 2)
+        status, headers, _ = _get(f"{app.url}frame/{key}", {"If-None-Match": etag})
+        assert status == 200 and headers["ETag"] != etag, headers
+
+
+def test_an_idle_event_stream_gets_keep_alives_and_a_closing_dashboard_says_so(monkeypatch):
+    """With nothing to send, the event stream sends a comment line now and then, which proxies and browsers need to
+    keep it open; /healthz and /metrics say when the Zenoh side is down (here: closed under the web side)."""
+    monkeypatch.setattr(dashboard_http, "KEEPALIVE_S", 0.3)
+    with DashboardApp(no_service_options(), port=0) as app:
+        with socket.create_connection(app.server.server_address[:2], timeout=5) as browser:
+            browser.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            received = b""
+            while b": keep-alive\n\n" not in received:
+                chunk = browser.recv(65536)
+                assert chunk, received
+                received += chunk
+        base = app.url.rstrip("/")
+        assert _get(base + "/healthz")[0] == 200
+        app.dashboard.close()
+        status, _, body = _get(base + "/healthz")
+        assert status == 503 and json.loads(body)["reason"] == "closing", body
+        assert _metrics(_get(base + "/metrics")[2].decode())[("tacf_dashboard_up", frozenset())] == 0
+
+
 def test_charts_are_timed_by_the_dashboard_s_clock_not_the_service_s():
     """Chart points carried the service's health stamp while the page cuts its charts by the dashboard's clock:
     an edge box an hour behind (no NTP on board) never got a chart."""
@@ -970,6 +1084,23 @@ def test_charts_are_timed_by_the_dashboard_s_clock_not_the_service_s():
                      app.dashboard.sessions_json()[1].get("skewed/s"))
         now_ms = time.time_ns() // 1_000_000
         assert all(abs(point["t"] - now_ms) < 10_000 for point in app.dashboard.sessions_json()[1]["skewed/s"])
+
+
+def test_the_last_health_of_a_session_stopped_elsewhere_does_not_bring_it_back():
+    """A service's last health of a session says it stopped, and may come after the list round that dropped it: it
+    is not taken for a session of its own, which would show, stopped, until a later list round (30 s when the
+    service does not answer lists)."""
+    from tacf_schemas.models import Health
+
+    def health(sid: str, state: str) -> bytes:
+        return encode(Health(node="edge", sid=sid, state=state, stamp_ns=time.time_ns(), fps=0.0,
+                             processing_ms_mean=0.0, processing_ms_p95=0.0))
+
+    with zenoh.open(make_config(no_service_options())) as session, DashboardApp(session=session, port=0) as app:
+        assert _wait(lambda: session.put(health_key("edge", "gone"), health("gone", "stopped")) or
+                     session.put(health_key("edge", "live"), health("live", "tracking")) or
+                     "edge/live" in app.dashboard.versions())
+        assert list(app.dashboard.versions()) == ["edge/live"]
 
 
 def test_boxes_go_on_after_the_edge_box_s_clock_steps_back():
@@ -1087,6 +1218,7 @@ def test_a_token_guards_every_page_and_a_browser_logs_in_once():
                 head = f"HEAD {path}?token={given} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
                 assert _raw_reply(app.server.server_address[:2], head.encode()).startswith(b"HTTP/1.1 %d " % status)
         assert _get(base + "/api/state", bearer)[0] == 200
+        assert _get(base + "/api/state", {"Authorization": "bearer " + token})[0] == 200, "the scheme in any case"
         assert _get(base + "/api/state", {"Host": "evil.example", **bearer})[0] == 200   # the token decides
         assert _post(base + "/api/start", {"image_key": KEY, "box": [1, 2, 30, 40]}, headers=bearer)[0] == 503
 
@@ -1181,6 +1313,31 @@ def test_metrics_text_escapes_labels():
                                                             ("image_key", 'cam/\\"a\\"\\\\b\\nc')}))] == 1
 
 
+def test_metrics_types_units_and_services_without_sessions():
+    """Prometheus reads a *_total as a counter (rate()), a latency in ms, and a service with no session as 0, not as
+    no sample; a session whose first box has not come shows its health's PME."""
+    from tacf_schemas.models import BoxResult, Health
+
+    box = BoxResult(node="edge", sid="s", seq=3, stamp_ns=10**18, box=(1.0, 2.0, 3.0, 4.0), width=64, height=48,
+                    ok=True, pme=30.0, score=0.5, scale=1.0, processing_ms=5.0, published_ns=10**18)
+    health = Health(node="edge", sid="s", state="tracking", stamp_ns=10**18, fps=10.0, processing_ms_mean=8.0,
+                    processing_ms_p95=9.0, frames_received=12, pme=7.5)
+    views = [dashboard.SessionView("edge", "s", "cam/a", state="tracking", box=box,
+                                   box_received_ns=10**18 + 25_000_000, health=health),
+             dashboard.SessionView("edge", "w", "cam/b", health=health.model_copy(update={"sid": "w"}))]
+    text = dashboard_metrics.render(views, nodes={"edge": 8, "idle": 4})
+    samples = _metrics(text)
+
+    def labels(sid: str, key: str) -> frozenset:
+        return frozenset({("node", "edge"), ("sid", sid), ("image_key", key)})
+
+    assert samples[("tacf_session_box_latency_ms", labels("s", "cam/a"))] == 25.0
+    assert samples[("tacf_session_pme", labels("w", "cam/b"))] == 7.5
+    assert samples[("tacf_dashboard_sessions", frozenset({("node", "idle")}))] == 0
+    types = dict(re.findall(r"^# TYPE (\S+) (\S+)$", text, re.M))
+    assert all(kind == ("counter" if name.endswith("_total") else "gauge") for name, kind in types.items()), types
+
+
 def test_page_is_offline_and_the_dashboard_never_loads_the_tracker():
     for path in static_dir().rglob("*"):
         if path.is_file() and path.suffix in (".html", ".js", ".css"):
@@ -1212,16 +1369,26 @@ def _dashboard_command(*args: str, env: dict | None = None):
 
 
 def test_tacf_dashboard_command_serves_until_sigterm():
-    """What a user runs: `tacf dashboard --port P`; it prints the URL, serves, and exits 0 on SIGTERM."""
+    """What a user runs: `tacf dashboard --port P`; it prints the URL, serves, and exits 0 on SIGTERM. Its options
+    reach the page: --allow-host's name is answered, --history's minutes are the page's history (--history is in
+    minutes, the page's history_s in seconds), and $TACF_DASHBOARD_TOKEN set to nothing is no token. Its defaults
+    are those its help gives."""
     import signal
 
+    from tacf.cli import build_parser
+
+    defaults = build_parser().parse_args(["dashboard"])
+    assert (defaults.host, defaults.port, defaults.history) == ("127.0.0.1", 8080, 5.0), "as its help says"
     port = free_port()
-    with _dashboard_command("--port", str(port)) as (process, url):
+    with _dashboard_command("--port", str(port), "--allow-host", "ground.lan", "--history", "2",
+                            env={"TACF_DASHBOARD_TOKEN": ""}) as (process, url):
         assert url == f"http://127.0.0.1:{port}/"
         status, headers, page = _get(url)
         assert status == 200 and b"TACF ground station" in page
         status, _, body = _get(f"http://127.0.0.1:{port}/healthz")
         assert status == 200 and KEY in json.loads(body)["image_keys"]
+        status, _, body = _get(url + "api/state", {"Host": f"ground.lan:{port}"})
+        assert status == 200 and json.loads(body)["history_s"] == 120, body
         process.send_signal(signal.SIGTERM)
         assert process.wait(timeout=15) == 0
 

@@ -256,6 +256,7 @@ def test_a_local_service_leaves_its_log_only_when_it_failed():
         broken.wait_ready(session)
     broken.stop()
     assert broken.returncode == 2 and broken.log_path.exists() and str(broken.log_path) in str(failed.value)
+    assert "tacf serve exited with code 2" in str(failed.value), "said at once, not after the ready timeout"
     broken.log_path.unlink()
 
 
