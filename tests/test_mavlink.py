@@ -678,72 +678,17 @@ def test_a_session_whose_worker_the_service_restarts_is_active_again(monkeypatch
         service.close()
 
 
-def test_a_slow_start_is_answered_in_progress_while_the_loop_goes_on_and_a_retransmission_runs_once():
-    """The service waits up to --init-wait for the frame a start names; a start on a camera gone quiet takes that
-    long. It blocked the loop (no heartbeat, no answer to anything, the ground station retransmitting): now it
-    is answered IN_PROGRESS at once, the loop answers meanwhile, and the same command sent again is answered
-    IN_PROGRESS, not queued a second time."""
+@contextmanager
+def _component_on_a_quiet_camera(key: str, sid: str, init_wait: float):
+    """A service waiting up to `init_wait` s for the frame a start names, a ground station, and the component serving
+    them on `key`, which has had one frame and then is quiet: yields (session, service, gcs, component)."""
     import zenoh
 
     from tacf_clients.zconfig import make_config
     from tacf_schemas.codec import encode
     from tacf_schemas.images import encode_frame
 
-    key = "test/mavlink/quiet"
-    with LocalService(node=f"mavq{free_port()}", extra_args=("--init-wait", "4")) as service, \
-            zenoh.open(make_config(service.options)) as session:
-        service.wait_ready(session)
-        port = free_port()
-        gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM,
-                                         source_component=GCS_COMPONENT, dialect="common")
-        stop = threading.Event()
-        with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, session=session, sid="mavlink-quiet") as component:
-            loop = threading.Thread(target=component.serve, args=(stop,))
-            loop.start()
-            try:
-                assert _receive(gcs, "HEARTBEAT") is not None
-                session.put(key, encode(encode_frame(SCENE.frame(0), 7)))    # one frame, then the camera is quiet
-                assert wait_until(lambda: component._frame_header() is not None, 10)
-                rectangle = [*_normalised_corners(SCENE.box(0)), 0.0, 0.0, 0.0]
-                sent = time.monotonic()
-                acks = []
-
-                def track_ack(timeout):
-                    return _receive(gcs, "COMMAND_ACK", timeout, where=lambda m: m.command ==
-                                    mav.MAV_CMD_CAMERA_TRACK_RECTANGLE and acks.append((time.monotonic(), m)) is None)
-
-                gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0, *rectangle)
-                first = track_ack(1.0)
-                assert first is not None and first.result == mav.MAV_RESULT_IN_PROGRESS and first.progress == 255
-                gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 1, *rectangle)
-                assert track_ack(1.0).result == mav.MAV_RESULT_IN_PROGRESS, "the retransmission"
-                assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION,
-                                timeout=1.0) == mav.MAV_RESULT_ACCEPTED, "other commands are answered meanwhile"
-                assert _receive(gcs, "HEARTBEAT", timeout=1.5) is not None, "and the heartbeat goes on"
-                final = _receive(gcs, "COMMAND_ACK", 20, where=lambda m: m.command ==
-                                 mav.MAV_CMD_CAMERA_TRACK_RECTANGLE and m.result != mav.MAV_RESULT_IN_PROGRESS)
-                assert final is not None and final.result == mav.MAV_RESULT_ACCEPTED
-                assert time.monotonic() - sent > 3, "the start did wait for the frame"
-                assert _receive(gcs, "COMMAND_ACK", 3, where=lambda m: m.command ==
-                                mav.MAV_CMD_CAMERA_TRACK_RECTANGLE) is None, "one start, one final answer"
-                assert component.tracking
-            finally:
-                stop.set()
-                loop.join(timeout=10)
-                gcs.close()
-
-
-def test_a_stop_sent_while_a_start_is_in_progress_stops_what_the_start_started():
-    """An operator who stops while the start is still in progress (a camera gone quiet) stops the session: the stop
-    runs after the start, as the commands came."""
-    import zenoh
-
-    from tacf_clients.zconfig import make_config
-    from tacf_schemas.codec import encode
-    from tacf_schemas.images import encode_frame
-
-    key, sid = "test/mavlink/quiet-stop", "mavlink-quiet-stop"
-    with LocalService(node=f"mavs{free_port()}", extra_args=("--init-wait", "3")) as service, \
+    with LocalService(node=f"mavq{free_port()}", extra_args=("--init-wait", str(init_wait))) as service, \
             zenoh.open(make_config(service.options)) as session:
         service.wait_ready(session)
         port = free_port()
@@ -753,17 +698,56 @@ def test_a_stop_sent_while_a_start_is_in_progress_stops_what_the_start_started()
             with MavlinkCamera(f"udpout:127.0.0.1:{port}", key, session=session, sid=sid) as component, \
                     serving(component):
                 assert _receive(gcs, "HEARTBEAT") is not None
-                session.put(key, encode(encode_frame(SCENE.frame(0), 7)))    # one frame, then the camera is quiet
+                session.put(key, encode(encode_frame(SCENE.frame(0), 7)))
                 assert wait_until(lambda: component._frame_header() is not None, 10)
-                gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0,
-                                          *_normalised_corners(SCENE.box(0)), 0.0, 0.0, 0.0)
-                assert _receive(gcs, "COMMAND_ACK", 1.0, where=lambda m: m.result == mav.MAV_RESULT_IN_PROGRESS)
-                assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
-                assert wait_until(lambda: not component._pending, 20), "the start is done"
-                assert not component.tracking
-                assert sid not in {info.sid for info in TrackingClient(session=session, node=service.node).list()}
+                yield session, service, gcs, component
         finally:
             gcs.close()
+
+
+def test_a_slow_start_is_answered_in_progress_while_the_loop_goes_on_and_a_retransmission_runs_once():
+    """The service waits up to --init-wait for the frame a start names; a start on a camera gone quiet takes that
+    long. It blocked the loop (no heartbeat, no answer to anything, the ground station retransmitting): now it
+    is answered IN_PROGRESS at once, the loop answers meanwhile, and the same command sent again is answered
+    IN_PROGRESS, not queued a second time."""
+    with _component_on_a_quiet_camera("test/mavlink/quiet", "mavlink-quiet", init_wait=4) as (_, _, gcs, component):
+        rectangle = [*_normalised_corners(SCENE.box(0)), 0.0, 0.0, 0.0]
+        sent = time.monotonic()
+
+        def track_ack(timeout):
+            return _receive(gcs, "COMMAND_ACK", timeout,
+                            where=lambda m: m.command == mav.MAV_CMD_CAMERA_TRACK_RECTANGLE)
+
+        gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0, *rectangle)
+        first = track_ack(1.0)
+        assert first is not None and first.result == mav.MAV_RESULT_IN_PROGRESS and first.progress == 255
+        gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 1, *rectangle)
+        assert track_ack(1.0).result == mav.MAV_RESULT_IN_PROGRESS, "the retransmission"
+        assert _command(gcs, mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION,
+                        timeout=1.0) == mav.MAV_RESULT_ACCEPTED, "other commands are answered meanwhile"
+        assert _receive(gcs, "HEARTBEAT", timeout=1.5) is not None, "and the heartbeat goes on"
+        final = _receive(gcs, "COMMAND_ACK", 20, where=lambda m: m.command ==
+                         mav.MAV_CMD_CAMERA_TRACK_RECTANGLE and m.result != mav.MAV_RESULT_IN_PROGRESS)
+        assert final is not None and final.result == mav.MAV_RESULT_ACCEPTED
+        assert time.monotonic() - sent > 3, "the start did wait for the frame"
+        assert _receive(gcs, "COMMAND_ACK", 3, where=lambda m: m.command ==
+                        mav.MAV_CMD_CAMERA_TRACK_RECTANGLE) is None, "one start, one final answer"
+        assert component.tracking
+
+
+def test_a_stop_sent_while_a_start_is_in_progress_stops_what_the_start_started():
+    """An operator who stops while the start is still in progress (a camera gone quiet) stops the session: the stop
+    runs after the start, as the commands came."""
+    sid = "mavlink-quiet-stop"
+    with _component_on_a_quiet_camera("test/mavlink/quiet-stop", sid, init_wait=3) as quiet:
+        session, service, gcs, component = quiet
+        gcs.mav.command_long_send(1, mav.MAV_COMP_ID_CAMERA, mav.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0,
+                                  *_normalised_corners(SCENE.box(0)), 0.0, 0.0, 0.0)
+        assert _receive(gcs, "COMMAND_ACK", 1.0, where=lambda m: m.result == mav.MAV_RESULT_IN_PROGRESS)
+        assert _command(gcs, mav.MAV_CMD_CAMERA_STOP_TRACKING) == mav.MAV_RESULT_ACCEPTED
+        assert wait_until(lambda: not component._pending, 20), "the start is done"
+        assert not component.tracking
+        assert sid not in {info.sid for info in TrackingClient(session=session, node=service.node).list()}
 
 
 def test_no_frame_yet_is_a_temporary_refusal():
