@@ -165,6 +165,10 @@ def _close_to_pass_on(source) -> tuple[int, str]:
     """The close code and reason source got, as they may be sent on: websockets refuses on receipt every code that
     may not be sent, except the two it reports itself (RFC 6455 7.1.5, 7.4.1), which no frame may carry."""
     code, reason = source.protocol.close_code, source.protocol.close_reason   # on the connection from websockets 15
+    sent = source.protocol.close_sent
+    if code == CloseCode.ABNORMAL_CLOSURE and sent is not None and sent.code == CloseCode.MESSAGE_TOO_BIG:
+        # the relay itself closed a viewer whose message was over the limit, before the viewer answered: say so
+        return sent.code, sent.reason
     if code is None or code == CloseCode.NO_STATUS_RCVD:   # still open (sink failed first), or closed with no code
         return CloseCode.NORMAL_CLOSURE, ""
     if code == CloseCode.ABNORMAL_CLOSURE:

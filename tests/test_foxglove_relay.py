@@ -155,7 +155,8 @@ def test_a_viewer_s_message_over_the_limit_ends_its_connection_and_never_reaches
     of it never comes."""
     from tacf_clients.foxglove_relay import MAX_CLIENT_MESSAGE
 
-    with upstream_server(flood=False) as upstream_port:
+    closes: list = []
+    with upstream_server(flood=False, closes=closes) as upstream_port:
         relay = SubprotocolRelay(upstream_port, host="127.0.0.1", port=0)
         try:
             with connect(f"ws://127.0.0.1:{relay.port}", subprotocols=["foxglove.sdk.v1"], open_timeout=5,
@@ -164,6 +165,8 @@ def test_a_viewer_s_message_over_the_limit_ends_its_connection_and_never_reaches
                 with pytest.raises(ConnectionClosed):
                     ws.recv(timeout=5)
                 assert ws.protocol.close_code == 1009
+            assert wait_for(lambda: closes), "the server's side was closed"
+            assert closes[0][0] == 1009, closes        # the reason, not "connection lost"
         finally:
             relay.close()
 
