@@ -230,24 +230,37 @@ def test_no_service_and_timeout():
                 client.stop("abc")
 
 
+def _fake_service(session: zenoh.Session, node: str, replies: dict, delay_s: float = 0.0):
+    """A queryable answering tacf/<node>/control/<op> with replies[op] (a model, or an Error sent as reply_err) after
+    `delay_s`."""
+    from tacf_schemas.codec import MSGPACK_ENCODING, encode
+    from tacf_schemas.models import Error
+
+    def answer(query):
+        time.sleep(delay_s)
+        with query:
+            reply = replies[str(query.key_expr).rsplit("/", 1)[-1]]
+            if isinstance(reply, Error):
+                query.reply_err(encode(reply))
+            else:
+                query.reply(query.key_expr, encode(reply), encoding=zenoh.Encoding(MSGPACK_ENCODING))
+
+    return session.declare_queryable(f"tacf/{node}/control/*", answer)
+
+
+def _info(node: str) -> SessionInfo:
+    """Session "s" of `node`, as a service's reply describes it."""
+    return SessionInfo(node=node, sid="s", image_key="cam/a", profile="default", state="tracking", box=(1, 2, 3, 4),
+                       created_ns=1)
+
+
 def test_a_call_takes_no_longer_than_its_timeout_however_many_queries_it_makes():
     """A start with no node lists the services first: each query had the whole timeout, so a service slow to
     answer both made a 1 s call take 1.4 s. Every query of a call now shares its timeout."""
-    from tacf_schemas.codec import MSGPACK_ENCODING, encode
-    from tacf_schemas.models import SessionInfo, SessionList
-
     port = free_port()
     with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as slow:
-        info = SessionInfo(node="slow", sid="s", image_key="cam/a", profile="default", state="tracking",
-                           box=(1, 2, 3, 4), created_ns=1)
-        replies = {"list": SessionList(node="slow", max_sessions=8), "start": info, "status": info}
-
-        def answer_late(query):
-            time.sleep(0.7)
-            op = str(query.key_expr).rsplit("/", 1)[-1]
-            query.reply(query.key_expr, encode(replies[op]), encoding=zenoh.Encoding(MSGPACK_ENCODING))
-
-        queryable = slow.declare_queryable("tacf/slow/control/*", answer_late)
+        replies = {"list": SessionList(node="slow", max_sessions=8), "start": _info("slow"), "status": _info("slow")}
+        queryable = _fake_service(slow, "slow", replies, delay_s=0.7)
         try:
             with TrackingClient(ZenohOptions.loopback(port), timeout=1.0) as client:
                 started = time.monotonic()
@@ -267,17 +280,11 @@ def test_a_service_that_does_not_answer_holds_up_no_lookup_before_a_call():
     until its lease ends, 10 s) took the whole timeout of the lookup before a call: a start on the least-loaded
     service and a status by session id alone failed with a timeout that named the service that did answer."""
     from tacf_clients.client import LEAST_LOADED
-    from tacf_schemas.codec import MSGPACK_ENCODING, encode
-    from tacf_schemas.models import SessionList
 
     port = free_port()
     with zenoh.open(make_config(ZenohOptions.listener(f"tcp/127.0.0.1:{port}"))) as services:
-        info = SessionInfo(node="ok", sid="s", image_key="cam/a", profile="default", state="tracking",
-                           box=(1, 2, 3, 4), created_ns=1)
-        replies = {"list": SessionList(node="ok", max_sessions=8), "start": info, "status": info}
-        answering = services.declare_queryable("tacf/ok/control/*", lambda query: query.reply(
-            query.key_expr, encode(replies[str(query.key_expr).rsplit("/", 1)[-1]]),
-            encoding=zenoh.Encoding(MSGPACK_ENCODING)))
+        answering = _fake_service(services, "ok", {"list": SessionList(node="ok", max_sessions=8),
+                                                   "start": _info("ok"), "status": _info("ok")})
         held = []
         hung = services.declare_queryable("tacf/hung/control/*", held.append)
         try:
@@ -342,29 +349,6 @@ def test_a_start_on_the_least_loaded_service_refuses_a_node_id_two_services_answ
         finally:
             for queryable in twins:
                 queryable.undeclare()
-
-
-def _fake_service(session: zenoh.Session, node: str, replies: dict, delay_s: float = 0.0):
-    """A queryable answering tacf/<node>/control/<op> with replies[op] (a model, or an Error sent as reply_err) after
-    `delay_s`."""
-    from tacf_schemas.codec import MSGPACK_ENCODING, encode
-    from tacf_schemas.models import Error
-
-    def answer(query):
-        time.sleep(delay_s)
-        with query:
-            reply = replies[str(query.key_expr).rsplit("/", 1)[-1]]
-            if isinstance(reply, Error):
-                query.reply_err(encode(reply))
-            else:
-                query.reply(query.key_expr, encode(reply), encoding=zenoh.Encoding(MSGPACK_ENCODING))
-
-    return session.declare_queryable(f"tacf/{node}/control/*", answer)
-
-
-def _info(node: str, sid: str = "s") -> SessionInfo:
-    return SessionInfo(node=node, sid=sid, image_key="cam/a", profile="default", state="tracking", box=(1, 2, 3, 4),
-                       created_ns=1)
 
 
 def test_a_start_waits_for_a_service_slower_than_the_other_calls_allow():
