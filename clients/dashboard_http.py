@@ -23,6 +23,7 @@ every request first passes dashboard_access.py (the Host header on loopback, a t
 """
 from __future__ import annotations
 
+import io
 import json
 import logging
 import math
@@ -69,6 +70,10 @@ ACTION_FIELDS = {"/api/start": {"image_key", "box", "seq", "sid", "profile", "ov
                  "/api/stop": {"sid", "node"}, "/api/reinit": {"sid", "box", "seq", "node"}, "/api/watch": {"key"}}
 MAX_BODY = 64 * 1024
 MAX_DRAINED = 1 << 20            # of a body over MAX_BODY, read this much so that its sender gets the 413, not a reset
+# A connection closed with its request maybe not read whole (a refusal, a body never read) is first drained of what
+# its client still sends, this long and this much at most: a client may not hold its thread.
+LINGER_S = 2.0
+LINGER_BYTES = 1 << 20
 MJPEG_FPS = 10.0
 MAX_SEQ_DIGITS = 20              # a seq is a 64-bit count (and int() refuses a string of over 4300 digits)
 
@@ -107,6 +112,7 @@ class DashboardServer(ThreadingHTTPServer):
     daemon_threads = True
     max_connections = MAX_CONNECTIONS
     head_timeout_s = HEAD_TIMEOUT_S
+    linger_s = LINGER_S
     allow_reuse_address = True
     # the stdlib's 5: the connections of many viewers (re)connecting at once, beyond it, waited 1 s, 3 s... for
     # their SYN to be sent again
@@ -229,8 +235,33 @@ class DashboardHandler(BaseHTTPRequestHandler):
     timeout = WRITE_TIMEOUT_S
     server_version = "tacf-dashboard"
 
+    # the connection ends with its request maybe not read whole: what its client still sends is drained first
+    unread_input = False
+
     def log_message(self, fmt: str, *args) -> None:
         log.debug("%s %s", self.address_string(), fmt % args)
+
+    def handle(self) -> None:
+        super().handle()
+        if self.unread_input:
+            self._linger()
+
+    def _linger(self) -> None:
+        """Close as web servers do after a refusal ("lingering close"): the reply sent and the write side shut, read
+        and drop what the client still sends until it closes its end (linger_s and LINGER_BYTES at most). Closed
+        with input unread, the connection was reset: a client still writing its head or body (a line per send, or
+        more than the socket buffers hold) failed with a broken pipe or a reset, never reading the refusal."""
+        deadline, left = time.monotonic() + self.server.linger_s, LINGER_BYTES
+        try:
+            self.connection.shutdown(socket.SHUT_WR)
+            while left > 0 and (timeout := deadline - time.monotonic()) > 0:
+                self.connection.settimeout(timeout)
+                chunk = self.connection.recv(min(left, 65536))
+                if not chunk:
+                    break
+                left -= len(chunk)
+        except OSError:                       # reset, or the time is up
+            pass
 
     def handle_one_request(self) -> None:
         self.server.expect_head(self.connection, True)
@@ -240,29 +271,43 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self.server.expect_head(self.connection, False)
 
     def parse_request(self) -> bool:
-        rfile, self.rfile = self.rfile, _HeadBudget(self.rfile, MAX_HEAD - len(self.raw_requestline))
+        # a request line without a version ("GET /") is HTTP/0.9's, which has no headers: none is waited for
+        versionless = len(str(self.raw_requestline, "iso-8859-1").split()) == 2
+        head = io.BytesIO() if versionless else _HeadBudget(self.rfile, MAX_HEAD - len(self.raw_requestline))
+        rfile, self.rfile = self.rfile, head
         try:
             parsed = super().parse_request()                # reads the headers
         except HeadTooLarge:
-            self._error(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, "head_too_large", HEAD_TOO_LARGE,
-                        {"Connection": "close"})
+            self.send_error(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, HEAD_TOO_LARGE)
             return False
         finally:
             self.rfile = rfile
+        if parsed and versionless:
+            # http.server would serve a GET's reply as HTTP/0.9's bare body, with no status, Content-Type or
+            # X-Frame-Options, which curl and browsers refuse; nor could a request without headers pass the Host
+            # check or carry the token. Refused, in HTTP/1.1 like every other refusal.
+            self.send_error(HTTPStatus.BAD_REQUEST, "a request line needs its HTTP version (HTTP/1.0 or HTTP/1.1)")
+            return False
         self.server.expect_head(self.connection, False)     # the head came: streams (/events, /mjpeg) run on
         if parsed and self.command != "POST" and (self.headers.get("Transfer-Encoding") is not None
                                                   or body_length(self.headers) != 0):
             # only a POST's body is ever read: another's would pass for the next request on this connection
             # (behind a proxy that reuses its connections, a request smuggled past the proxy's own checks)
-            self.close_connection = True
+            self.close_connection = self.unread_input = True
         return parsed
 
     def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
         """The refusals http.server makes itself (a request line over 64 KiB, over 100 header lines, a malformed
-        request line, a method with no do_ method) in JSON like the dashboard's own: they came as an HTML page."""
+        request line, a method with no do_ method) in JSON like the dashboard's own: they came as an HTML page.
+        Each may come before the request was read whole, so the connection is drained, then closed."""
         status = HTTPStatus(code)
         if status == HTTPStatus.REQUEST_URI_TOO_LONG:      # the stdlib's limit on the line alone: MAX_HEAD's 64 KiB
             message = HEAD_TOO_LARGE
+        if self.request_version == "HTTP/0.9":
+            # no valid version read from the request line (HTTP/9.9, HTTP/1.x, none): http.server's default, under
+            # which a reply is a bare body, no status line nor headers, which a client cannot read as a refusal
+            self.request_version = "HTTP/1.0"
+        self.unread_input = True
         self._error(status, _STDLIB_ERRORS.get(status, status.name.lower()), message or status.description,
                     {"Connection": "close"})
 
@@ -302,7 +347,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
     def _not_allowed(self) -> None:
         """A 405 in JSON like every other refusal (the stdlib answers PUT and the like with a 501 HTML page)."""
         if self.command != "HEAD":                           # a body left unread is not the next request
-            self.close_connection = True
+            self.close_connection = self.unread_input = True
         self._error(HTTPStatus.METHOD_NOT_ALLOWED, "method_not_allowed", "use GET or POST", {"Allow": "GET, POST"})
 
     do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _not_allowed
@@ -329,7 +374,7 @@ class DashboardHandler(BaseHTTPRequestHandler):
                 else:
                     body = self._read_json()
             if body is None:                        # refused, maybe with the body unread: it is not a request
-                self.close_connection = True
+                self.close_connection = self.unread_input = True
                 return
             unknown = sorted(set(body) - ACTION_FIELDS[path])
             if unknown:         # a misspelt field ("overide") was ignored: refused, as the wire protocol does

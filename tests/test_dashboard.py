@@ -891,20 +891,64 @@ def test_a_start_from_the_page_waits_as_long_as_the_clients():
 def test_requests_the_standard_library_refuses_get_json_too():
     """The refusals http.server makes itself came as its HTML page, where every other error of the dashboard is JSON:
     a request line over 64 KiB (414), over 100 header lines (431), a method with no handler (501), a malformed
-    request line (400). A program reading the API's errors got HTML it could not parse."""
+    request line (400). A program reading the API's errors got HTML it could not parse.
+
+    A request line whose HTTP version is not one (HTTP/1.x, HTTP/9.9, none) got its refusal as HTTP/0.9's bare body,
+    with no status line nor headers, which curl and browsers refuse to read. A line without a version ("GET /") is
+    HTTP/0.9's: its GET was served so, as a bare body without Content-Type nor X-Frame-Options, once headers (which
+    HTTP/0.9 has not) came to end it. The dashboard needs headers (Host, the token): it refuses it, at once."""
     with DashboardApp(no_service_options(), port=0) as app:
         address = app.server.server_address[:2]
         for request, status, error in (
                 (b"GET /" + b"a" * 65536 + b" HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 414, "head_too_large"),
                 (b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n" + b"X-A: b\r\n" * 101 + b"\r\n", 431, "head_too_large"),
                 (b"TRACE / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 501, "not_implemented"),
-                (b"GET / junk HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 400, "invalid_request")):
+                (b"GET / junk HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n", 400, "invalid_request"),
+                (b"GET / HTTP/9.9\r\n\r\n", 505, "http_version_not_supported"),
+                (b"GET / HTTP/1.x\r\nHost: 127.0.0.1\r\n\r\n", 400, "invalid_request"),
+                (b"GET\r\n\r\n", 400, "invalid_request"),
+                (b"POST /api/watch\r\n", 400, "invalid_request"),
+                (b"GET /healthz\r\n", 400, "invalid_request"),         # HTTP/0.9's GET: answered without waiting
+                (b"GET /healthz\r\nHost: 127.0.0.1\r\n\r\n", 400, "invalid_request")):
             head, _, body = _raw_reply(address, request).partition(b"\r\n\r\n")
             assert head.startswith(b"HTTP/1.1 %d " % status) and b"\r\nConnection: close\r\n" in head, head
             assert b"\r\nContent-Type: application/json\r\n" in head, head
             reply = json.loads(body)
             assert reply["error"] == error and reply["message"], reply
             assert status != 414 or reply["message"] == dashboard_http.HEAD_TOO_LARGE, "the limit is on the head"
+
+
+def test_a_client_still_sending_its_request_when_refused_reads_the_refusal():
+    """A refusal that ends the connection before the request was read whole (a head over 64 KiB, a request line
+    over 64 KiB, a POST or PUT refused before its body, a GET's body) closed it with the client's input unread,
+    which the kernel answers with a reset: a client still writing (a header line per send, a body after its head)
+    failed with a broken pipe instead of reading the refusal (1 KiB per send, 20 tries: a 1 MiB head 20 of 20
+    times, a request line of 200 KiB 20 of 20). The server now reads and drops what still comes before it closes. Here
+    the client goes on writing only once the refusal came and the old server had closed: a reset every time."""
+    pad = b"X-Pad: " + b"a" * 1000 + b"\r\n"
+    with DashboardApp(no_service_options(), port=0) as app:
+        address = app.server.server_address[:2]
+        app.server.linger_s = 30.0         # drained until the client closes its end, however slow a loaded CI is
+        for request, status in (
+                (b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n" + pad * 80, 431),
+                (b"GET /" + b"a" * 80 * 1024, 414),
+                (b"POST /api/watch HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: text/plain\r\n"
+                 b"Content-Length: 300000\r\n\r\n", 415),
+                (b"PUT /api/start HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 300000\r\n\r\n", 405),
+                (b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 300000\r\n\r\n", 200)):
+            with socket.create_connection(address, timeout=10) as client:
+                client.sendall(request)
+                assert client.recv(16, socket.MSG_PEEK), "the reply came"       # left to read
+                wait_until(lambda: app.server.connections == 0, timeout=1.0)   # the old server closes at once
+                for _ in range(200):                        # then 200 KiB more, 1 KiB a send
+                    client.sendall(b"a" * 1024)
+                    time.sleep(0.001)
+                client.shutdown(socket.SHUT_WR)
+                reply = b"".join(iter(lambda: client.recv(65536), b""))
+            head, _, body = reply.partition(b"\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 %d " % status), reply[:200]
+            assert status == 200 or json.loads(body)["error"], body
+        assert _wait(lambda: app.server.connections == 0)
 
 
 def test_the_body_of_a_get_or_head_is_never_read_as_the_next_request():
