@@ -11,8 +11,6 @@ import math
 import numbers
 from dataclasses import dataclass
 
-import numpy as np
-
 PROFILES = ("paper", "authors", "kcc")
 DEFAULT_PROFILE = "paper"  # the higher mean success AUC on the UAV sequences; see README "Accuracy"
 
@@ -85,6 +83,9 @@ def check_fields(config, positive: tuple[str, ...], rates: tuple[str, ...]) -> N
     """Validate a frozen config dataclass: each field of its declared type and finite, the `positive` ones > 0,
     the `rates` in [0, 1], the scale filter's step > 1 and count odd, and every field named in FLOORS or LIMITS
     within them."""
+    # numpy here, not at the top: every `tacf` command imports this module (PROFILES), and numpy took 60-110 ms of
+    # `tacf --help`
+    import numpy as np
     name = type(config).__name__
     for f in dataclasses.fields(config):
         v = getattr(config, f.name)

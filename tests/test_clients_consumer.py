@@ -473,6 +473,20 @@ def test_client_side_never_imports_the_tracker_and_the_cli_stays_light():
     assert done.returncode == 0, done.stderr
 
 
+def test_the_tacf_parser_loads_neither_numpy_nor_the_heavy_libraries():
+    """Every command's parser (`tacf --help`, and the start of every command) loaded numpy through tacf.config, which
+    the commands import for the profile names: 60-110 ms of each start."""
+    import subprocess
+    import sys
+
+    code = ("import sys, tacf.cli\n"
+            "tacf.cli.build_parser()\n"
+            "loaded = [m for m in ('numpy', 'scipy', 'cv2', 'zenoh', 'pydantic') if m in sys.modules]\n"
+            "assert not loaded, loaded\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+
+
 def test_watch_logs_the_key_of_a_malformed_result_escaped(net, caplog):
     """A Zenoh key may hold control characters: the key of a malformed result went raw into the warning, so that
     any peer could write terminal escapes (clear the screen, set the window title) and forged log lines to the
