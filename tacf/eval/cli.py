@@ -97,7 +97,8 @@ def register(subparsers) -> None:
                         "failure for success and a hit for precision (default %(default)s)")
     p.add_argument("--attributes", type=Path, metavar="FILE",
                    help="sequence attributes for the per-attribute scores: 'name ATTR ATTR ...' lines (default: the "
-                        "benchmark's own, UAV123's att files, else SV, ARC, LR and FM derived from the ground truth)")
+                        "benchmark's own, UAV123's att files or an attrs.txt in OTB's sequence folders, else SV, ARC, "
+                        "LR and FM derived from the ground truth)")
     p.add_argument("--videos", action="store_true",
                    help="also write videos/<sequence>.mp4: every tracker's boxes and the ground truth on the frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
