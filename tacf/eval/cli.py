@@ -94,9 +94,9 @@ def register(subparsers) -> None:
                         "<sequence>_NAME.mat) as tracker NAME, one pass; repeatable. With --results and no --trackers, "
                         "nothing runs")
     p.add_argument("--absent", choices=("skip", "toolkit"), default="skip",
-                   help="frames without a target (NaN ground truth): skip leaves them out of the scores, as got10k's "
-                        "UAV123 experiment does; toolkit counts them as pysot and the OTB/UAV123 MATLAB toolkit do, a "
-                        "failure for success and a hit for precision (default %(default)s)")
+                   help="frames without a target (NaN or empty ground truth): skip leaves them out of the scores, as "
+                        "got10k's UAV123 experiment does; toolkit counts them as pysot and the OTB/UAV123 MATLAB "
+                        "toolkit do, a failure for success and a hit for precision (default %(default)s)")
     p.add_argument("--attributes", type=Path, metavar="FILE",
                    help="sequence attributes for the per-attribute scores: 'name ATTR ATTR ...' lines (default: the "
                         "benchmark's own, UAV123's att files or an attrs.txt in OTB's sequence folders, else SV, ARC, "
