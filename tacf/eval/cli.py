@@ -80,8 +80,10 @@ def register(subparsers) -> None:
     p.add_argument("--max-frames", type=integer(1), metavar="N",
                    help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
     p.add_argument("--shifts", type=integer(0), default=0, metavar="PX",
-                   help="also start every pair from the 8 first boxes PX pixels away (size kept) and report how far "
-                        "each AUC moves and whether the trackers' differences stand out of that")
+                   help="also start every pair from the 8 first boxes PX pixels away (size kept, but kept in the "
+                        "frame as OTB's shiftInitBB keeps them: stopped at the left and top borders, cut at the right "
+                        "and bottom ones) and report how far each AUC moves and whether the trackers' differences "
+                        "stand out of that")
     p.add_argument("--tre", type=_segment_count, default=0, metavar="K",
                    help="also start every pair at frames N/K, 2N/K, ... of each sequence (the starts of OTB's "
                         "temporal robustness, TRE; K = 10 is 5.5 times the one-pass work), report the mean over these "
@@ -92,12 +94,13 @@ def register(subparsers) -> None:
                         "<sequence>_NAME.mat) as tracker NAME, one pass; repeatable. With --results and no --trackers, "
                         "nothing runs")
     p.add_argument("--absent", choices=("skip", "toolkit"), default="skip",
-                   help="frames without a target (NaN ground truth): skip leaves them out of the scores, as got10k's "
-                        "UAV123 experiment does; toolkit counts them as pysot and the OTB/UAV123 MATLAB toolkit do, a "
-                        "failure for success and a hit for precision (default %(default)s)")
+                   help="frames without a target (NaN or empty ground truth): skip leaves them out of the scores, as "
+                        "got10k's UAV123 experiment does; toolkit counts them as pysot and the OTB/UAV123 MATLAB "
+                        "toolkit do, a failure for success and a hit for precision (default %(default)s)")
     p.add_argument("--attributes", type=Path, metavar="FILE",
                    help="sequence attributes for the per-attribute scores: 'name ATTR ATTR ...' lines (default: the "
-                        "benchmark's own, UAV123's att files, else SV, ARC, LR and FM derived from the ground truth)")
+                        "benchmark's own, UAV123's att files or an attrs.txt in OTB's sequence folders, else SV, ARC, "
+                        "LR and FM derived from the ground truth)")
     p.add_argument("--videos", action="store_true",
                    help="also write videos/<sequence>.mp4: every tracker's boxes and the ground truth on the frames")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -362,9 +362,9 @@ def relative_gain(aucs, base_aucs, resamples: int = 10000) -> tuple[float, float
 
 
 def ablation_table(summary: dict) -> str:
-    """The paper's ablation rows (KCC, +SA, +DA, +CA, all three), then any other tracker of the summary (imported
-    results), with the AUC gain over KCC, also relative, with the relative gain's 95 % bootstrap interval over the
-    sequences both scored."""
+    """The paper's ablation rows (KCC, +SA, +DA, +CA, all three) and the default tacf, then any other tracker of the
+    summary (imported results), with the AUC gain over KCC, also relative, with the relative gain's 95 % bootstrap
+    interval over the sequences both scored."""
     trackers = summary["trackers"]
     kcc = trackers.get("kcc", {})
     lines = ["| variant | tracker | AUC | gain over KCC | relative gain (95 % interval) | precision@20 | FPS |",

@@ -186,7 +186,7 @@ class Start:
 
 
 def shifted_starts(pixels: int) -> list[Start]:
-    """The given start, then the 8 first boxes `pixels` away (size kept)."""
+    """The given start, then the 8 first boxes `pixels` away (size kept, but kept in the frame by `shifted_box`)."""
     return [Start()] + [Start((dx * pixels, dy * pixels)) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if dx or dy]
 
 
