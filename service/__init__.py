@@ -2,6 +2,7 @@
 
 Modules, one concept each:
     config      Zenoh configs of the service and of its worker processes, from the command line
+    cli         `tacf serve`'s arguments, turned into ServiceOptions for serve()
     app         TrackingService: opens the session, wires everything, clean shutdown; serve() for the CLI
     control     the control queryable tacf/<node>/control/<op>: decode, dispatch, reply / reply_err
     manager     SessionManager: the session table, limits, worker supervision and restarts

@@ -1,8 +1,9 @@
 """Zenoh configurations: the service's (from the command line) and its worker processes'.
 
 The service is a Zenoh peer that listens on loopback only by default. Each worker process opens its own
-session in *client* mode connected to one of the service's endpoints; a peer routes for its clients, so a
-worker receives frames from any camera the service can reach and its boxes reach every subscriber.
+session in *client* mode connected to one of the service's endpoints (when it listens on none, to the router it
+connects to: worker_endpoints); a peer routes for its clients, so a worker receives frames from any camera the
+service can reach and its boxes reach every subscriber.
 """
 from __future__ import annotations
 

@@ -191,8 +191,8 @@ class FrameHistory:
 
 
 def box_problem(box: tuple, width: int, height: int) -> str | None:
-    """Why `box` cannot initialise a tracker on a width x height frame (tacf.boxes.check_box: finite, positive,
-    overlapping the frame and no larger than it), or None."""
+    """Why `box` cannot initialise a tracker on a width x height frame (tacf.boxes.check_box: finite, w and h at
+    least a pixel, overlapping the frame and no larger than it), or None."""
     try:
         check_box(box, (height, width))
     except ValueError as exc:
