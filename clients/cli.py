@@ -37,9 +37,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from tacf_clients.zconfig import add_zenoh_arguments
 
     p = subparsers.add_parser("publish", help="publish a video file, image folder, camera or URL as Frames",
-                              description="Publish SOURCE as tacf Frames on the Zenoh key K. SOURCE: a video file, "
-                                          "an image folder (or a sequence folder with img/), a camera index or "
-                                          "device (/dev/video0), a stream URL, or 'scene' (the generated demo "
+                              description="Publish SOURCE as tacf Frames on the Zenoh key --key. SOURCE: a video "
+                                          "file, an image folder (or a sequence folder with img/), a camera index "
+                                          "or device (/dev/video0), a stream URL, or 'scene' (the generated demo "
                                           "scene).")
     p.add_argument("source", metavar="SOURCE", type=source)
     p.add_argument("--key", "-k", required=True, type=_image_key,

@@ -1,7 +1,7 @@
 """Prometheus text exposition (format 0.0.4) of the dashboard's view of every session: GET /metrics.
 
 Per session (labels node, sid, image_key): fps, processing latency (mean and p95), frame age, capture-to-
-dashboard latency of the newest box, PME, frame counters (received, processed, dropped, rejected), worker
+dashboard latency of the newest box, PME, frame counters (received, processed, dropped, rejected, lost), worker
 restarts, and the state as a one-hot gauge over every SessionState. Counters are the service's running totals
 as of its last health report. Per watched image key: the frames the dashboard read and the messages it could not
 decode. Pure functions: the HTTP side passes in the views.
@@ -39,7 +39,7 @@ _SESSION_METRICS = (
      lambda v: v.health.frames_rejected if v.health else None),
     ("tacf_session_frames_lost_total", "counter", "Frames processed with the target flagged lost (low PME).",
      lambda v: v.health.frames_lost if v.health else None),
-    ("tacf_session_restarts_total", "counter", "Worker restarts after a crash.",
+    ("tacf_session_restarts_total", "counter", "Worker restarts after a crash or a hang.",
      lambda v: v.health.restarts if v.health else None),
 )
 

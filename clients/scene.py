@@ -2,7 +2,7 @@
 
 Deterministic: frame i and box i depend only on the Scene's fields and i, so tests and the demo can check that
 the boxes the service returns follow the target. The camera pans slowly over a textured terrain (colour blobs
-at several scales, fine grain, a couple of roads); the target is a striped "vehicle" that moves on a Lissajous
+at several scales, fine grain, four straight roads); the target is a striped "vehicle" that moves on a Lissajous
 path (at most 3.6 px per frame at the default 640x360, on whole pixels) and changes size by about +-10%.
 """
 from __future__ import annotations
@@ -96,7 +96,7 @@ class Scene:
         image = grass * (1 - field[..., None]) + soil * field[..., None]
         image += rng.normal(0, 9, (H, W, 1)).astype(np.float32)      # grain
         image = np.clip(image, 0, 255).astype(np.uint8)
-        for k in range(2):                                           # two straight roads
+        for k in range(2):                                           # two roads across, two down
             y0, y1 = int(rng.integers(0, H)), int(rng.integers(0, H))
             cv2.line(image, (0, y0), (W - 1, y1), (150, 150, 150), max(6, H // 40))
             x0 = int(rng.integers(W // 4, 3 * W // 4))
