@@ -122,8 +122,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("watch", help="live table of boxes and health in the terminal",
                               description="Show the newest box and health of every session (or of session SID) "
                                           "on every service (or on --node's), refreshed every --interval "
-                                          "seconds; on Ctrl-C or after --duration, end on the table of what "
-                                          "was received.")
+                                          "seconds until Ctrl-C, or until --duration ends on a last table of "
+                                          "what was received.")
     p.add_argument("sid", metavar="SID", nargs="?", default="*", help="session id (default: all sessions)")
     p.add_argument("--node", help="only this service")
     p.add_argument("--interval", type=positive_number, default=0.5, help="refresh period in seconds (default 0.5)")

@@ -249,7 +249,7 @@ class Health(WireModel):
     frames_lost: Count = 0                   # processed with the target flagged lost (BoxResult.ok False)
     pme: Optional[FiniteFloat] = None
     last_seq: Optional[Seq] = None
-    restarts: Count = 0                      # worker restarts after a crash
+    restarts: Count = 0                      # worker restarts after a crash or a hang
     # why the session failed or waits; a rejected frame's reason or a size change's, for worker.NOTICE_HOLD_S
     message: Optional[Annotated[str, Field(max_length=MAX_MESSAGE_LENGTH)]] = None
 
