@@ -41,6 +41,11 @@ DEMO_FPS = 20.0
 FAILED_GRACE_S = 5.0      # a session reported "failed" for this long (the service restarts workers) ends the demo
 FOLLOW_IOU = 0.3          # a box "follows" the target when its IoU with the ground truth exceeds this
 LAST_BOX_WAIT_S = 2.0     # once the source ends, how long the box of its last frame is waited for
+# A start still unanswered after this long is most likely the first after an install, whose worker compiles the
+# tracker's loops (numba; cached on disk for later runs): said, so that a newcomer's first run is not silent. A start
+# took 1.2-1.4 s cached on an idle 2-core VM, up to about 3 s under load, and 4.6-9.5 s with nothing cached.
+SLOW_START_S = 4.0
+SLOW_START_HINT = "still starting (the first run after an install compiles the tracker's loops: 5-10 s, once)"
 
 
 @dataclass(frozen=True)
@@ -291,8 +296,13 @@ def _run_loop(options: DemoOptions, source: FrameSource, truth: GroundTruth | No
             if publisher.last_seq < 0:
                 return                   # stopped, or no frame could be sent: the publisher's error says why
             with client.results(node=options.node) as results:
-                info = client.start(options.image_key, box, seq=publisher.last_seq, profile=options.profile,
-                                    sid="demo")
+                hint = threading.Timer(SLOW_START_S, printer.line, [SLOW_START_HINT])
+                hint.start()
+                try:
+                    info = client.start(options.image_key, box, seq=publisher.last_seq, profile=options.profile,
+                                        sid="demo")
+                finally:
+                    hint.cancel()
                 report.sid = info.sid
                 printer.line(f"session {info.sid!r} started (profile {info.profile}) on box "
                              f"({box[0]:.0f}, {box[1]:.0f}, {box[2]:.0f}, {box[3]:.0f}) from {origin}")

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import zenoh
 
+from tacf_clients import demo, local_service
 from tacf_clients.demo import DemoOptions, GroundTruth, run_demo
-from tacf_clients import local_service
 from tacf_clients.local_service import ephemeral_range_start, free_port
 from tacf_clients.scene import Scene
 from tacf_clients.sources import FrameSource, SourceFrame, open_source
@@ -47,6 +47,19 @@ def test_demo_on_the_generated_scene_follows_the_target():
     assert report.last_health is not None and report.last_health.state in ("tracking", "lost")
     for expected in ("service ready", "session 'demo' started", "box ", "health ", "stopped", "done"):
         assert expected in text, text
+
+
+def test_a_first_run_s_slow_start_is_said(tmp_path, monkeypatch):
+    """The first run after an install compiles the tracker's loops in the service before its session starts (numba's
+    cache empty): the demo printed nothing for those 5-10 s (4.6 s here, 2026-12-07)."""
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "numba"))      # the service inherits it: nothing cached
+    monkeypatch.setattr(demo, "SLOW_START_S", 0.5)                        # a fast machine compiles in 3 s or so
+    out = io.StringIO()
+    report = run_demo(DemoOptions(seconds=1.0, fps=20, node="demoslow"), out=out)
+    text = out.getvalue()
+    assert report.ok, text
+    assert demo.SLOW_START_HINT in text and text.index(demo.SLOW_START_HINT) < text.index("session 'demo' started"), \
+        text
 
 
 def test_demo_command_on_a_sequence_folder(tmp_path):
