@@ -1663,6 +1663,39 @@ def test_browser_that_lost_its_token_is_told_what_to_do(browser):
         assert conn == "signed out: open the address tacf dashboard printed", conn
 
 
+def test_the_page_reconnects_after_a_proxy_s_error_page(browser):
+    """An event stream answered with anything but the stream (a reverse proxy's 502 while the dashboard restarts
+    behind it) is closed for good by the browser: the page said "reconnecting…" and showed the old state forever."""
+    import http.server
+
+    class BadGateway(http.server.BaseHTTPRequestHandler):      # the proxy, its dashboard down
+        def do_GET(self) -> None:
+            asked.append(self.path)
+            self.send_response(502)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+        def log_message(self, *args) -> None:
+            pass
+
+    asked: list[str] = []
+    port, key = free_port(), "test/dashboard/after-the-restart"
+    with DashboardApp(no_service_options(), port=port) as app:
+        _open_page(browser, app)
+    proxy = http.server.ThreadingHTTPServer(("127.0.0.1", port), BadGateway)
+    threading.Thread(target=proxy.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True).start()
+    try:
+        assert _wait(lambda: "/events" in asked and "/api/state" in asked, timeout=15), asked
+    finally:
+        proxy.shutdown()
+        proxy.server_close()
+    with DashboardApp(no_service_options(), port=port, image_keys=[key]) as app:
+        live = "return window.tacf.connected && window.tacf.keys.includes(arguments[0])"
+        assert _wait(lambda: browser.execute_script(live, key), timeout=15), \
+            browser.execute_script("return document.querySelector('#conn').textContent")
+
+
 def _open_page(driver, app) -> None:
     driver.get(app.url)
     assert _wait(lambda: driver.execute_script("return window.tacf && window.tacf.connected"), timeout=20), \

@@ -13,6 +13,7 @@ const STATUS_MS = 10000;             // how long "session X started" stays
 const BOX_HISTORY = 64;    // boxes kept per session: a frame poll lags the boxes by a few of them at most
 const BOX_FRESH_MS = 1500;           // a box older than this is drawn only on its own frame, not on newer ones
 const CHART_REDRAW_MS = 1000;
+const RECONNECT_MS = 2000;           // as the retry the event stream asks of the browser's own reconnections
 const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f7", fps: "#ffb74d",
                   grid: "#2c3644", text: "#8a96a8" };
 
@@ -555,11 +556,16 @@ function connect() {
   source.addEventListener("open", () => { state.connected = true; conn.textContent = "live"; conn.className = "conn up"; });
   source.addEventListener("error", async () => {
     state.connected = false; conn.textContent = "reconnecting…"; conn.className = "conn down";
+    // A reply other than the stream (a reverse proxy's 502 while the dashboard restarts behind it) ends an
+    // EventSource for good, where a lost connection only has it retry: then a new one (read before the probe)
+    const ended = source.readyState === EventSource.CLOSED;
     // EventSource hides the status: ask once, so that a lost token (a restarted dashboard) says what to do
     const probe = await fetch("/api/state").catch(() => null);
     if (probe && probe.status === 401) {
       source.close();
       conn.textContent = "signed out: open the address tacf dashboard printed";
+    } else if (ended) {
+      setTimeout(connect, RECONNECT_MS);
     }
   });
   const received = (handler) => (e) => {
