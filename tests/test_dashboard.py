@@ -1746,6 +1746,32 @@ def _ready_to_draw(driver, app, key: str, sid: str, width: int) -> None:
     driver.execute_script(_RECORD_STARTS)
 
 
+def test_a_key_whose_frames_cannot_be_shown_says_why_on_the_page(browser):
+    """A camera whose frames are no images (a corrupt PNG: /frame answers 502 bad_frame) had the page say "waiting
+    for frames" as if none came."""
+    good_png = encode_frame(SCENE.frame(0), 0, "png")
+    corrupt = bytearray(good_png.data)
+    corrupt[40:] = bytes(len(corrupt) - 40)                     # past the PNG header: the image data
+    key = "test/dashboard/corrupt"
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=[key]) as app:
+        session.put(key, encode(good_png.model_copy(update={"data": bytes(corrupt)})))
+        assert _wait(lambda: app.dashboard.frame_counts() == {key: (1, 0)}), app.dashboard.frame_counts()
+        _open_page(browser, app)
+        polled = "const f = window.tacf.newFeed; return f.key === arguments[0] && f.failures > 0"
+        assert _wait(lambda: browser.execute_script(polled, key), timeout=10), "the page polls the key's frames"
+        said = browser.execute_script("""
+            const canvas = document.querySelector('#new-canvas'), said = [];
+            const fillText = CanvasRenderingContext2D.prototype.fillText;
+            CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
+                if (this.canvas === canvas) said.push(String(text));
+                return fillText.call(this, text, ...rest);
+            };
+            followSelectedKey();                                    // a redraw
+            return new Promise((resolve) => requestAnimationFrame(() => resolve(said)));""")
+        assert said and "cannot be shown" in said[-1], said
+
+
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
     """Every key ever selected went on being polled 10 times a second for good, a key without frames (404)
     too: on a thin link each poll of a live key is a JPEG."""

@@ -87,7 +87,7 @@ class FrameFeed {
   setKey(key) {
     if (key === this.key) return;
     this.key = key; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0; this.etag = null;
-    this.failures = 0;
+    this.failures = 0; this.error = null;
     if (this.wake) this.wake();
   }
   stop() {
@@ -105,6 +105,9 @@ class FrameFeed {
           const url = "/frame/" + encodeURI(key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
           const response = await fetch(url, { headers, cache: "no-store" });
           ok = response.status === 200 || response.status === 304;
+          // why not (a camera whose frames are no images, a key not watched): shown while there is no frame
+          const error = ok ? null : await response.json().then((body) => body.message).catch(() => null);
+          if (key === this.key && error !== this.error) { this.error = error; scheduleDraw(); }
           if (response.status === 200) {
             const bitmap = await createImageBitmap(await response.blob());
             if (key === this.key) {                 // else the key changed meanwhile: not this feed's frame
@@ -155,7 +158,8 @@ function paintFrame(canvas, feed) {
   if (!feed || !feed.bitmap) {
     ctx.fillStyle = "#000"; ctx.fillRect(0, 0, canvas.width, canvas.height);
     ctx.fillStyle = COLOURS.text; ctx.font = "16px sans-serif";
-    ctx.fillText(feed && feed.key ? `waiting for frames on ${feed.key}` : "no image key", 16, 28);
+    ctx.fillText(feed && feed.key ? feed.error || `waiting for frames on ${feed.key}` : "no image key", 16, 28,
+                 canvas.width - 32);
     return false;
   }
   if (canvas.width !== feed.width || canvas.height !== feed.height) {
