@@ -2204,6 +2204,31 @@ def test_a_session_gone_leaves_nothing_of_its_own_on_the_page(stack, browser):
             client.stop("passing")
 
 
+def test_a_chart_fits_its_canvas_at_any_pixel_ratio(browser):
+    """A chart's canvas was sized for the screen's pixel ratio only when its width changed: a card first drawn
+    where the chart's width times the ratio made the canvas's initial 300 (240 CSS pixels at 125 %, a common laptop
+    setting) kept its initial 110 pixels of height for 138, and the chart's lower part, its time axis, was cut."""
+    from tacf_schemas.models import Health
+
+    sid_id = "charts/ratio"
+    health = Health(node="charts", sid="ratio", state="tracking", stamp_ns=time.time_ns(), fps=10.0,
+                    processing_ms_mean=5.0, processing_ms_p95=8.0)
+    size = "const c = window.tacf.cards.get(arguments[0]); return c ? [c.pme.width, c.pme.height] : null"
+    with zenoh.open(make_config(no_service_options())) as session, DashboardApp(session=session, port=0) as app:
+        browser.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {"width": 1280, "height": 1000,
+                                                                       "deviceScaleFactor": 1.25, "mobile": False})
+        try:
+            _open_page(browser, app)
+            browser.execute_script("const style = document.createElement('style');"
+                                   "style.textContent = 'canvas.chart { width: 240px !important; }';"
+                                   "document.head.append(style);")
+            session.put(health_key("charts", "ratio"), encode(health))
+            assert _wait(lambda: browser.execute_script("return arguments[0] in window.tacf.charts", sid_id))
+            assert browser.execute_script(size, sid_id) == [300, 138]
+        finally:
+            browser.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
+
+
 def test_a_narrow_window_keeps_the_session_buttons_in_sight(stack, browser):
     """At 700 px the session table ran out of its panel and hid the stop and re-init buttons; at 500 px the
     charts' "-10s" label ran into "now"."""
