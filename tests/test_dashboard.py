@@ -1663,6 +1663,39 @@ def test_browser_that_lost_its_token_is_told_what_to_do(browser):
         assert conn == "signed out: open the address tacf dashboard printed", conn
 
 
+def test_the_page_reconnects_after_a_proxy_s_error_page(browser):
+    """An event stream answered with anything but the stream (a reverse proxy's 502 while the dashboard restarts
+    behind it) is closed for good by the browser: the page said "reconnecting…" and showed the old state forever."""
+    import http.server
+
+    class BadGateway(http.server.BaseHTTPRequestHandler):      # the proxy, its dashboard down
+        def do_GET(self) -> None:
+            asked.append(self.path)
+            self.send_response(502)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+        def log_message(self, *args) -> None:
+            pass
+
+    asked: list[str] = []
+    port, key = free_port(), "test/dashboard/after-the-restart"
+    with DashboardApp(no_service_options(), port=port) as app:
+        _open_page(browser, app)
+    proxy = http.server.ThreadingHTTPServer(("127.0.0.1", port), BadGateway)
+    threading.Thread(target=proxy.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True).start()
+    try:
+        assert _wait(lambda: "/events" in asked and "/api/state" in asked, timeout=15), asked
+    finally:
+        proxy.shutdown()
+        proxy.server_close()
+    with DashboardApp(no_service_options(), port=port, image_keys=[key]) as app:
+        live = "return window.tacf.connected && window.tacf.keys.includes(arguments[0])"
+        assert _wait(lambda: browser.execute_script(live, key), timeout=15), \
+            browser.execute_script("return document.querySelector('#conn').textContent")
+
+
 def _open_page(driver, app) -> None:
     driver.get(app.url)
     assert _wait(lambda: driver.execute_script("return window.tacf && window.tacf.connected"), timeout=20), \
@@ -1711,6 +1744,32 @@ def _ready_to_draw(driver, app, key: str, sid: str, width: int) -> None:
     assert _wait(lambda: driver.execute_script(_NEW_CANVAS_WIDTH) == width), "its frames are shown"
     driver.find_element(By.ID, "sid-input").send_keys(sid)
     driver.execute_script(_RECORD_STARTS)
+
+
+def test_a_key_whose_frames_cannot_be_shown_says_why_on_the_page(browser):
+    """A camera whose frames are no images (a corrupt PNG: /frame answers 502 bad_frame) had the page say "waiting
+    for frames" as if none came."""
+    good_png = encode_frame(SCENE.frame(0), 0, "png")
+    corrupt = bytearray(good_png.data)
+    corrupt[40:] = bytes(len(corrupt) - 40)                     # past the PNG header: the image data
+    key = "test/dashboard/corrupt"
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=[key]) as app:
+        session.put(key, encode(good_png.model_copy(update={"data": bytes(corrupt)})))
+        assert _wait(lambda: app.dashboard.frame_counts() == {key: (1, 0)}), app.dashboard.frame_counts()
+        _open_page(browser, app)
+        polled = "const f = window.tacf.newFeed; return f.key === arguments[0] && f.failures > 0"
+        assert _wait(lambda: browser.execute_script(polled, key), timeout=10), "the page polls the key's frames"
+        said = browser.execute_script("""
+            const canvas = document.querySelector('#new-canvas'), said = [];
+            const fillText = CanvasRenderingContext2D.prototype.fillText;
+            CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
+                if (this.canvas === canvas) said.push(String(text));
+                return fillText.call(this, text, ...rest);
+            };
+            followSelectedKey();                                    // a redraw
+            return new Promise((resolve) => requestAnimationFrame(() => resolve(said)));""")
+        assert said and "cannot be shown" in said[-1], said
 
 
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
@@ -2143,6 +2202,31 @@ def test_a_session_gone_leaves_nothing_of_its_own_on_the_page(stack, browser):
     finally:
         if "passing" in {info.sid for info in client.list()}:
             client.stop("passing")
+
+
+def test_a_chart_fits_its_canvas_at_any_pixel_ratio(browser):
+    """A chart's canvas was sized for the screen's pixel ratio only when its width changed: a card first drawn
+    where the chart's width times the ratio made the canvas's initial 300 (240 CSS pixels at 125 %, a common laptop
+    setting) kept its initial 110 pixels of height for 138, and the chart's lower part, its time axis, was cut."""
+    from tacf_schemas.models import Health
+
+    sid_id = "charts/ratio"
+    health = Health(node="charts", sid="ratio", state="tracking", stamp_ns=time.time_ns(), fps=10.0,
+                    processing_ms_mean=5.0, processing_ms_p95=8.0)
+    size = "const c = window.tacf.cards.get(arguments[0]); return c ? [c.pme.width, c.pme.height] : null"
+    with zenoh.open(make_config(no_service_options())) as session, DashboardApp(session=session, port=0) as app:
+        browser.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {"width": 1280, "height": 1000,
+                                                                       "deviceScaleFactor": 1.25, "mobile": False})
+        try:
+            _open_page(browser, app)
+            browser.execute_script("const style = document.createElement('style');"
+                                   "style.textContent = 'canvas.chart { width: 240px !important; }';"
+                                   "document.head.append(style);")
+            session.put(health_key("charts", "ratio"), encode(health))
+            assert _wait(lambda: browser.execute_script("return arguments[0] in window.tacf.charts", sid_id))
+            assert browser.execute_script(size, sid_id) == [300, 138]
+        finally:
+            browser.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
 
 
 def test_a_narrow_window_keeps_the_session_buttons_in_sight(stack, browser):

@@ -13,6 +13,7 @@ const STATUS_MS = 10000;             // how long "session X started" stays
 const BOX_HISTORY = 64;    // boxes kept per session: a frame poll lags the boxes by a few of them at most
 const BOX_FRESH_MS = 1500;           // a box older than this is drawn only on its own frame, not on newer ones
 const CHART_REDRAW_MS = 1000;
+const RECONNECT_MS = 2000;           // as the retry the event stream asks of the browser's own reconnections
 const COLOURS = { ok: "#00e676", lost: "#ff5252", draft: "#ffca28", pme: "#4fc3f7", fps: "#ffb74d",
                   grid: "#2c3644", text: "#8a96a8" };
 
@@ -86,7 +87,7 @@ class FrameFeed {
   setKey(key) {
     if (key === this.key) return;
     this.key = key; this.bitmap = null; this.seq = null; this.width = 0; this.height = 0; this.etag = null;
-    this.failures = 0;
+    this.failures = 0; this.error = null;
     if (this.wake) this.wake();
   }
   stop() {
@@ -104,6 +105,9 @@ class FrameFeed {
           const url = "/frame/" + encodeURI(key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
           const response = await fetch(url, { headers, cache: "no-store" });
           ok = response.status === 200 || response.status === 304;
+          // why not (a camera whose frames are no images, a key not watched): shown while there is no frame
+          const error = ok ? null : await response.json().then((body) => body.message).catch(() => null);
+          if (key === this.key && error !== this.error) { this.error = error; scheduleDraw(); }
           if (response.status === 200) {
             const bitmap = await createImageBitmap(await response.blob());
             if (key === this.key) {                 // else the key changed meanwhile: not this feed's frame
@@ -154,7 +158,8 @@ function paintFrame(canvas, feed) {
   if (!feed || !feed.bitmap) {
     ctx.fillStyle = "#000"; ctx.fillRect(0, 0, canvas.width, canvas.height);
     ctx.fillStyle = COLOURS.text; ctx.font = "16px sans-serif";
-    ctx.fillText(feed && feed.key ? `waiting for frames on ${feed.key}` : "no image key", 16, 28);
+    ctx.fillText(feed && feed.key ? feed.error || `waiting for frames on ${feed.key}` : "no image key", 16, 28,
+                 canvas.width - 32);
     return false;
   }
   if (canvas.width !== feed.width || canvas.height !== feed.height) {
@@ -252,7 +257,8 @@ function paintDraft(canvas) {
 function drawChart(canvas, points, field, colour, now) {
   const dpr = window.devicePixelRatio || 1;
   const cssW = canvas.clientWidth || 300, cssH = canvas.clientHeight || 110;
-  if (canvas.width !== Math.round(cssW * dpr)) { canvas.width = Math.round(cssW * dpr); canvas.height = Math.round(cssH * dpr); }
+  const width = Math.round(cssW * dpr), height = Math.round(cssH * dpr);
+  if (canvas.width !== width || canvas.height !== height) { canvas.width = width; canvas.height = height; }
   const ctx = canvas.getContext("2d");
   ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   ctx.clearRect(0, 0, cssW, cssH);
@@ -555,11 +561,16 @@ function connect() {
   source.addEventListener("open", () => { state.connected = true; conn.textContent = "live"; conn.className = "conn up"; });
   source.addEventListener("error", async () => {
     state.connected = false; conn.textContent = "reconnecting…"; conn.className = "conn down";
+    // A reply other than the stream (a reverse proxy's 502 while the dashboard restarts behind it) ends an
+    // EventSource for good, where a lost connection only has it retry: then a new one (read before the probe)
+    const ended = source.readyState === EventSource.CLOSED;
     // EventSource hides the status: ask once, so that a lost token (a restarted dashboard) says what to do
     const probe = await fetch("/api/state").catch(() => null);
     if (probe && probe.status === 401) {
       source.close();
       conn.textContent = "signed out: open the address tacf dashboard printed";
+    } else if (ended) {
+      setTimeout(connect, RECONNECT_MS);
     }
   });
   const received = (handler) => (e) => {
