@@ -80,10 +80,10 @@ def register(subparsers) -> None:
     p.add_argument("--max-frames", type=integer(1), metavar="N",
                    help="only the first N frames of each sequence (smoke tests; not a benchmark protocol)")
     p.add_argument("--shifts", type=integer(0), default=0, metavar="PX",
-                   help="also start every pair from the 8 first boxes PX pixels away (size kept, but kept in the "
-                        "frame as OTB's shiftInitBB keeps them: stopped at the left and top borders, cut at the right "
-                        "and bottom ones) and report how far each AUC moves and whether the trackers' differences "
-                        "stand out of that")
+                   help="also start every pair from the 8 first boxes PX pixels away (kept in the frame as OTB's "
+                        "shiftInitBB keeps them: stopped at the left and top borders, cut at the right and bottom "
+                        "ones) and report how far each AUC moves and whether the trackers' differences stand out of "
+                        "that")
     p.add_argument("--tre", type=_segment_count, default=0, metavar="K",
                    help="also start every pair at frames N/K, 2N/K, ... of each sequence (the starts of OTB's "
                         "temporal robustness, TRE; K = 10 is 5.5 times the one-pass work), report the mean over these "
