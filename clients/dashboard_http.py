@@ -69,11 +69,10 @@ HEAD_TOO_LARGE = f"a request's line and headers may take {MAX_HEAD} bytes in all
 ACTION_FIELDS = {"/api/start": {"image_key", "box", "seq", "sid", "profile", "overrides", "node"},
                  "/api/stop": {"sid", "node"}, "/api/reinit": {"sid", "box", "seq", "node"}, "/api/watch": {"key"}}
 MAX_BODY = 64 * 1024
-MAX_DRAINED = 1 << 20            # of a body over MAX_BODY, read this much so that its sender gets the 413, not a reset
-# A connection closed with its request maybe not read whole (a refusal, a body never read) is first drained of what
-# its client still sends, this long and this much at most: a client may not hold its thread.
-LINGER_S = 2.0
-LINGER_BYTES = 1 << 20
+# Of a request refused unread (a body over MAX_BODY before its 413; what a client still sends after a refusal that
+# closes the connection), read and dropped this much at most, so that its sender gets the refusal, not a reset.
+MAX_DRAINED = 1 << 20
+LINGER_S = 2.0                   # and, after the refusal, for this long at most: a client may not hold its thread
 MJPEG_FPS = 10.0
 MAX_SEQ_DIGITS = 20              # a seq is a 64-bit count (and int() refuses a string of over 4300 digits)
 
@@ -248,10 +247,10 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def _linger(self) -> None:
         """Close as web servers do after a refusal ("lingering close"): the reply sent and the write side shut, read
-        and drop what the client still sends until it closes its end (linger_s and LINGER_BYTES at most). Closed
+        and drop what the client still sends until it closes its end (linger_s and MAX_DRAINED at most). Closed
         with input unread, the connection was reset: a client still writing its head or body (a line per send, or
         more than the socket buffers hold) failed with a broken pipe or a reset, never reading the refusal."""
-        deadline, left = time.monotonic() + self.server.linger_s, LINGER_BYTES
+        deadline, left = time.monotonic() + self.server.linger_s, MAX_DRAINED
         try:
             self.connection.shutdown(socket.SHUT_WR)
             while left > 0 and (timeout := deadline - time.monotonic()) > 0:
