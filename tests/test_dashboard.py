@@ -1772,6 +1772,46 @@ def test_a_key_whose_frames_cannot_be_shown_says_why_on_the_page(browser):
         assert said and "cannot be shown" in said[-1], said
 
 
+def test_frames_that_turn_undecodable_leave_the_last_picture_marked_with_why(browser):
+    """A camera whose frames turned into no images after good ones (/frame answers 502 bad_frame) left the page
+    showing its last good picture as if live: the reason was only drawn when there was no picture at all."""
+    good = encode_frame(SCENE.frame(0), 0, "png")
+    corrupt = bytearray(good.data)
+    corrupt[40:] = bytes(len(corrupt) - 40)                     # past the PNG header: the image data
+    key = "test/dashboard/turns-corrupt"
+    redraw = """
+        const canvas = document.querySelector('#new-canvas'), said = [];
+        const fillText = CanvasRenderingContext2D.prototype.fillText;
+        CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
+            if (this.canvas === canvas) said.push(String(text));
+            return fillText.call(this, text, ...rest);
+        };
+        followSelectedKey();                                    // a redraw
+        return new Promise((resolve) => requestAnimationFrame(() => {
+            CanvasRenderingContext2D.prototype.fillText = fillText;
+            resolve({said, top: Array.from(canvas.getContext('2d').getImageData(canvas.width / 2, 1, 1, 1).data)});
+        }));"""
+    shows = "const f = window.tacf.newFeed; return f.bitmap && f.key === arguments[0] ? [Number(f.seq), f.error] : null"
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=[key]) as app:
+        session.put(key, encode(good))
+        _open_page(browser, app)
+        _select_key(browser, key)
+        assert _wait(lambda: browser.execute_script(shows, key) == [0, None]), "the good frame is shown"
+        live = browser.execute_script(redraw)
+        assert live["said"] == [], live
+        session.put(key, encode(good.model_copy(update={"seq": 1, "data": bytes(corrupt)})))
+        failing = _wait(lambda: (s := browser.execute_script(shows, key)) and s[1] and s, timeout=10)
+        assert failing and failing[0] == 0 and "cannot be shown" in failing[1], failing
+        stale = browser.execute_script(redraw)
+        assert stale["said"] == [failing[1]], f"the last good frame is shown as live: {stale}"
+        assert sum(stale["top"][:3]) < sum(live["top"][:3]) / 2, (stale, live)   # on a dark banner
+        session.put(key, encode(good.model_copy(update={"seq": 2})))
+        assert _wait(lambda: browser.execute_script(shows, key) == [2, None], timeout=15), "good frames return"
+        again = browser.execute_script(redraw)
+        assert again["said"] == [] and again["top"] == live["top"], again
+
+
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
     """Every key ever selected went on being polled 10 times a second for good, a key without frames (404)
     too: on a thin link each poll of a live key is a JPEG."""

@@ -105,7 +105,7 @@ class FrameFeed {
           const url = "/frame/" + encodeURI(key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
           const response = await fetch(url, { headers, cache: "no-store" });
           ok = response.status === 200 || response.status === 304;
-          // why not (a camera whose frames are no images, a key not watched): shown while there is no frame
+          // why not (a camera whose frames are no images, a key not watched): shown, over the last frame if any
           const error = ok ? null : await response.json().then((body) => body.message).catch(() => null);
           if (key === this.key && error !== this.error) { this.error = error; scheduleDraw(); }
           if (response.status === 200) {
@@ -166,6 +166,12 @@ function paintFrame(canvas, feed) {
     canvas.width = feed.width; canvas.height = feed.height;
   }
   ctx.drawImage(feed.bitmap, 0, 0);
+  if (feed.error) {     // the frames turned undecodable: the last good one must not pass for live
+    const k = canvas.width / (canvas.clientWidth || canvas.width), size = 12 * k;   // as strokeBox's
+    ctx.fillStyle = "rgba(0,0,0,0.75)"; ctx.fillRect(0, 0, canvas.width, size * 1.8);
+    ctx.fillStyle = COLOURS.lost; ctx.font = `bold ${size}px sans-serif`;
+    ctx.fillText(feed.error, 4 * k, size * 1.3, canvas.width - 8 * k);
+  }
   return true;
 }
 
