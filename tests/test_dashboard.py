@@ -2146,6 +2146,29 @@ def test_escape_in_mid_drag_cancels_a_reinit(stack, browser):
     assert browser.execute_script("return window.posts") == [], "a re-init cancelled with Esc was sent"
 
 
+def test_a_reinit_pressed_before_the_dashboard_restarts_is_still_on_after_it(stack, browser):
+    """Every connection of the event stream begins with the whole state, which the page draws afresh: a reconnect
+    (the dashboard restarted) cancelled the re-init the operator had pressed and was about to draw."""
+    from selenium.webdriver.common.by import By
+
+    _, _, _, service = stack
+    sid_id, port = f"{service.node}/pre", free_port()
+    mode = """const card = window.tacf.cards.get(arguments[0]);
+              return card ? [window.tacf.reinit, card.frame.classList.contains('drawable'),
+                             !card.root.querySelector('.reinit-hint').hidden] : null"""
+    with DashboardApp(service.options, port=port, image_keys=[KEY]) as app:
+        _open_page(browser, app)
+        assert _wait(lambda: browser.find_elements(By.CSS_SELECTOR, 'tr[data-sid="pre"]'))
+        browser.find_element(By.CSS_SELECTOR, 'tr[data-sid="pre"] button.reinit').click()
+        assert browser.execute_script(mode, sid_id) == [sid_id, True, True]
+    assert _wait(lambda: not browser.execute_script("return window.tacf.connected"), timeout=10)
+    events = browser.execute_script("return window.tacf.events")
+    with DashboardApp(service.options, port=port, image_keys=[KEY]):
+        again = "const t = window.tacf; return t.connected && t.events > arguments[0] && t.cards.has(arguments[1])"
+        assert _wait(lambda: browser.execute_script(again, events, sid_id), timeout=20), "the page is back"
+        assert browser.execute_script(mode, sid_id) == [sid_id, True, True], "the re-init was cancelled"
+
+
 def test_with_two_services_a_start_goes_to_the_least_loaded_or_the_chosen_one(stack, browser):
     """With a second service on the network, the page's start named no service and got 409 ambiguous_node. A start
     with none now goes to the least-loaded service, and the page offers each service by name."""

@@ -526,11 +526,14 @@ function removeSession(id) {
 }
 
 function applyState(data) {
+  const reinit = state.reinit;
   for (const id of [...state.sessions.keys()]) removeSession(id);
   state.historyMs = (data.history_s || 300) * 1000;
   mergeSessions(data.sessions);
   mergePoints(data.points);
   state.keys = data.keys; state.nodes = data.nodes || {};
+  // every (re)connection of the event stream starts with this: a re-init the operator chose stays on its new card
+  if (state.cards.has(reinit)) setReinit(reinit);
   refresh();
 }
 
