@@ -1772,25 +1772,28 @@ def test_a_key_whose_frames_cannot_be_shown_says_why_on_the_page(browser):
         assert said and "cannot be shown" in said[-1], said
 
 
+# The New session panel drawn again: the texts drawn on it and the pixel at its top centre (where a banner goes).
+_REDRAW_NEW_CANVAS = """
+    const canvas = document.querySelector('#new-canvas'), said = [];
+    const fillText = CanvasRenderingContext2D.prototype.fillText;
+    CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
+        if (this.canvas === canvas) said.push(String(text));
+        return fillText.call(this, text, ...rest);
+    };
+    followSelectedKey();                                    // a redraw
+    return new Promise((resolve) => requestAnimationFrame(() => {
+        CanvasRenderingContext2D.prototype.fillText = fillText;
+        resolve({said, top: Array.from(canvas.getContext('2d').getImageData(canvas.width / 2, 1, 1, 1).data)});
+    }));"""
+
+
 def test_frames_that_turn_undecodable_leave_the_last_picture_marked_with_why(browser):
     """A camera whose frames turned into no images after good ones (/frame answers 502 bad_frame) left the page
     showing its last good picture as if live: the reason was only drawn when there was no picture at all."""
     good = encode_frame(SCENE.frame(0), 0, "png")
     corrupt = bytearray(good.data)
     corrupt[40:] = bytes(len(corrupt) - 40)                     # past the PNG header: the image data
-    key = "test/dashboard/turns-corrupt"
-    redraw = """
-        const canvas = document.querySelector('#new-canvas'), said = [];
-        const fillText = CanvasRenderingContext2D.prototype.fillText;
-        CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
-            if (this.canvas === canvas) said.push(String(text));
-            return fillText.call(this, text, ...rest);
-        };
-        followSelectedKey();                                    // a redraw
-        return new Promise((resolve) => requestAnimationFrame(() => {
-            CanvasRenderingContext2D.prototype.fillText = fillText;
-            resolve({said, top: Array.from(canvas.getContext('2d').getImageData(canvas.width / 2, 1, 1, 1).data)});
-        }));"""
+    key, redraw = "test/dashboard/turns-corrupt", _REDRAW_NEW_CANVAS
     shows = "const f = window.tacf.newFeed; return f.bitmap && f.key === arguments[0] ? [Number(f.seq), f.error] : null"
     with zenoh.open(make_config(no_service_options())) as session, \
             DashboardApp(session=session, port=0, image_keys=[key]) as app:
@@ -1811,6 +1814,73 @@ def test_frames_that_turn_undecodable_leave_the_last_picture_marked_with_why(bro
         again = browser.execute_script(redraw)
         assert again["said"] == [] and again["top"] == live["top"], again
 
+
+def test_frames_a_proxy_answers_with_its_error_page_leave_the_last_picture_marked(browser):
+    """Behind a reverse proxy (--allow-host), /frame answered with the proxy's own error page (an HTML 504 when the
+    dashboard is slow, a 502 while it restarts) gave the page no reason to show (no JSON): the last good picture
+    passed for live. The page now says the request failed, with its status; a 404 "no frame yet" keeps its words."""
+    import http.server
+
+    class Proxy(http.server.BaseHTTPRequestHandler):
+        """Relays everything to the dashboard (the event stream as it comes), but /frame while `timing_out`."""
+        def do_GET(self) -> None:
+            if timing_out.is_set() and self.path.startswith("/frame/"):
+                body = b"<html><body><h1>504 Gateway Time-out</h1></body></html>"
+                self.send_response(504)
+                self.send_header("Content-Type", "text/html")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+                return
+            upstream = http.client.HTTPConnection("127.0.0.1", app.server.server_address[1], timeout=30)
+            try:
+                upstream.request("GET", self.path, headers={k: v for k, v in self.headers.items()
+                                                            if k.lower() not in ("host", "connection")})
+                reply = upstream.getresponse()
+                self.send_response(reply.status)
+                for name, value in reply.getheaders():
+                    if name.lower() not in ("connection", "date", "server"):
+                        self.send_header(name, value)
+                self.end_headers()
+                while chunk := reply.read1(65536):
+                    self.wfile.write(chunk)
+                    self.wfile.flush()
+            finally:
+                upstream.close()
+
+        def log_message(self, *args) -> None:
+            pass
+
+    key, timing_out = "test/dashboard/behind-a-proxy", threading.Event()
+    frame = encode_frame(SCENE.frame(0), 0, "png")
+    shows = """const f = window.tacf.newFeed;
+               return f.key === arguments[0] ? [f.bitmap ? Number(f.seq) : null, f.error] : null"""
+    proxy = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Proxy)
+    with zenoh.open(make_config(no_service_options())) as session, \
+            DashboardApp(session=session, port=0, image_keys=[key]) as app:
+        threading.Thread(target=proxy.serve_forever, kwargs={"poll_interval": 0.1}, daemon=True).start()
+        try:
+            browser.get(f"http://127.0.0.1:{proxy.server_address[1]}/")
+            assert _wait(lambda: browser.execute_script("return window.tacf && window.tacf.connected"), timeout=20)
+            _select_key(browser, key)
+            assert _wait(lambda: browser.execute_script(shows, key) == [None, f"no frame yet on {key!r}"]), \
+                browser.execute_script(shows, key)
+            session.put(key, encode(frame))
+            assert _wait(lambda: browser.execute_script(shows, key) == [0, None]), "the frame is shown"
+            assert browser.execute_script(_REDRAW_NEW_CANVAS)["said"] == []
+            timing_out.set()
+            said = "frame request failed: HTTP 504"
+            assert _wait(lambda: browser.execute_script(shows, key) == [0, said], timeout=20), \
+                f"the last frame passes for live: {browser.execute_script(shows, key)}"
+            assert browser.execute_script(_REDRAW_NEW_CANVAS)["said"] == [said]
+            assert browser.execute_script("return window.tacf.connected"), "the event stream stayed up"
+            timing_out.clear()
+            session.put(key, encode(frame.model_copy(update={"seq": 1})))
+            assert _wait(lambda: browser.execute_script(shows, key) == [1, None], timeout=20), \
+                browser.execute_script(shows, key)
+        finally:
+            proxy.shutdown()
+            proxy.server_close()
 
 def test_the_new_session_panel_polls_only_the_selected_key_and_backs_off(stack, browser):
     """Every key ever selected went on being polled 10 times a second for good, a key without frames (404)

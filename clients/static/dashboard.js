@@ -105,8 +105,10 @@ class FrameFeed {
           const url = "/frame/" + encodeURI(key) + (seq === null || seq === undefined ? "" : `?seq=${seq}`);
           const response = await fetch(url, { headers, cache: "no-store" });
           ok = response.status === 200 || response.status === 304;
-          // why not (a camera whose frames are no images, a key not watched): shown, over the last frame if any
-          const error = ok ? null : await response.json().then((body) => body.message).catch(() => null);
+          // why not (a camera whose frames are no images, a key not watched): shown, over the last frame if any;
+          // a reply that is no JSON of ours (a reverse proxy's 502 or 504 page) is said by its status
+          const error = ok ? null : await response.json().then((body) => body.message).catch(() => null)
+                                    || `frame request failed: HTTP ${response.status}`;
           if (key === this.key && error !== this.error) { this.error = error; scheduleDraw(); }
           if (response.status === 200) {
             const bitmap = await createImageBitmap(await response.blob());
