@@ -1949,6 +1949,45 @@ def test_seqs_past_2_to_the_53_are_kept_exact_by_the_page(stack, browser):
             client.stop(sid)
 
 
+def test_a_card_says_why_its_frames_stopped_over_its_box_label(stack, browser):
+    """The reason a card's frames stopped (they turned undecodable) was drawn before the box: the label of a box
+    near the top edge, drawn after, covered it."""
+    app, client, _, service = stack
+    key, sid_id = "test/dashboard/card-turns-corrupt", f"{service.node}/topbox"
+    frames = [encode_frame(SCENE.frame(i), i, "png") for i in range(12)]
+    corrupt = bytearray(frames[-1].data)
+    corrupt[40:] = bytes(len(corrupt) - 40)                     # past the PNG header: the image data
+    redraw = """
+        const canvas = window.tacf.cards.get(arguments[0]).frame, said = [];
+        const fillText = CanvasRenderingContext2D.prototype.fillText;
+        CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
+            if (this.canvas === canvas) said.push(String(text));
+            return fillText.call(this, text, ...rest);
+        };
+        scheduleDraw();
+        return new Promise((resolve) => requestAnimationFrame(() => {
+            CanvasRenderingContext2D.prototype.fillText = fillText;
+            resolve(said);
+        }));"""
+    failing = "const f = window.tacf.feeds.get(arguments[0]); return f ? f.error : null"
+    try:
+        client.start(key, (130, 14, 48, 48), sid="topbox")      # its label goes above it, in the banner's rows
+        _open_page(browser, app)
+        for frame in frames:                                    # then the camera stops: the last frame stays
+            client.session.put(key, encode(frame))
+            time.sleep(0.1)
+        last = frames[-1].seq
+        assert _wait(lambda: (c := _canvas_state(browser, sid_id)) and c["frameSeq"] == c["boxSeq"] == last,
+                     timeout=30), _canvas_state(browser, sid_id)
+        client.session.put(key, encode(frames[-1].model_copy(update={"seq": last + 1, "data": bytes(corrupt)})))
+        why = _wait(lambda: browser.execute_script(failing, f"{key}#{sid_id}"), timeout=20)
+        assert why and "cannot be shown" in why, _feed_state(browser, f"{key}#{sid_id}", sid_id)
+        said = browser.execute_script(redraw, sid_id)
+        assert len(said) == 2 and said[0].startswith("topbox") and said[-1] == why, \
+            f"the reason is drawn under the box's label: {said}"
+    finally:
+        client.stop("topbox")
+
 def test_a_reinit_on_a_still_camera_shows_its_box_on_that_frame(stack, browser):
     """The card drew the box from before the re-init (green, tracking) on the very frame the new box was drawn
     on, for as long as the camera stayed still: no newer box came to replace it."""

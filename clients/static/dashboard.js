@@ -168,13 +168,18 @@ function paintFrame(canvas, feed) {
     canvas.width = feed.width; canvas.height = feed.height;
   }
   ctx.drawImage(feed.bitmap, 0, 0);
-  if (feed.error) {     // the frames turned undecodable: the last good one must not pass for live
-    const k = canvas.width / (canvas.clientWidth || canvas.width), size = 12 * k;   // as strokeBox's
-    ctx.fillStyle = "rgba(0,0,0,0.75)"; ctx.fillRect(0, 0, canvas.width, size * 1.8);
-    ctx.fillStyle = COLOURS.lost; ctx.font = `bold ${size}px sans-serif`;
-    ctx.fillText(feed.error, 4 * k, size * 1.3, canvas.width - 8 * k);
-  }
   return true;
+}
+
+// Why the frames stopped (undecodable, or the request failed), on a banner across the top of the last good one,
+// which must not pass for live: drawn last, so that a box's label near the top edge does not cover it.
+function paintFrameError(canvas, feed) {
+  if (!feed.error) return;
+  const ctx = canvas.getContext("2d");
+  const k = canvas.width / (canvas.clientWidth || canvas.width), size = 12 * k;   // as strokeBox's
+  ctx.fillStyle = "rgba(0,0,0,0.75)"; ctx.fillRect(0, 0, canvas.width, size * 1.8);
+  ctx.fillStyle = COLOURS.lost; ctx.font = `bold ${size}px sans-serif`;
+  ctx.fillText(feed.error, 4 * k, size * 1.3, canvas.width - 8 * k);
 }
 
 function strokeBox(ctx, box, colour, label, dashed = false) {
@@ -358,13 +363,15 @@ function paintCard(id) {
   // After a start or re-init from a dashboard, the box it gave until the tracker's first box on a later frame.
   const box = state.boxes.get(id)?.get(feed.seq) || (session.box && boxIsFresh(session) ? session.box : null);
   const init = !box && session.init && feed.seq >= session.init.seq ? session.init : null;
-  if (!box && !init) return;
-  const colour = init ? COLOURS.draft : box.ok ? COLOURS.ok : COLOURS.lost;
-  strokeBox(card.frame.getContext("2d"), init ? init.box : box.box, colour,
-            init ? `${session.sid}  initial box` : `${session.sid}  PME ${fmt(box.pme)}${box.ok ? "" : "  LOST"}`);
-  const drawn = state.drawn[id] || { count: 0 };
-  state.drawn[id] = { count: drawn.count + 1, box: init ? init.box : box.box, boxSeq: init ? init.seq : box.seq,
-                      frameSeq: feed.seq, colour };
+  if (box || init) {
+    const colour = init ? COLOURS.draft : box.ok ? COLOURS.ok : COLOURS.lost;
+    strokeBox(card.frame.getContext("2d"), init ? init.box : box.box, colour,
+              init ? `${session.sid}  initial box` : `${session.sid}  PME ${fmt(box.pme)}${box.ok ? "" : "  LOST"}`);
+    const drawn = state.drawn[id] || { count: 0 };
+    state.drawn[id] = { count: drawn.count + 1, box: init ? init.box : box.box, boxSeq: init ? init.seq : box.seq,
+                        frameSeq: feed.seq, colour };
+  }
+  paintFrameError(card.frame, feed);
 }
 
 function paintCharts(now) {
@@ -561,7 +568,7 @@ function scheduleDraw() {
     drawQueued = false;
     for (const id of state.cards.keys()) paintCard(id);
     const canvas = $("#new-canvas");
-    if (!paintDraft(canvas)) paintFrame(canvas, state.newFeed);
+    if (!paintDraft(canvas) && paintFrame(canvas, state.newFeed)) paintFrameError(canvas, state.newFeed);
   });
 }
 setInterval(() => { paintCharts(serverNow()); renderTable(); }, CHART_REDRAW_MS);   // time passes without news too
