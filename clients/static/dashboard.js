@@ -407,9 +407,16 @@ function makeRow(s) {
   const stop = document.createElement("button");
   stop.textContent = "stop"; stop.className = "stop danger";
   stop.onclick = async () => {
+    // A session stopped and started again under its id (by another client) before the next event keeps this row:
+    // the reply must neither take the new one off the page nor leave its stop button disabled.
+    const generation = state.sessions.get(s.id)?.generation;
     stop.disabled = true;
-    try { await post("/api/stop", { sid: s.sid, node: s.node }); removeSession(s.id); clearNewStatus(s.sid); }
-    catch (err) { toast(`stop ${s.sid}: ${err.message}`); stop.disabled = false; }
+    try {
+      await post("/api/stop", { sid: s.sid, node: s.node });
+      const now = state.sessions.get(s.id);
+      if (!now || now.generation === generation) { removeSession(s.id); clearNewStatus(s.sid); renderTable(); }
+    } catch (err) { toast(`stop ${s.sid}: ${err.message}`); }
+    stop.disabled = false;
   };
   actions.append(reinit, " ", stop);
   tr.appendChild(actions);
