@@ -270,6 +270,12 @@ class DashboardHandler(BaseHTTPRequestHandler):
             self.server.expect_head(self.connection, False)
 
     def parse_request(self) -> bool:
+        if self.server.stopping.is_set():
+            # a browser's kept-alive connection outlives a stopped server (its threads are daemons): left unanswered,
+            # the browser asks again on a new connection, of the dashboard started on this port in its place; served,
+            # it had the closed dashboard's empty state (no image keys)
+            self.close_connection = True
+            return False
         # a request line without a version ("GET /") is HTTP/0.9's, which has no headers: none is waited for
         versionless = len(str(self.raw_requestline, "iso-8859-1").split()) == 2
         head = io.BytesIO() if versionless else _HeadBudget(self.rfile, MAX_HEAD - len(self.raw_requestline))
@@ -538,8 +544,8 @@ class DashboardHandler(BaseHTTPRequestHandler):
                 if self._client_left(0.0):
                     break
                 delay = next_tick - time.monotonic()
-                if delay > 0 and self.server.stopping.wait(delay):        # the rate cap
-                    break
+                if delay > 0 and self.server.stopping.wait(delay) or self._ending():       # the rate cap
+                    break               # a closing dashboard's empty key list is no news: it had the page drop its key
                 next_tick = time.monotonic() + period
                 versions = dashboard.versions()
                 changed = [k for k, v in versions.items() if sent.get(k) != v]

@@ -2278,6 +2278,103 @@ def test_a_reinit_pressed_before_the_dashboard_restarts_is_still_on_after_it(sta
         assert browser.execute_script(mode, sid_id) == [sid_id, True, True], "the re-init was cancelled"
 
 
+@contextlib.contextmanager
+def _frames_on(key: str):
+    """A Zenoh session that publishes PNG frames on `key` (5 a second, seq counting up) until the block ends."""
+    done = threading.Event()
+    with zenoh.open(make_config(no_service_options())) as session:
+        def publish() -> None:
+            seq = 0
+            while not done.wait(0.2):
+                session.put(key, encode(encode_frame(SCENE.frame(seq), seq, "png")))
+                seq += 1
+
+        thread = threading.Thread(target=publish, daemon=True)
+        thread.start()
+        try:
+            yield session
+        finally:
+            done.set()
+            thread.join()
+
+
+@contextlib.contextmanager
+def _restart_on(driver, session, port: int, image_keys=()):
+    """A dashboard started again on `port` after the page lost the previous one, yielded once the page is back."""
+    assert _wait(lambda: not driver.execute_script("return window.tacf.connected"), timeout=10)
+    events = driver.execute_script("return window.tacf.events")
+    with DashboardApp(session=session, port=port, image_keys=image_keys) as app:
+        again = "return window.tacf.connected && window.tacf.events > arguments[0]"
+        assert _wait(lambda: driver.execute_script(again, events), timeout=20), "the page is back"
+        yield app
+
+
+def _watch_on_the_page(driver, key: str) -> None:
+    """Type `key` in the New session panel's watch box and send it, as an operator would."""
+    from selenium.webdriver.common.by import By
+
+    driver.find_element(By.ID, "key-input").send_keys(key)
+    driver.find_element(By.CSS_SELECTOR, "#watch-form button").click()
+    assert _wait(lambda: driver.execute_script("return document.querySelector('#key-select').value") == key), key
+
+
+_PANEL = "const f = window.tacf.newFeed; return [document.querySelector('#key-select').value, f.key, f.frames]"
+
+
+def test_a_key_typed_in_the_page_is_still_selected_after_the_dashboard_restarts(browser):
+    """A restarted dashboard knows only its --key keys and its sessions' ones: the page reconnected without the key
+    the operator had typed in its watch box, and the New session panel dropped it (no key, no frames to draw a
+    box on) until it was typed again."""
+    key, port = "test/dashboard/typed", free_port()
+    with _frames_on(key) as session:
+        with DashboardApp(session=session, port=port) as app:
+            _open_page(browser, app)
+            _watch_on_the_page(browser, key)
+            assert _wait(lambda: browser.execute_script(_PANEL)[2] > 0), "its frames are shown"
+        with _restart_on(browser, session, port) as app:
+            frames = browser.execute_script(_PANEL)[2]
+            assert _wait(lambda: (p := browser.execute_script(_PANEL))[:2] == [key, key] and p[2] > frames + 2,
+                         timeout=20), browser.execute_script(_PANEL)
+            assert app.dashboard.image_keys() == [key]
+
+
+def test_a_key_the_operator_left_is_not_watched_again_after_the_dashboard_restarts(browser):
+    """Only the key still selected is asked for again: one typed, then left for another, stays let go."""
+    key, other, port = "test/dashboard/left", "test/dashboard/kept", free_port()
+    with _frames_on(key) as session:
+        with DashboardApp(session=session, port=port, image_keys=[other]) as app:
+            _open_page(browser, app)
+            _watch_on_the_page(browser, key)
+            _select_key(browser, other)
+            browser.execute_script(_COUNT_POSTS)
+        with _restart_on(browser, session, port, image_keys=[other]) as app:
+            time.sleep(2.0)
+            assert browser.execute_script("return window.posts") == []
+            assert browser.execute_script(_PANEL)[:2] == [other, other]
+            assert app.dashboard.image_keys() == [other]
+
+
+def test_a_typed_key_the_restarted_dashboard_refuses_is_said_once(browser):
+    """The key asked for again after a restart, refused (the restarted dashboard watches MAX_IMAGE_KEYS already),
+    is said as a refusal in the watch box is, and not asked for again and again."""
+    from selenium.webdriver.common.by import By
+
+    key, port = "test/dashboard/refused", free_port()
+    full = [f"test/dashboard/full/{i}" for i in range(dashboard.MAX_IMAGE_KEYS)]
+    with _frames_on(key) as session:
+        with DashboardApp(session=session, port=port) as app:
+            _open_page(browser, app)
+            _watch_on_the_page(browser, key)
+            browser.execute_script(_COUNT_POSTS)
+        with _restart_on(browser, session, port, image_keys=full):
+            toast = browser.find_element(By.ID, "toast")
+            assert _wait(lambda: toast.is_displayed() and toast.text.startswith(f"watch {key}: "), timeout=10)
+            assert f"already watching {dashboard.MAX_IMAGE_KEYS} image keys" in toast.text, toast.text
+            time.sleep(2.0)
+            assert browser.execute_script("return window.posts") == ["/api/watch"]
+            assert browser.execute_script(_PANEL)[:2] == [full[0], full[0]]
+
+
 def test_a_session_stopped_from_the_page_and_started_again_at_once_can_be_stopped_again(stack, browser):
     """A session stopped from the page and started again under its id within an event period (another client:
     10 Hz, so within 0.1 s) kept the stopped one's table row, its stop button still disabled by the click: the

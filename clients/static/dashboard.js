@@ -26,6 +26,7 @@ const state = {
   historyMs: 300000,
   feeds: new Map(),        // "<image key>#<session id>" -> the FrameFeed of that session's card
   newFeed: null,           // the FrameFeed of the "New session" panel: it follows the selected key
+  chosenKey: null,         // the key the operator last chose for that panel (typed in the watch box, or selected)
   cards: new Map(),        // id -> card elements
   drawn: {},               // id -> what the last frame draw showed (tests read it)
   charts: {},              // id -> {points, redraws, labels, last} of the last chart draw (tests read it)
@@ -542,7 +543,7 @@ function removeSession(id) {
 }
 
 function applyState(data) {
-  const reinit = state.reinit;
+  const reinit = state.reinit, selected = $("#key-select").value;
   for (const id of [...state.sessions.keys()]) removeSession(id);
   state.historyMs = (data.history_s || 300) * 1000;
   mergeSessions(data.sessions);
@@ -551,6 +552,11 @@ function applyState(data) {
   // every (re)connection of the event stream starts with this: a re-init the operator chose stays on its new card
   if (state.cards.has(reinit)) setReinit(reinit);
   refresh();
+  // A restarted dashboard knows only its --key keys and its sessions' ones: the key the operator typed and still
+  // had selected is asked for again, once (a refusal is said and the panel goes on without it).
+  if (selected && selected === state.chosenKey && !data.keys.includes(selected)) {
+    watchKey(selected).then((ok) => { if (ok && state.chosenKey === selected) selectKey(selected); });
+  }
 }
 
 function applyUpdate(data) {
@@ -608,17 +614,25 @@ function connect() {
 }
 
 // ------------------------------------------------------------------------------------------------ new session panel
+async function watchKey(key) {     // true once the dashboard watches it; a refusal is said
+  try {
+    const reply = await post("/api/watch", { key });
+    state.keys = reply.keys; renderKeys();
+    return true;
+  } catch (err) { toast(`watch ${key}: ${err.message}`); return false; }
+}
+
+function selectKey(key) {
+  $("#key-select").value = key; state.chosenKey = key;
+  followSelectedKey();
+}
+
 $("#watch-form").addEventListener("submit", async (event) => {
   event.preventDefault();
   const key = $("#key-input").value.trim();
-  if (!key) return;
-  try {
-    const reply = await post("/api/watch", { key });
-    state.keys = reply.keys; renderKeys(); $("#key-select").value = key; $("#key-input").value = "";
-    followSelectedKey();
-  } catch (err) { toast(`watch ${key}: ${err.message}`); }
+  if (key && await watchKey(key)) { selectKey(key); $("#key-input").value = ""; }
 });
-$("#key-select").addEventListener("change", followSelectedKey);
+$("#key-select").addEventListener("change", () => selectKey($("#key-select").value));
 state.newFeed = new FrameFeed(null);
 
 function setNewStatus(text, sid = null) {
