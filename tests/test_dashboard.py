@@ -1653,11 +1653,13 @@ def test_browser_sees_boxes_and_charts_draws_a_session_and_stops_it(stack, guard
 
 
 def test_browser_that_lost_its_token_is_told_what_to_do(browser):
-    with DashboardApp(no_service_options(), port=0, access=DashboardAccess("lost-token-0123456789")) as app:
+    port, access = free_port(), DashboardAccess("lost-token-0123456789")
+    with DashboardApp(no_service_options(), port=port, access=access) as app:
         browser.get(app.url)
         assert _wait(lambda: browser.execute_script("return window.tacf && window.tacf.connected"), timeout=20)
         browser.delete_all_cookies()
-        app.server.stopping.set()                   # ends the event stream; the browser reconnects without a token
+    # the dashboard restarted: the browser reconnects to it without its token
+    with DashboardApp(no_service_options(), port=port, access=access):
         conn = _wait(lambda: "signed out" in (t := browser.execute_script("return document.querySelector('#conn')"
                                                                           ".textContent")) and t, timeout=20)
         assert conn == "signed out: open the address tacf dashboard printed", conn
