@@ -261,11 +261,17 @@ def worker_exit_message(code: int) -> str:
     return f"worker exited with code {code}"
 
 
+def worker_log_format(sid: str | None = None) -> str:
+    """The worker's log lines name its session once it has one: its pid alone named none at INFO, and a restore
+    starts several sessions in the same few milliseconds."""
+    session = "" if sid is None else f" session {sid}"
+    return f"%(asctime)s %(levelname)s worker[{os.getpid()}]{session} %(name)s: %(message)s"
+
+
 def run_worker(spec: WorkerSpec, conn) -> None:
     """Process entry point (the target of the worker's Process)."""
     hold_blas_to_one_thread()
-    logging.basicConfig(level=spec.log_level,
-                        format=f"%(asctime)s %(levelname)s worker[{os.getpid()}] %(name)s: %(message)s")
+    logging.basicConfig(level=spec.log_level, format=worker_log_format())
     worker = Worker(spec, conn)
     take_group_signals(worker.on_sigterm)
     try:
@@ -346,6 +352,8 @@ class Worker:
                     self._send(("idle",))
                     assigned = self._assigned.wait_until(self._stop, IDLE_HEARTBEAT_S)
                 if assigned:
+                    for handler in logging.getLogger().handlers:
+                        handler.setFormatter(logging.Formatter(worker_log_format(self.job.sid)))
                     try:
                         self._tracker = load_factory(self.spec.tracker_factory)(self.job.profile,
                                                                                 self.job.overrides)

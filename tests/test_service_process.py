@@ -530,6 +530,25 @@ def test_a_signal_to_the_whole_process_group_stops_the_sessions_instead_of_faili
         serve.cleanup()
 
 
+def test_a_workers_log_lines_name_its_session(tmp_path, endpoint, client):
+    """A worker's lines named its pid only ("worker[30505] tacf_service.worker: initialised on seq 293 ..."), and
+    the line that ties a pid to a session is a debug one: two sessions restored or started together logged two such
+    lines, and an operator could not tell which session had initialised where, or whose frames were rejected."""
+    serve = Serve(tmp_path, endpoint)
+    try:
+        with FramePublisher(client, "proc/named", MovingTargetScene(320, 240, speed=1.0), fps=10) as feed:
+            assert wait_until(lambda: service_alive(client) and feed.seq >= 3, 30), serve.log()
+            for sid in ("left", "right"):
+                call(client, NODE, "start", StartRequest(image_key=feed.key, box=feed.truth[feed.seq], sid=sid,
+                                                         profile="kcc"), timeout=30)
+            assert wait_until(lambda: serve.log().count("initialised on seq") == 2, 30), serve.log()
+        lines = [line for line in serve.log().splitlines() if "initialised on seq" in line]
+        named = sorted(match.group(1) for line in lines if (match := re.search(r"worker\[\d+\] session (\S+) ", line)))
+        assert named == ["left", "right"], lines
+    finally:
+        serve.cleanup()
+
+
 def _status(sid: str):
     return StatusRequest(sid=sid)
 
