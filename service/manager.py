@@ -621,14 +621,14 @@ class SessionManager:
             worker, session.worker, session.conn, session.process = session.worker, None, None, None
             if session.unserved_since is None:      # else a worker that died before it was ready: counting on
                 session.unserved_since = self._history.arrivals(session.image_key)
+        message = worker_exit_message(process)     # before the close below stops a worker its fork server left
         if worker is not None:
             worker.close()
-        code = process.exitcode
         with self._lock:
             if session.gave_up or self._is_gone(session):
                 return
             session.state = "failed"
-            session.message = worker_exit_message(code)
+            session.message = message
             now = time.monotonic()
             session.crashes.append(now)
             while session.crashes and now - session.crashes[0] > CRASH_WINDOW_S:

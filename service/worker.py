@@ -254,11 +254,24 @@ def cancel_grace() -> None:
         signal.setitimer(signal.ITIMER_REAL, 0)
 
 
-def worker_exit_message(code: int) -> str:
-    """A worker's exit code, as its session's health says it."""
+def worker_exit_message(process) -> str:
+    """A worker's exit, as its session's health says it."""
+    code = process.exitcode
     if hasattr(signal, "SIGALRM") and code == -signal.SIGALRM:     # end_after_grace's timer
         return f"worker ended {SIGTERM_GRACE_S:.0f} s after a SIGTERM not from the service"
+    if code == 255 and "forkserver" in multiprocessing.get_all_start_methods() and _exists(process.pid):
+        # The fork server sends a worker's status once it has reaped it; a server that died sent none, and its
+        # Popen says 255 while the worker runs on: "worker exited with code 255" named the wrong process.
+        return "the workers' fork server died, taking this worker's status with it; the worker is stopped"
     return f"worker exited with code {code}"
+
+
+def _exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except OSError:             # none, or another user's that took the pid over
+        return False
+    return True
 
 
 def worker_log_format(sid: str | None = None) -> str:

@@ -1268,11 +1268,13 @@ def test_frames_that_come_before_a_first_worker_subscribes_are_received(endpoint
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["sigkill", "sigterm"])
-def test_a_killed_fork_server_restarts_its_sessions_once(service, client, feed, sig):
+def test_a_killed_fork_server_restarts_its_sessions_once(service, client, feed, sig, caplog):
     """The fork server dying takes its report of the workers' exits with it, so each of its sessions counts as
     ended: the worker, still running, stops when the service closes its pipe, and the session restarts once from
     its last box on a fork server started again, with no second worker publishing boxes for it. A SIGTERM ends
-    the server SIGTERM_GRACE_S later (it used to be ignored for good)."""
+    the server SIGTERM_GRACE_S later (it used to be ignored for good). The log says the fork server died: it said
+    "session orphan: worker exited with code 255" of a worker that had not exited."""
+    caplog.set_level("WARNING", logger="tacf_service")
     results = Collector(client, NODE, "orphan")
     try:
         start(client, service, image_key=feed.key, box=feed.truth[feed.seq], seq=feed.seq, sid="orphan")
@@ -1289,6 +1291,10 @@ def test_a_killed_fork_server_restarts_its_sessions_once(service, client, feed, 
         info = call(client, NODE, "status", StatusRequest(sid="orphan"))
         assert info.restarts == 1 and info.state in ("tracking", "lost")
         assert mean_iou(results.results()[count:], feed.truth) > 0.5
+        said = [m for m in (r.getMessage() for r in caplog.records)
+                if m.startswith("session orphan:") and ("exited" in m or "fork server" in m)]
+        assert said == ["session orphan: the workers' fork server died, taking this worker's status with it; the "
+                        "worker is stopped"], said
     finally:
         results.close()
         call(client, NODE, "stop", StopRequest(sid="orphan"))
