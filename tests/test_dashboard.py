@@ -1748,6 +1748,21 @@ def _ready_to_draw(driver, app, key: str, sid: str, width: int) -> None:
     driver.execute_script(_RECORD_STARTS)
 
 
+# The New session panel drawn again: the texts drawn on it and the pixel at its top centre (where a banner goes).
+_REDRAW_NEW_CANVAS = """
+    const canvas = document.querySelector('#new-canvas'), said = [];
+    const fillText = CanvasRenderingContext2D.prototype.fillText;
+    CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
+        if (this.canvas === canvas) said.push(String(text));
+        return fillText.call(this, text, ...rest);
+    };
+    followSelectedKey();                                    // a redraw
+    return new Promise((resolve) => requestAnimationFrame(() => {
+        CanvasRenderingContext2D.prototype.fillText = fillText;
+        resolve({said, top: Array.from(canvas.getContext('2d').getImageData(canvas.width / 2, 1, 1, 1).data)});
+    }));"""
+
+
 def test_a_key_whose_frames_cannot_be_shown_says_why_on_the_page(browser):
     """A camera whose frames are no images (a corrupt PNG: /frame answers 502 bad_frame) had the page say "waiting
     for frames" as if none came."""
@@ -1762,31 +1777,8 @@ def test_a_key_whose_frames_cannot_be_shown_says_why_on_the_page(browser):
         _open_page(browser, app)
         polled = "const f = window.tacf.newFeed; return f.key === arguments[0] && f.failures > 0"
         assert _wait(lambda: browser.execute_script(polled, key), timeout=10), "the page polls the key's frames"
-        said = browser.execute_script("""
-            const canvas = document.querySelector('#new-canvas'), said = [];
-            const fillText = CanvasRenderingContext2D.prototype.fillText;
-            CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
-                if (this.canvas === canvas) said.push(String(text));
-                return fillText.call(this, text, ...rest);
-            };
-            followSelectedKey();                                    // a redraw
-            return new Promise((resolve) => requestAnimationFrame(() => resolve(said)));""")
+        said = browser.execute_script(_REDRAW_NEW_CANVAS)["said"]
         assert said and "cannot be shown" in said[-1], said
-
-
-# The New session panel drawn again: the texts drawn on it and the pixel at its top centre (where a banner goes).
-_REDRAW_NEW_CANVAS = """
-    const canvas = document.querySelector('#new-canvas'), said = [];
-    const fillText = CanvasRenderingContext2D.prototype.fillText;
-    CanvasRenderingContext2D.prototype.fillText = function (text, ...rest) {
-        if (this.canvas === canvas) said.push(String(text));
-        return fillText.call(this, text, ...rest);
-    };
-    followSelectedKey();                                    // a redraw
-    return new Promise((resolve) => requestAnimationFrame(() => {
-        CanvasRenderingContext2D.prototype.fillText = fillText;
-        resolve({said, top: Array.from(canvas.getContext('2d').getImageData(canvas.width / 2, 1, 1, 1).data)});
-    }));"""
 
 
 def test_frames_that_turn_undecodable_leave_the_last_picture_marked_with_why(browser):
