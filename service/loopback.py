@@ -30,11 +30,15 @@ def peer_config(listen=(), connect=(), mode: str = "peer"):
 
 
 class FramePublisher:
-    """Publishes a scene as Frames on a key at a fixed rate from a thread; remembers each frame's true box."""
+    """Publishes a scene as Frames on a key at a fixed rate from a thread; remembers each frame's true box.
+
+    With DROP, a camera's congestion control (the default), a loaded machine may lose a frame on the way; lossless
+    (BLOCK) is for a test that counts every frame sent."""
 
     def __init__(self, session, key: str, scene, fps: float = 10.0, encoding: str = "jpeg", quality: int = 85,
-                 cache: int = 0) -> None:
+                 cache: int = 0, lossless: bool = False) -> None:
         self.key, self.scene, self.fps, self.encoding, self.quality = key, scene, fps, encoding, quality
+        self.lossless = lossless
         self.truth: dict[int, tuple] = {}
         self.seq = -1
         self._session = session
@@ -50,7 +54,9 @@ class FramePublisher:
         self.stop()
 
     def start(self) -> "FramePublisher":
-        self._publisher = self._session.declare_publisher(self.key)
+        import zenoh
+        congestion = zenoh.CongestionControl.BLOCK if self.lossless else zenoh.CongestionControl.DROP
+        self._publisher = self._session.declare_publisher(self.key, congestion_control=congestion)
         self._thread.start()
         return self
 
