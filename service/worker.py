@@ -261,7 +261,8 @@ def worker_exit_message(process) -> str:
         return f"worker ended {SIGTERM_GRACE_S:.0f} s after a SIGTERM not from the service"
     if code == 255 and "forkserver" in multiprocessing.get_all_start_methods() and _exists(process.pid):
         # The fork server sends a worker's status once it has reaped it; a server that died sent none, and its
-        # Popen says 255 while the worker runs on: "worker exited with code 255" named the wrong process.
+        # Popen says 255 while the worker runs on: "worker exited with code 255" named the wrong process. Only where
+        # a fork server can be: on Windows, os.kill(pid, 0) would end the process it asks about.
         return "the workers' fork server died, taking this worker's status with it; the worker is stopped"
     return f"worker exited with code {code}"
 
